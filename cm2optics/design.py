@@ -440,9 +440,10 @@ class LEDArray:
     """Placement of the LED units around the imaging axis.
 
     count: number of units, evenly spaced in azimuth.
-    offset_mm: radial distance of each LED's emitter centre from the optical axis, mm.
+    offset_mm: radial distance from the optical axis of each unit's aperture (the centre of
+        the excitation filter's lower face, where light leaves the unit), mm.
     tilt_deg: angle between each unit's axis and the optical axis, degrees; the axis is aimed
-        at the centre of the nominal focal plane, which fixes the LED's height.
+        at the centre of the nominal focal plane, which fixes the unit's height.
     azimuth_deg: azimuth of the first unit from +x, degrees.
     excitation_gap_mm: LED emitting surface to the excitation filter's lower face, mm.
     """
@@ -489,14 +490,17 @@ class MLAHousing:
     outer_mm: side of the square tower around the optics, mm.
     flange_mm: thickness of the base flange that carries the screw holes, mm.
     lip_mm: width of the ledges that hold each optic, mm.
+    chamfer_mm: 45° chamfer on the tower's top outer edges (room for the tilted LED units), mm.
     """
 
     outer_mm: float
     flange_mm: float
     lip_mm: float
+    chamfer_mm: float
 
     def __post_init__(self) -> None:
         _positive(self, "outer_mm", "flange_mm", "lip_mm")
+        _non_negative(self, "chamfer_mm")
 
 
 @dataclass(frozen=True)
@@ -578,6 +582,13 @@ class SystemDesign:
             self.mla_housing.outer_mm,
             self.mla_housing.outer_mm >= seat + 2 * (mech.clearance_mm + mech.wall_mm),
             f"the tower must hold a {seat} mm seat with walls: ≥ {seat + 2 * (mech.clearance_mm + mech.wall_mm):.2f} mm",
+        )
+        top_wall = (self.mla_housing.outer_mm - seat) / 2 - mech.clearance_mm - self.mla_housing.chamfer_mm
+        _check(
+            "mla_housing.chamfer_mm",
+            self.mla_housing.chamfer_mm,
+            top_wall >= mech.min_wall_mm - 1e-9,
+            f"the chamfer leaves a {top_wall:.3f}-mm wall at the tower top (< min_wall_mm = {mech.min_wall_mm})",
         )
         _check(
             "mla_housing.outer_mm",
@@ -703,13 +714,6 @@ class SystemDesign:
         """Object-side numerical aperture of one lenslet (square aperture, inscribed circle)."""
         return math.sin(math.atan(self.mla.aperture_mm / 2 / self.working_distance_mm))
 
-    @property
-    def led_height_mm(self) -> float:
-        """Height of each LED's emitting-surface centre, its axis aimed at the focal-plane centre."""
-        tilt = math.radians(self.led_array.tilt_deg)
-        if tilt == 0:
-            return self.object_plane_z_mm - 10.0
-        return self.object_plane_z_mm - self.led_array.offset_mm / math.tan(tilt)
 
     # -- files ------------------------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:

@@ -40,18 +40,46 @@ class Pose:
 
 
 def led_poses(design: SystemDesign) -> list[Pose]:
-    """Pose of every LED unit, aimed at the centre of the nominal focal plane."""
+    """Pose of every LED unit, its axis aimed at the centre of the nominal focal plane and its
+    aperture (excitation filter's lower face) ``led_array.offset_mm`` off the optical axis."""
     arr = design.led_array
-    target = np.array([0.0, 0.0, design.object_plane_z_mm])
+    tilt = math.radians(arr.tilt_deg)
+    aperture_z = design.object_plane_z_mm - (arr.offset_mm / math.tan(tilt) if tilt > 0 else 10.0)
     poses = []
     for i in range(arr.count):
         phi = math.radians(arr.azimuth_deg) + 2.0 * math.pi * i / arr.count
-        origin = np.array([arr.offset_mm * math.cos(phi), arr.offset_mm * math.sin(phi), design.led_height_mm])
-        z_axis = target - origin
-        z_axis /= np.linalg.norm(z_axis)
+        radial = np.array([math.cos(phi), math.sin(phi), 0.0])
+        z_axis = -math.sin(tilt) * radial + np.array([0.0, 0.0, math.cos(tilt)])
+        origin = arr.offset_mm * radial + np.array([0.0, 0.0, aperture_z]) - arr.excitation_gap_mm * z_axis
         x_axis = np.array([-math.sin(phi), math.cos(phi), 0.0])
         y_axis = np.cross(z_axis, x_axis)
         matrix = np.eye(4)
         matrix[:3, 0], matrix[:3, 1], matrix[:3, 2], matrix[:3, 3] = x_axis, y_axis, z_axis, origin
         poses.append(Pose(matrix))
     return poses
+
+
+@dataclass(frozen=True)
+class HousingEnvelope:
+    """Outer envelope of the MLA housing in the device frame (mm): a square base flange on
+    the sensor board and a square tower around the optics, open at the top."""
+
+    flange_side_mm: float
+    flange_bottom_z_mm: float
+    flange_top_z_mm: float
+    tower_side_mm: float
+    tower_top_z_mm: float
+    tower_chamfer_mm: float
+
+
+def mla_housing_envelope(design: SystemDesign) -> HousingEnvelope:
+    """Envelope that every other printed part must keep clear of."""
+    bottom = -design.sensor.package_height_mm
+    return HousingEnvelope(
+        flange_side_mm=design.sensor_board.size_mm,
+        flange_bottom_z_mm=bottom,
+        flange_top_z_mm=bottom + design.mla_housing.flange_mm,
+        tower_side_mm=design.mla_housing.outer_mm,
+        tower_top_z_mm=design.emission_filter_z_mm + design.emission_filter.thickness_mm,
+        tower_chamfer_mm=design.mla_housing.chamfer_mm,
+    )
