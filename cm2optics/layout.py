@@ -61,8 +61,10 @@ def led_poses(design: SystemDesign) -> list[Pose]:
 
 @dataclass(frozen=True)
 class HousingEnvelope:
-    """Outer envelope of the MLA housing in the device frame (mm): a square base flange on
-    the sensor board and a square tower around the optics, open at the top."""
+    """Outer envelope of the MLA housing in the device frame (mm): a square base flange that
+    stands on the sensor board (a skirt around the sensor package and standoffs at the screw
+    holes below a plate just above the sensor surface) and a square tower around the optics,
+    open at the top. Other parts may rest on the flange's top face."""
 
     flange_side_mm: float
     flange_bottom_z_mm: float
@@ -74,11 +76,10 @@ class HousingEnvelope:
 
 def mla_housing_envelope(design: SystemDesign) -> HousingEnvelope:
     """Envelope that every other printed part must keep clear of."""
-    bottom = -design.sensor.package_height_mm
     return HousingEnvelope(
         flange_side_mm=design.sensor_board.size_mm,
-        flange_bottom_z_mm=bottom,
-        flange_top_z_mm=bottom + design.mla_housing.flange_mm,
+        flange_bottom_z_mm=-design.sensor.package_height_mm,
+        flange_top_z_mm=design.mechanics.clearance_mm + design.mla_housing.flange_mm,
         tower_side_mm=design.mla_housing.outer_mm,
         tower_top_z_mm=design.emission_filter_z_mm + design.emission_filter.thickness_mm,
         tower_chamfer_mm=design.mla_housing.chamfer_mm,

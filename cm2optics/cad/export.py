@@ -1,0 +1,188 @@
+"""Export a design's parts and assembly as STL/STEP with pictures and a ``manifest.json``.
+
+Everything is written into a staging folder beside the destination and moved into place
+only when the whole export has succeeded, so a failed or interrupted export leaves the
+destination as it was.
+"""
+
+from __future__ import annotations
+
+import shutil
+import tempfile
+import time
+from collections.abc import Iterable
+from pathlib import Path
+from typing import Any
+
+import cadquery as cq
+import trimesh
+from rich.progress import Progress
+
+import cm2optics
+from cm2optics.cad.assembly import PartSpec, PlacedPart, fits, interferences, part_specs, place_parts
+from cm2optics.cad.mesh_checks import check_mesh
+from cm2optics.cad.render import render_meshes
+from cm2optics.cad.tessellate import DEFAULT_TOLERANCE_UM, export_stl
+from cm2optics.design import SystemDesign
+from cm2optics.io import write_json_atomic
+
+FORMATS = ("stl", "step")
+#: Relative mesh-volume error accepted for an exported part.
+VOLUME_TOLERANCE = 0.005
+
+
+def parse_formats(formats: str | Iterable[str]) -> tuple[str, ...]:
+    """``"stl,step"`` → ``("stl", "step")``; unknown formats raise ``ValueError``."""
+    items = formats.split(",") if isinstance(formats, str) else list(formats)
+    parsed = tuple(dict.fromkeys(f.strip().lower() for f in items if f.strip()))
+    bad = [f for f in parsed if f not in FORMATS]
+    if not parsed or bad:
+        raise ValueError(f"--format {','.join(items)!s}: allowed formats are {', '.join(FORMATS)} (comma-separated)")
+    return parsed
+
+
+def _part_record(design: SystemDesign, spec: PartSpec, shape: cq.Solid, files: dict[str, str], mesh: trimesh.Trimesh, count: int, wall_samples: int) -> dict[str, Any]:
+    min_wall_mm = design.mechanics.min_wall_mm
+    report = check_mesh(mesh, wall_samples)
+    exact = shape.Volume()
+    volume_error = abs(report.volume_mm3 - exact) / exact
+    fidelity = {k: round(v, 4) for k, v in spec.fidelity(design, mesh).items()} if spec.fidelity else {}
+    return {
+        "name": spec.name,
+        "file": files.get("stl") or next(iter(files.values())),
+        "files": files,
+        "description": spec.description,
+        "material": spec.material,
+        "printed": spec.printed,
+        "count": count,
+        "volume_mm3": round(exact, 4),
+        "mesh_volume_mm3": round(report.volume_mm3, 4),
+        "volume_error": round(volume_error, 6),
+        "bbox_mm": [[round(v, 4) for v in report.bbox_mm[0]], [round(v, 4) for v in report.bbox_mm[1]]],
+        "watertight": report.watertight and report.winding_consistent,
+        "min_wall_mm": round(report.min_wall_mm, 4),
+        "printable": (not spec.printed) or report.min_wall_mm >= min_wall_mm - 1e-6,
+        "faces": report.faces,
+        "png": f"{spec.name}.png",
+        **fidelity,
+    }
+
+
+def export_design(
+    design: SystemDesign,
+    out_dir: str | Path,
+    formats: Iterable[str] = FORMATS,
+    tolerance_um: float = DEFAULT_TOLERANCE_UM,
+    pictures: bool = True,
+    wall_samples: int = 20000,
+    show_progress: bool = True,
+) -> dict[str, Any]:
+    """Write every part and the assembly of ``design`` to ``out_dir``; return the manifest.
+
+    formats: any of ``stl``, ``step``.
+    tolerance_um: linear deflection of the STL tessellation, µm (0.1–100).
+    pictures: also render a PNG of each part, of the assembly and of its cross-section.
+    wall_samples: random surface points per part for the wall-thickness check.
+    """
+    formats = parse_formats(formats)
+    if not 0.1 <= tolerance_um <= 100:
+        raise ValueError(f"--tolerance-um {tolerance_um}: must lie within 0.1–100 µm")
+    out_dir = Path(out_dir)
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.partial-", dir=out_dir.parent))
+    try:
+        manifest = _export_into(design, staging, formats, tolerance_um / 1000.0, pictures, wall_samples, show_progress)
+        out_dir.mkdir(exist_ok=True)
+        for item in staging.iterdir():
+            target = out_dir / item.name
+            if target.is_dir():
+                shutil.rmtree(target)
+            item.replace(target)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    return manifest
+
+
+def _export_into(design: SystemDesign, folder: Path, formats: tuple[str, ...], tolerance_mm: float, pictures: bool, wall_samples: int, show_progress: bool) -> dict[str, Any]:
+    timings: dict[str, float] = {}
+    specs = part_specs(design)
+    built: dict[str, cq.Workplane] = {}
+    records, meshes = [], {}
+    with Progress(disable=not show_progress, transient=True) as progress:
+        task = progress.add_task("building and exporting parts", total=len(specs) + 2)
+        for spec in specs:
+            start = time.perf_counter()
+            built[spec.name] = spec.build(design)
+            stl = folder / f"{spec.name}.stl"
+            export_stl(built[spec.name].val(), stl, tolerance_mm)
+            meshes[spec.name] = trimesh.load(stl, force="mesh")
+            if "stl" not in formats:
+                stl.unlink()
+            if "step" in formats:
+                cq.exporters.export(built[spec.name], str(folder / f"{spec.name}.step"))
+            timings[spec.name] = time.perf_counter() - start
+            progress.advance(task)
+        placed = place_parts(design, built)
+        counts = {spec.name: sum(p.part == spec.name for p in placed) for spec in specs}
+        for spec in specs:
+            progress.update(task, description=f"checking {spec.name}")
+            shape = built[spec.name].val()
+            files = {fmt: f"{spec.name}.{fmt}" for fmt in formats}
+            records.append(_part_record(design, spec, shape, files, meshes[spec.name], counts[spec.name], wall_samples))
+        progress.update(task, description="checking the assembly for interferences")
+        start = time.perf_counter()
+        clashes = interferences(placed)
+        timings["interference_check"] = time.perf_counter() - start
+        progress.advance(task)
+        material = {spec.name: spec.material for spec in specs}
+        assembly_meshes = [(meshes[p.part].copy().apply_transform(p.matrix), material[p.part]) for p in placed]
+        assembly_files = _write_assembly(design, folder, formats, placed, assembly_meshes)
+        if pictures:
+            progress.update(task, description="rendering pictures")
+            start = time.perf_counter()
+            for spec in specs:
+                render_meshes([(meshes[spec.name], spec.material)], folder / f"{spec.name}.png", title=f"{spec.name} — {spec.description}")
+            render_meshes(assembly_meshes, folder / "assembly.png", title=f"{design.name} assembly")
+            render_meshes(assembly_meshes, folder / "assembly_section.png", title=f"{design.name} section y = 0", section_normal=(0.0, 1.0, 0.0))
+            timings["pictures"] = time.perf_counter() - start
+        progress.advance(task)
+    manifest = {
+        "design": design.name,
+        "parameter_hash": design.parameter_hash(),
+        "package_version": cm2optics.__version__,
+        "tolerance_um": round(tolerance_mm * 1000.0, 6),
+        "formats": list(formats),
+        "parts": records,
+        "assembly": {
+            "files": assembly_files,
+            "file": assembly_files.get("stl") or assembly_files.get("step"),
+            "instances": [{"instance": p.instance, "part": p.part} for p in placed],
+            "interferences": clashes,
+            "fits": [f.as_dict() for f in fits(design)],
+            "png": ["assembly.png", "assembly_section.png"] if pictures else [],
+        },
+        "checks": {
+            "all_watertight": all(r["watertight"] for r in records),
+            "volumes_within_tolerance": all(r["volume_error"] <= VOLUME_TOLERANCE for r in records),
+            "all_printable": all(r["printable"] for r in records),
+            "no_interferences": not clashes,
+        },
+        "timings_s": {k: round(v, 3) for k, v in timings.items()},
+    }
+    write_json_atomic(folder / "manifest.json", manifest)
+    design.save(folder / "design.yaml")
+    return manifest
+
+
+def _write_assembly(design: SystemDesign, folder: Path, formats: tuple[str, ...], placed: list[PlacedPart], meshes: list[tuple[trimesh.Trimesh, str]]) -> dict[str, str]:
+    files = {}
+    if "stl" in formats:
+        trimesh.util.concatenate([m for m, _ in meshes]).export(folder / "assembly.stl")
+        files["stl"] = "assembly.stl"
+    if "step" in formats:
+        assembly = cq.Assembly(name=design.name)
+        for p in placed:
+            assembly.add(cq.Workplane().add(p.solid), name=p.instance)
+        assembly.save(str(folder / "assembly.step"), exportType="STEP")
+        files["step"] = "assembly.step"
+    return files

@@ -1,0 +1,162 @@
+"""The printed MLA housing: holds the imaging optics over the sensor and screws to its board.
+
+Device frame (origin on the sensor surface, +z towards the sample). From the board up:
+a skirt around the sensor package and four standoffs at the screw holes stand on the PCB;
+a plate (the flange, ``mla_housing.flange_mm`` thick) just above the sensor covers the skirt
+and reaches the standoffs with four diagonal arms (a full board-sized plate would triple the
+part's weight);
+a square tower rises from it around a stepped bore:
+
+=====================  ===========================================================
+sensor cone            lofted from the sensor's active area to the film seat
+film seat              absorption film, pressed in from the sensor side (glue dots)
+spacer                 between film and MLA; corner pads carry the MLA's corners
+MLA seat               the diced MLA, dropped in from the top, flat face down
+mask seat              the aperture mask on the ledge above the MLA seat
+filter seat            the emission filter, flush with the top of the tower
+=====================  ===========================================================
+
+Every seat is its part plus ``mechanics.clearance_mm`` per side; the tower's top outer
+edges are chamfered at 45° to clear the tilted LED units.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cadquery as cq
+
+from cm2optics.cad.fits import Fit
+from cm2optics.design import SystemDesign
+from cm2optics.layout import mla_housing_envelope
+
+
+@dataclass(frozen=True)
+class BoreStep:
+    """One step of the housing's bore: a centred rectangle from ``z0_mm`` to ``z1_mm``."""
+
+    name: str
+    width_mm: float
+    length_mm: float
+    z0_mm: float
+    z1_mm: float
+
+
+def bore_steps(design: SystemDesign) -> list[BoreStep]:
+    """The seats and clear openings of the bore, bottom to top (sensor cone excluded)."""
+    c, lip = design.mechanics.clearance_mm, design.mla_housing.lip_mm
+    mla, film, mask, filt = design.mla, design.absorption_filter, design.aperture_mask, design.emission_filter
+    z_mla = design.imaging.mla_to_sensor_mm
+    steps = []
+    if film is not None:
+        z_film = design.imaging.film_to_sensor_mm
+        steps.append(BoreStep("film seat", film.width_mm + 2 * c, film.length_mm + 2 * c, z_film, z_film + film.thickness_mm))
+        spacer_w, spacer_l = film.width_mm - 2 * lip, film.length_mm - 2 * lip
+        spacer_z0 = z_film + film.thickness_mm
+    else:
+        spacer_w, spacer_l = mla.width_mm + 2 * c - 2 * lip, mla.length_mm + 2 * c - 2 * lip
+        spacer_z0 = z_mla - 2 * lip
+    steps += [
+        BoreStep("spacer", spacer_w, spacer_l, spacer_z0, z_mla),
+        BoreStep("MLA seat", mla.width_mm + 2 * c, mla.length_mm + 2 * c, z_mla, design.mask_z_mm),
+        BoreStep("mask seat", mask.outer_mm + 2 * c, mask.outer_mm + 2 * c, design.mask_z_mm, design.emission_filter_z_mm),
+        BoreStep("filter seat", filt.width_mm + 2 * c, filt.length_mm + 2 * c, design.emission_filter_z_mm, mla_housing_envelope(design).tower_top_z_mm),
+    ]
+    return steps
+
+
+def _box(width: float, length: float, z0: float, z1: float) -> cq.Workplane:
+    return cq.Workplane().box(width, length, z1 - z0, centered=(True, True, False)).translate((0, 0, z0))
+
+
+def _mla_pads(design: SystemDesign, spacer: BoreStep) -> cq.Workplane | None:
+    """Triangular corner pads under the MLA when the spacer opening is wider than its ledge."""
+    lip = design.mla_housing.lip_mm
+    half_w, half_l = spacer.width_mm / 2, spacer.length_mm / 2
+    leg = 2 * (max(half_w - design.mla.width_mm / 2, half_l - design.mla.length_mm / 2) + lip)
+    if half_w <= design.mla.width_mm / 2 - lip and half_l <= design.mla.length_mm / 2 - lip:
+        return None
+    pads = None
+    for sx in (-1, 1):
+        for sy in (-1, 1):
+            corner = (sx * half_w, sy * half_l)
+            tri = [corner, (corner[0] - sx * leg, corner[1]), (corner[0], corner[1] - sy * leg)]
+            pad = cq.Workplane().polyline(tri).close().extrude(spacer.z1_mm - spacer.z0_mm).translate((0, 0, spacer.z0_mm))
+            pads = pad if pads is None else pads.union(pad)
+    return pads
+
+
+def build_mla_housing(design: SystemDesign) -> cq.Workplane:
+    """The MLA housing of ``design`` as one solid in the device frame."""
+    env = mla_housing_envelope(design)
+    c, wall = design.mechanics.clearance_mm, design.mechanics.wall_mm
+    sensor, board = design.sensor, design.sensor_board
+    plate_z0 = c
+    # Plate with arms, skirt and standoffs.
+    pocket_w, pocket_l = sensor.package_width_mm + 2 * c, sensor.package_length_mm + 2 * c
+    body = _box(pocket_w + 2 * wall, pocket_l + 2 * wall, plate_z0, env.flange_top_z_mm)
+    arm_width = board.hole_diameter_mm + 2 * wall
+    arm_length = board.hole_spacing_mm * 2**0.5
+    for angle in (45, -45):
+        arm = _box(arm_length, arm_width, plate_z0, env.flange_top_z_mm).rotate((0, 0, 0), (0, 0, 1), angle)
+        body = body.union(arm)
+    skirt = _box(pocket_w + 2 * wall, pocket_l + 2 * wall, env.flange_bottom_z_mm, plate_z0).cut(
+        _box(pocket_w, pocket_l, env.flange_bottom_z_mm, plate_z0)
+    )
+    half = board.hole_spacing_mm / 2
+    holes = [(sx * half, sy * half) for sx in (-1, 1) for sy in (-1, 1)]
+    standoffs = (
+        cq.Workplane()
+        .pushPoints(holes)
+        .circle(board.hole_diameter_mm / 2 + wall)
+        .extrude(plate_z0 - env.flange_bottom_z_mm)
+        .translate((0, 0, env.flange_bottom_z_mm))
+    )
+    tower = _box(env.tower_side_mm, env.tower_side_mm, env.flange_top_z_mm, env.tower_top_z_mm)
+    if env.tower_chamfer_mm > 0:
+        tower = tower.edges(">Z").chamfer(env.tower_chamfer_mm)
+    body = body.union(skirt).union(standoffs).union(tower)
+    # Screw holes and the bore.
+    body = body.cut(
+        cq.Workplane()
+        .pushPoints(holes)
+        .circle(board.hole_diameter_mm / 2)
+        .extrude(env.flange_top_z_mm - env.flange_bottom_z_mm)
+        .translate((0, 0, env.flange_bottom_z_mm))
+    )
+    steps = bore_steps(design)
+    margin = 2 * c
+    cone = (
+        cq.Workplane()
+        .workplane(offset=plate_z0)
+        .rect(sensor.active_width_mm + 2 * margin, sensor.active_length_mm + 2 * margin)
+        .workplane(offset=steps[0].z0_mm - plate_z0)
+        .rect(steps[0].width_mm, steps[0].length_mm)
+        .loft()
+    )
+    body = body.cut(cone)
+    for step in steps:
+        body = body.cut(_box(step.width_mm, step.length_mm, step.z0_mm, step.z1_mm))
+    spacer = next(s for s in steps if s.name == "spacer")
+    pads = _mla_pads(design, spacer)
+    if pads is not None:
+        body = body.union(pads)
+    solids = body.solids().vals()
+    if len(solids) != 1 or not solids[0].isValid():
+        raise RuntimeError(f"the MLA housing did not build as one valid solid ({len(solids)} solids)")
+    return cq.Workplane().add(solids[0])
+
+
+def mla_housing_fits(design: SystemDesign) -> list[Fit]:
+    """Clearance of every part seated in the MLA housing, from the builder's own numbers."""
+    c = design.mechanics.clearance_mm
+    steps = {s.name: s for s in bore_steps(design)}
+    fits = [
+        Fit("sensor package", "skirt", c),
+        Fit("MLA", "MLA seat", (steps["MLA seat"].width_mm - design.mla.width_mm) / 2),
+        Fit("aperture mask", "mask seat", (steps["mask seat"].width_mm - design.aperture_mask.outer_mm) / 2),
+        Fit("emission filter", "filter seat", (steps["filter seat"].width_mm - design.emission_filter.width_mm) / 2),
+    ]
+    if design.absorption_filter is not None:
+        fits.append(Fit("absorption film", "film seat", (steps["film seat"].width_mm - design.absorption_filter.width_mm) / 2))
+    return fits
