@@ -19,6 +19,7 @@ from rich.table import Table
 
 import cm2optics
 from cm2optics.design import DesignError, SystemDesign, available_presets, load_preset
+from cm2optics.spectra.cli import spectra_app
 
 app = typer.Typer(
     help="cm2optics: design, simulate and reconstruct computational miniature mesoscopes (CM²).\n\n"
@@ -32,8 +33,9 @@ design_app = typer.Typer(help="Inspect and validate system designs (YAML presets
 cad_app = typer.Typer(help="Parametric CAD: printable parts, assembly, STL/STEP export.", no_args_is_help=True)
 app.add_typer(design_app, name="design")
 app.add_typer(cad_app, name="cad")
+app.add_typer(spectra_app, name="spectra")
 
-err = Console(stderr=True)
+err = Console(stderr=True, soft_wrap=True)
 out = Console()
 F = TypeVar("F", bound=Callable[..., Any])
 
@@ -69,7 +71,9 @@ def _version(value: bool) -> None:
 
 @app.callback()
 def main(
-    version: Annotated[bool, typer.Option("--version", callback=_version, is_eager=True, help="Show the version and exit.")] = False,
+    version: Annotated[
+        bool, typer.Option("--version", callback=_version, is_eager=True, help="Show the version and exit.")
+    ] = False,
 ) -> None:
     """cm2optics command line."""
 
@@ -97,7 +101,11 @@ def design_summary(design: SystemDesign) -> dict[str, float | str]:
 
 @design_app.command("show")
 @user_errors
-def design_show(preset: PresetOption = "cm2-v2", as_json: JsonOption = False, yaml_out: Annotated[bool, typer.Option("--yaml", help="Print the full design as YAML.")] = False) -> None:
+def design_show(
+    preset: PresetOption = "cm2-v2",
+    as_json: JsonOption = False,
+    yaml_out: Annotated[bool, typer.Option("--yaml", help="Print the full design as YAML.")] = False,
+) -> None:
     """Show a design's derived optics: focal length, magnification, object pixel, heights.
 
     Heights are in the device frame: z = 0 on the sensor surface, +z towards the sample.
@@ -142,10 +150,20 @@ def design_presets() -> None:
 @user_errors
 def cad_export(
     preset: PresetOption = "cm2-v2",
-    out_dir: Annotated[Path, typer.Option("--out", "-o", help="Folder to write parts, pictures and manifest.json into.")] = Path("out/cad"),
+    out_dir: Annotated[
+        Path, typer.Option("--out", "-o", help="Folder to write parts, pictures and manifest.json into.")
+    ] = Path("out/cad"),
     formats: Annotated[str, typer.Option("--format", "-f", help="Comma-separated formats: stl, step.")] = "stl,step",
-    tolerance_um: Annotated[float, typer.Option("--tolerance-um", help="STL chord tolerance, µm (0.1–100); the default keeps lens faces ≈ 0.5 µm RMS from their spheres.")] = 0.5,
-    pictures: Annotated[bool, typer.Option("--pictures/--no-pictures", help="Render a PNG of each part and of the assembly.")] = True,
+    tolerance_um: Annotated[
+        float,
+        typer.Option(
+            "--tolerance-um",
+            help="STL chord tolerance, µm (0.1–100); the default keeps lens faces ≈ 0.5 µm RMS from their spheres.",
+        ),
+    ] = 0.5,
+    pictures: Annotated[
+        bool, typer.Option("--pictures/--no-pictures", help="Render a PNG of each part and of the assembly.")
+    ] = True,
     as_json: JsonOption = False,
 ) -> None:
     """Export every part and the assembly, checked for printing.
@@ -155,20 +173,28 @@ def cad_export(
     `manifest.json` with, per part: volume (mm³), bounding box (mm), watertight, minimum wall
     (mm); and for the assembly: interferences (empty when none) and the fit of every seated part.
     """
-    from cm2optics.cad.export import export_design
+    from cm2optics.cad.export import export_design, size_text
 
     design = load_preset(preset)
-    manifest = export_design(design, out_dir, formats=formats, tolerance_um=tolerance_um, pictures=pictures, show_progress=not as_json)
+    manifest = export_design(
+        design, out_dir, formats=formats, tolerance_um=tolerance_um, pictures=pictures, show_progress=not as_json
+    )
     if as_json:
         print(json.dumps(manifest, indent=2, ensure_ascii=False))
         return
     table = Table(title=f"{design.name}: parts in {out_dir}")
-    for column in ("part", "n", "volume mm³", "bbox mm", "watertight", "min wall mm", "printed"):
-        table.add_column(column)
+    for column in ("part", "n", "volume mm³", "size mm", "watertight", "min wall mm", "printed"):
+        table.add_column(column, no_wrap=True)
     for part in manifest["parts"]:
-        lo, hi = part["bbox_mm"]
-        size = " × ".join(f"{h - l:.2f}" for l, h in zip(lo, hi))
-        table.add_row(part["name"], str(part["count"]), f"{part['volume_mm3']:.3f}", size, "yes" if part["watertight"] else "[red]NO[/]", f"{part['min_wall_mm']:.3f}", "yes" if part["printed"] else "")
+        table.add_row(
+            part["name"],
+            str(part["count"]),
+            f"{part['volume_mm3']:.3f}",
+            size_text(part["bbox_mm"]),
+            "yes" if part["watertight"] else "[red]NO[/]",
+            f"{part['min_wall_mm']:.3f}",
+            "yes" if part["printed"] else "",
+        )
     out.print(table)
     clashes = manifest["assembly"]["interferences"]
     out.print(f"interferences: {'none' if not clashes else clashes}")
@@ -184,7 +210,9 @@ def cad_export(
 @app.command("demo")
 @user_errors
 def demo(
-    out_dir: Annotated[Path, typer.Option("--out", "-o", help="Folder for the report and its figures.")] = Path("out/demo"),
+    out_dir: Annotated[Path, typer.Option("--out", "-o", help="Folder for the report and its figures.")] = Path(
+        "out/demo"
+    ),
     preset: PresetOption = "cm2-v2",
 ) -> None:
     """Run every stage built so far at demo size and write `report.html` and `report.md`."""

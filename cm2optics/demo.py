@@ -1,8 +1,8 @@
 """``cm2 demo``: every stage built so far, at demo size, into one report with figures.
 
-Stages so far: the design's first-order optics, and the printable parts (CAD export with
-checks and pictures), with the collimator compared to the original authors' part when the
-reference data is present beside the repository.
+Stages so far: the design's first-order optics; the printable parts (CAD export with checks
+and pictures), with the collimator compared to the original authors' part when the reference
+data is present beside the repository; the spectra, filters and the hybrid filter's SBR.
 """
 
 from __future__ import annotations
@@ -14,6 +14,7 @@ from rich.console import Console
 
 from cm2optics.design import SystemDesign
 from cm2optics.report import Report
+from cm2optics.spectra.report import add_spectra_section
 
 #: Where the original device's reference data sits in a developer checkout (absent for users).
 REFERENCE_DIR = Path(__file__).resolve().parents[2] / "shared" / "reference" / "cm2-v2"
@@ -31,7 +32,7 @@ def _design_section(report: Report, design: SystemDesign) -> None:
 
 
 def _cad_section(report: Report, design: SystemDesign, out_dir: Path) -> None:
-    from cm2optics.cad.export import export_design
+    from cm2optics.cad.export import export_design, size_text
 
     start = time.perf_counter()
     manifest = export_design(design, out_dir / "cad", wall_samples=5000)
@@ -43,7 +44,6 @@ def _cad_section(report: Report, design: SystemDesign, out_dir: Path) -> None:
     )
     rows = []
     for part in manifest["parts"]:
-        lo, hi = part["bbox_mm"]
         rows.append(
             [
                 part["name"],
@@ -51,13 +51,16 @@ def _cad_section(report: Report, design: SystemDesign, out_dir: Path) -> None:
                 "printed" if part["printed"] else "bought/cut",
                 f"{part['volume_mm3']:.3f}",
                 f"{part['volume_error'] * 100:.3f} %",
-                " × ".join(f"{h - l:.2f}" for l, h in zip(lo, hi)),
+                size_text(part["bbox_mm"]),
                 part["watertight"],
                 f"{part['min_wall_mm']:.3f}",
             ]
         )
     report.table(["part", "n", "kind", "volume mm³", "mesh vol. error", "size mm", "watertight", "min wall mm"], rows)
-    report.table(["seated part", "seat", "clearance mm"], [[f["part"], f["seat"], f["clearance_mm"]] for f in manifest["assembly"]["fits"]])
+    report.table(
+        ["seated part", "seat", "clearance mm"],
+        [[f["part"], f["seat"], f["clearance_mm"]] for f in manifest["assembly"]["fits"]],
+    )
     clashes = manifest["assembly"]["interferences"]
     report.paragraph(f"Interferences between placed parts: {'none' if not clashes else clashes}.")
     report.figure("cad/assembly.png", "The assembly in the device frame")
@@ -77,7 +80,10 @@ def _collimator_comparison(report: Report, design: SystemDesign) -> None:
     comparison = compare_with_reference(design, reference)
     report.paragraph("The collimator beside the original authors' printed part (reference data, not shipped):")
     keys = sorted(set(comparison["design"]) | set(comparison["reference"]))
-    report.table(["quantity", "this design", "authors' part"], [[k, comparison["design"].get(k, ""), comparison["reference"].get(k, "")] for k in keys])
+    report.table(
+        ["quantity", "this design", "authors' part"],
+        [[k, comparison["design"].get(k, ""), comparison["reference"].get(k, "")] for k in keys],
+    )
 
 
 def run_demo(design: SystemDesign, out_dir: str | Path) -> Path:
@@ -85,8 +91,10 @@ def run_demo(design: SystemDesign, out_dir: str | Path) -> Path:
     out_dir = Path(out_dir)
     console = Console(stderr=True)
     report = Report(f"cm2optics demo — {design.name}")
-    console.print("[bold]1/2[/] design optics")
+    console.print("[bold]1/3[/] design optics")
     _design_section(report, design)
-    console.print("[bold]2/2[/] CAD export and checks")
+    console.print("[bold]2/3[/] CAD export and checks")
     _cad_section(report, design, out_dir)
+    console.print("[bold]3/3[/] spectra, filters and SBR")
+    add_spectra_section(report, design, out_dir, title="3. Spectra, filters and the hybrid emission filter")
     return report.write(out_dir)

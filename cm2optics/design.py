@@ -26,7 +26,7 @@ import math
 import types
 import typing
 from dataclasses import dataclass, fields
-from enum import Enum
+from enum import Enum, StrEnum
 from functools import cached_property
 from importlib import resources
 from pathlib import Path
@@ -97,7 +97,7 @@ def _in_range(obj: Any, name: str, low: float, high: float, unit: str = "") -> N
     _check(name, value, math.isfinite(value) and low <= value <= high, f"must lie within {low}–{high}{unit}")
 
 
-class Side(str, Enum):
+class Side(StrEnum):
     """A side of the lenslet array, named by the device-frame axis it faces."""
 
     PLUS_X = "+x"
@@ -281,7 +281,12 @@ class ApertureMask:
 
     def __post_init__(self) -> None:
         _positive(self, "opening_mm", "outer_mm", "thickness_mm")
-        _check("outer_mm", self.outer_mm, self.outer_mm > self.opening_mm + 0.8, "must exceed opening_mm by ≥ 0.8 mm (two 0.4-mm rims)")
+        _check(
+            "outer_mm",
+            self.outer_mm,
+            self.outer_mm > self.opening_mm + 0.8,
+            "must exceed opening_mm by ≥ 0.8 mm (two 0.4-mm rims)",
+        )
 
 
 @dataclass(frozen=True)
@@ -401,13 +406,17 @@ class LED:
 
 @dataclass(frozen=True)
 class Collimator:
-    """Rotationally symmetric freeform TIR collimator in front of each LED.
+    """Rotationally symmetric freeform TIR collimator in front of each LED, its focus on the
+    LED's centre; :mod:`cm2optics.collimator` computes its profile from these numbers.
 
     material: printed transparent material.
-    led_gap_mm: LED emitting surface to the collimator's entry (cavity mouth) plane, mm.
-    lens_half_angle_deg: half-angle of the cone collimated by the inner refractive lenslet;
-        rays beyond it are collimated by the outer TIR surface, degrees.
+    led_gap_mm: LED emitting surface to the collimator's entry plane (the cavity mouth), mm.
+    lens_half_angle_deg: half-angle of the cone collimated by the inner refractive lens (a
+        hyperbola on the cavity floor); rays beyond it cross the cavity wall and are
+        collimated by the outer TIR surface, degrees.
     cavity_radius_mm: radius of the cylindrical entry cavity around the LED, mm.
+    entry_wall_mm: radial wall between the cavity and the outer TIR surface at the entry
+        plane, where the TIR surface starts, mm.
     footprint_mm: side of the square exit flange, mm.
     height_mm: entry plane to exit face, mm.
     flange_mm: thickness of the square exit flange, mm.
@@ -417,6 +426,7 @@ class Collimator:
     led_gap_mm: float
     lens_half_angle_deg: float
     cavity_radius_mm: float
+    entry_wall_mm: float
     footprint_mm: float
     height_mm: float
     flange_mm: float
@@ -424,14 +434,15 @@ class Collimator:
     def __post_init__(self) -> None:
         _check("material", self.material, self.material.is_transparent, "a collimator must be transparent")
         _non_negative(self, "led_gap_mm")
-        _in_range(self, "lens_half_angle_deg", 10.0, 80.0, "°")
-        _positive(self, "cavity_radius_mm", "footprint_mm", "height_mm", "flange_mm")
+        _in_range(self, "lens_half_angle_deg", 5.0, 60.0, "°")
+        _positive(self, "cavity_radius_mm", "entry_wall_mm", "footprint_mm", "height_mm", "flange_mm")
         _check("flange_mm", self.flange_mm, self.flange_mm < self.height_mm, f"must be < height_mm = {self.height_mm}")
         _check(
-            "cavity_radius_mm",
-            self.cavity_radius_mm,
-            self.cavity_radius_mm < self.footprint_mm / 2 - 0.4,
-            f"the cavity must leave a ≥ 0.4-mm wall inside footprint_mm/2 = {self.footprint_mm / 2}",
+            "entry_wall_mm",
+            self.entry_wall_mm,
+            self.cavity_radius_mm + self.entry_wall_mm < self.footprint_mm / 2,
+            f"the cavity and its wall must fit inside footprint_mm/2 = {self.footprint_mm / 2} "
+            f"(cavity_radius_mm + entry_wall_mm = {self.cavity_radius_mm + self.entry_wall_mm})",
         )
 
 
@@ -593,7 +604,8 @@ class SystemDesign:
         _check(
             "mla_housing.outer_mm",
             self.mla_housing.outer_mm,
-            self.mla_housing.outer_mm < self.sensor_board.hole_spacing_mm - self.sensor_board.hole_diameter_mm - 2 * mech.wall_mm,
+            self.mla_housing.outer_mm
+            < self.sensor_board.hole_spacing_mm - self.sensor_board.hole_diameter_mm - 2 * mech.wall_mm,
             "the tower must leave room for the board's screw holes",
         )
         if self.collimator is not None:
@@ -605,12 +617,13 @@ class SystemDesign:
                 f"a collimator wider than its housing: footprint + clearance + walls = {pocket:.2f} mm "
                 f"> led_housing.outer_mm = {self.led_housing.outer_mm}",
             )
+            exit_z = self.collimator.led_gap_mm + self.collimator.height_mm
             _check(
                 "led_array.excitation_gap_mm",
                 self.led_array.excitation_gap_mm,
-                self.led_array.excitation_gap_mm >= self.collimator.led_gap_mm + self.collimator.height_mm,
-                "the excitation filter must sit in front of the collimator's exit face "
-                f"(≥ led_gap_mm + height_mm = {self.collimator.led_gap_mm + self.collimator.height_mm:.3f} mm)",
+                abs(self.led_array.excitation_gap_mm - exit_z) <= 1e-6,
+                f"must equal collimator.led_gap_mm + height_mm = {exit_z:g}: the excitation filter rests on the "
+                "collimator's exit face (a printed spacer in a smaller gap would be thinner than a printable wall)",
             )
         filt = max(self.excitation_filter.width_mm, self.excitation_filter.length_mm)
         _check(
@@ -714,7 +727,6 @@ class SystemDesign:
         """Object-side numerical aperture of one lenslet (square aperture, inscribed circle)."""
         return math.sin(math.atan(self.mla.aperture_mm / 2 / self.working_distance_mm))
 
-
     # -- files ------------------------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:
         return _to_plain(self)
@@ -816,7 +828,9 @@ def _dataclass_from_dict(cls: type, data: Any, path: str) -> Any:
         if key not in names:
             close = difflib.get_close_matches(str(key), names, n=1)
             hint = f" (did you mean {close[0]!r}?)" if close else ""
-            raise DesignError(f"{prefix}{key}", data[key], f"unknown field{hint}; {cls.__name__} has: {', '.join(names)}")
+            raise DesignError(
+                f"{prefix}{key}", data[key], f"unknown field{hint}; {cls.__name__} has: {', '.join(names)}"
+            )
     for name in names:
         if name not in data:
             raise DesignError(f"{prefix}{name}", None, f"missing; expected {_type_name(hints[name])}")

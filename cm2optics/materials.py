@@ -6,12 +6,12 @@ formulas (as the catalogues write them).
 
 from __future__ import annotations
 
-from enum import Enum
+from enum import StrEnum
 
 import numpy as np
 
 
-class Material(str, Enum):
+class Material(StrEnum):
     """Materials a CM² part can be made of (the YAML spells them by value)."""
 
     PMMA = "pmma"
@@ -52,7 +52,7 @@ def refractive_index(material: Material, wavelength_nm: float | np.ndarray) -> f
     if material in _SELLMEIER:
         b, c = _SELLMEIER[material]
         lam2 = lam_um**2
-        n2 = 1.0 + sum(bi * lam2 / (lam2 - ci) for bi, ci in zip(b, c))
+        n2 = 1.0 + sum(bi * lam2 / (lam2 - ci) for bi, ci in zip(b, c, strict=True))
         n = np.sqrt(n2)
     elif material in _CAUCHY:
         a, b = _CAUCHY[material]

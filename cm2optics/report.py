@@ -68,7 +68,9 @@ class Report:
                 parts.append("</table>")
             elif kind == "figure":
                 path, caption = content
-                parts.append(f"<figure><img src='{html.escape(path)}' alt='{html.escape(caption)}'><figcaption>{html.escape(caption)}</figcaption></figure>")
+                parts.append(
+                    f"<figure><img src='{html.escape(path)}' alt='{html.escape(caption)}'><figcaption>{html.escape(caption)}</figcaption></figure>"
+                )
         parts.append("</body></html>")
         return "\n".join(parts)
 

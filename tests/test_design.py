@@ -31,13 +31,24 @@ def test_presets_ship_and_load():
 
 def test_v2_matches_the_paper(v2: SystemDesign):
     mla = v2.mla
-    assert (mla.rows, mla.cols, mla.pitch_mm, mla.radius_mm, mla.thickness_mm, mla.material) == (3, 3, 1.0, 1.65, 3.3, Material.PMMA)
+    assert (mla.rows, mla.cols, mla.pitch_mm, mla.radius_mm, mla.thickness_mm, mla.material) == (
+        3,
+        3,
+        1.0,
+        1.65,
+        3.3,
+        Material.PMMA,
+    )
     assert v2.magnification == pytest.approx(0.57, rel=0.03)
     assert v2.object_pixel_um == pytest.approx(4.15, rel=0.02)
     assert v2.working_distance_mm == pytest.approx(10.0, abs=1.0)
     assert v2.object_na == pytest.approx(0.05, abs=0.005)
     assert (v2.led_array.count, v2.led_array.offset_mm, v2.led_array.tilt_deg) == (4, 6.7, 45.0)
-    assert (v2.emission_filter.width_mm, v2.emission_filter.length_mm, v2.emission_filter.thickness_mm) == (6.0, 6.0, 1.0)
+    assert (v2.emission_filter.width_mm, v2.emission_filter.length_mm, v2.emission_filter.thickness_mm) == (
+        6.0,
+        6.0,
+        1.0,
+    )
     assert v2.absorption_filter.thickness_mm == 0.1
     assert (v2.volume.field_mm, v2.volume.depth_mm) == (8.0, 0.8)
 

@@ -8,7 +8,12 @@ from cm2optics.materials import Material, refractive_index
 
 @pytest.mark.parametrize(
     ("material", "wavelength_nm", "expected"),
-    [(Material.N_BK7, 587.56, 1.5168), (Material.N_BK7, 486.13, 1.5224), (Material.PMMA, 589.3, 1.4906), (Material.CLEAR_RESIN, 589.0, 1.510)],
+    [
+        (Material.N_BK7, 587.56, 1.5168),
+        (Material.N_BK7, 486.13, 1.5224),
+        (Material.PMMA, 589.3, 1.4906),
+        (Material.CLEAR_RESIN, 589.0, 1.510),
+    ],
 )
 def test_catalogue_values(material, wavelength_nm, expected):
     assert refractive_index(material, wavelength_nm) == pytest.approx(expected, abs=6e-4)

@@ -4,15 +4,13 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
-
 import cadquery as cq
+import numpy as np
 import pytest
 import trimesh
 
-from cm2optics.cad.tessellate import export_stl
 from cm2optics.cad.mla import build_mla, lens_cells, lens_rms_deviation_um, mla_volume_mm3
-from cm2optics.cad.tessellate import DEFAULT_TOLERANCE_UM
+from cm2optics.cad.tessellate import DEFAULT_TOLERANCE_UM, export_stl
 from cm2optics.design import SystemDesign
 
 

@@ -7,10 +7,10 @@ import pytest
 import trimesh
 
 from cm2optics.cad import components
-from cm2optics.cad.tessellate import export_stl
 from cm2optics.cad.mesh_checks import min_wall_thickness_mm
 from cm2optics.cad.mla import build_mla
 from cm2optics.cad.mla_housing import bore_steps, build_mla_housing, mla_housing_fits
+from cm2optics.cad.tessellate import export_stl
 from cm2optics.layout import mla_housing_envelope
 
 
@@ -43,7 +43,11 @@ def test_watertight_and_walls_printable(design, housing, tmp_path):
     wall = min_wall_thickness_mm(mesh, samples=5000)
     assert wall >= design.mechanics.min_wall_mm
     # The thinnest wall is the chamfered rim at the tower top: seat wall minus chamfer.
-    expected = (design.mla_housing.outer_mm - design.emission_filter.width_mm) / 2 - design.mechanics.clearance_mm - design.mla_housing.chamfer_mm
+    expected = (
+        (design.mla_housing.outer_mm - design.emission_filter.width_mm) / 2
+        - design.mechanics.clearance_mm
+        - design.mla_housing.chamfer_mm
+    )
     assert wall == pytest.approx(expected, abs=0.01)
 
 
@@ -72,4 +76,4 @@ def test_seated_optics_do_not_clash_and_rest_on_ledges(design, housing):
 
 def test_bore_steps_stack_upwards(design):
     steps = bore_steps(design)
-    assert all(a.z1_mm == pytest.approx(b.z0_mm) for a, b in zip(steps, steps[1:]))
+    assert all(a.z1_mm == pytest.approx(b.z0_mm) for a, b in zip(steps, steps[1:], strict=False))

@@ -11,7 +11,9 @@ from cm2optics import paraxial
 def test_thin_lens_imaging_matches_gaussian_formula():
     f, s_o = 3.0, 10.0
     s_i = 1 / (1 / f - 1 / s_o)
-    system = paraxial.chain(paraxial.refract(2 * f * 0.5, 1.0, 1.5), paraxial.refract(-2 * f * 0.5, 1.5, 1.0), paraxial.propagate(s_i, 1.0))
+    system = paraxial.chain(
+        paraxial.refract(2 * f * 0.5, 1.0, 1.5), paraxial.refract(-2 * f * 0.5, 1.5, 1.0), paraxial.propagate(s_i, 1.0)
+    )
     # A symmetric biconvex thin lens with R = f has power 2·0.5/f = 1/f.
     assert paraxial.conjugate_object_distance_mm(system) == pytest.approx(s_o, rel=1e-12)
     assert paraxial.lateral_magnification(system, s_o) == pytest.approx(-s_i / s_o, rel=1e-12)

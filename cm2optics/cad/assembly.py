@@ -63,19 +63,59 @@ def part_specs(design: SystemDesign) -> list[PartSpec]:
     specs = [
         PartSpec("sensor_board", components.build_sensor_board, False, "FR-4", "camera PCB with its mounting holes"),
         PartSpec("sensor_package", components.build_sensor_package, False, "ceramic", f"{design.sensor.name} package"),
-        PartSpec("mla_housing", mla_housing.build_mla_housing, True, "black resin", "holds the imaging optics on the board"),
-        PartSpec("mla", mla.build_mla, False, design.mla.material.value, f"{design.mla.rows}×{design.mla.cols} microlens array", mla.lens_rms_deviation_um),
-        PartSpec("aperture_mask", components.build_aperture_mask, False, "black shim", "square aperture over the lenslets"),
-        PartSpec("emission_filter", components.build_emission_filter, False, design.emission_filter.material.value, "interference emission filter"),
+        PartSpec(
+            "mla_housing", mla_housing.build_mla_housing, True, "black resin", "holds the imaging optics on the board"
+        ),
+        PartSpec(
+            "mla",
+            mla.build_mla,
+            False,
+            design.mla.material.value,
+            f"{design.mla.rows}×{design.mla.cols} microlens array",
+            mla.lens_rms_deviation_um,
+        ),
+        PartSpec(
+            "aperture_mask", components.build_aperture_mask, False, "black shim", "square aperture over the lenslets"
+        ),
+        PartSpec(
+            "emission_filter",
+            components.build_emission_filter,
+            False,
+            design.emission_filter.material.value,
+            "interference emission filter",
+        ),
         PartSpec("base_plate", base_plate.build_base_plate, True, "black resin", "dome that holds the LED units"),
         PartSpec("led_housing", led_housing.build_led_housing, True, "black resin", "one LED unit's housing"),
         PartSpec("led", _led_unit_part("led"), False, "LED", "surface-mount LED package"),
-        PartSpec("excitation_filter", _led_unit_part("excitation_filter"), False, design.excitation_filter.material.value, "interference excitation filter"),
+        PartSpec(
+            "excitation_filter",
+            _led_unit_part("excitation_filter"),
+            False,
+            design.excitation_filter.material.value,
+            "interference excitation filter",
+        ),
     ]
     if design.absorption_filter is not None:
-        specs.insert(3, PartSpec("absorption_filter", components.build_absorption_filter, False, design.absorption_filter.material.value, "absorbing long-pass film"))
+        specs.insert(
+            3,
+            PartSpec(
+                "absorption_filter",
+                components.build_absorption_filter,
+                False,
+                design.absorption_filter.material.value,
+                "absorbing long-pass film",
+            ),
+        )
     if design.collimator is not None:
-        specs.append(PartSpec("collimator", collimator.build_collimator, True, design.collimator.material.value, "freeform TIR LED collimator"))
+        specs.append(
+            PartSpec(
+                "collimator",
+                collimator.build_collimator,
+                True,
+                design.collimator.material.value,
+                "freeform TIR LED collimator",
+            )
+        )
     return specs
 
 
@@ -114,14 +154,23 @@ def place_parts(design: SystemDesign, built: dict[str, cq.Workplane]) -> list[Pl
     return placed
 
 
-def interferences(placed: list[PlacedPart], tolerance_mm3: float = INTERFERENCE_TOLERANCE_MM3) -> list[dict[str, object]]:
+def interferences(
+    placed: list[PlacedPart], tolerance_mm3: float = INTERFERENCE_TOLERANCE_MM3
+) -> list[dict[str, object]]:
     """Pairs of placed parts whose solids overlap by more than ``tolerance_mm3`` (mm³)."""
     boxes = [p.solid.BoundingBox() for p in placed]
     clashes = []
     for i in range(len(placed)):
         for j in range(i + 1, len(placed)):
             a, b = boxes[i], boxes[j]
-            if a.xmax < b.xmin or b.xmax < a.xmin or a.ymax < b.ymin or b.ymax < a.ymin or a.zmax < b.zmin or b.zmax < a.zmin:
+            if (
+                a.xmax < b.xmin
+                or b.xmax < a.xmin
+                or a.ymax < b.ymin
+                or b.ymax < a.ymin
+                or a.zmax < b.zmin
+                or b.zmax < a.zmin
+            ):
                 continue
             volume = placed[i].solid.intersect(placed[j].solid).Volume()
             if volume > tolerance_mm3:
@@ -131,4 +180,6 @@ def interferences(placed: list[PlacedPart], tolerance_mm3: float = INTERFERENCE_
 
 def fits(design: SystemDesign) -> list[Fit]:
     """Every seated part's clearance in the assembly."""
-    return mla_housing.mla_housing_fits(design) + led_housing.led_housing_fits(design) + base_plate.base_plate_fits(design)
+    return (
+        mla_housing.mla_housing_fits(design) + led_housing.led_housing_fits(design) + base_plate.base_plate_fits(design)
+    )

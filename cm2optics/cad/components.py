@@ -32,7 +32,13 @@ def build_absorption_filter(design: SystemDesign) -> cq.Workplane:
 def build_aperture_mask(design: SystemDesign) -> cq.Workplane:
     """Opaque aperture plate (laser-cut shim or black film) with its square opening."""
     m = design.aperture_mask
-    return _plate(m.outer_mm, m.outer_mm, m.thickness_mm).faces(">Z").workplane().rect(m.opening_mm, m.opening_mm).cutThruAll()
+    return (
+        _plate(m.outer_mm, m.outer_mm, m.thickness_mm)
+        .faces(">Z")
+        .workplane()
+        .rect(m.opening_mm, m.opening_mm)
+        .cutThruAll()
+    )
 
 
 def build_sensor_package(design: SystemDesign) -> cq.Workplane:
@@ -46,5 +52,9 @@ def build_sensor_board(design: SystemDesign) -> cq.Workplane:
     b = design.sensor_board
     half = b.hole_spacing_mm / 2
     holes = [(sx * half, sy * half) for sx in (-1, 1) for sy in (-1, 1)]
-    board = cq.Workplane().box(b.size_mm, b.size_mm, b.thickness_mm, centered=(True, True, False)).translate((0, 0, -b.thickness_mm))
+    board = (
+        cq.Workplane()
+        .box(b.size_mm, b.size_mm, b.thickness_mm, centered=(True, True, False))
+        .translate((0, 0, -b.thickness_mm))
+    )
     return board.faces(">Z").workplane().pushPoints(holes).hole(b.hole_diameter_mm)

@@ -21,10 +21,10 @@ from rich.progress import Progress
 import cm2optics
 from cm2optics.cad.assembly import PartSpec, PlacedPart, fits, interferences, part_specs, place_parts
 from cm2optics.cad.mesh_checks import check_mesh
-from cm2optics.cad.render import render_meshes
+from cm2optics.cad.render import render_meshes, render_part
 from cm2optics.cad.tessellate import DEFAULT_TOLERANCE_UM, export_stl
 from cm2optics.design import SystemDesign
-from cm2optics.io import write_json_atomic
+from cm2optics.io import write_json_atomic, write_text_atomic
 
 FORMATS = ("stl", "step")
 #: Relative mesh-volume error accepted for an exported part.
@@ -41,7 +41,15 @@ def parse_formats(formats: str | Iterable[str]) -> tuple[str, ...]:
     return parsed
 
 
-def _part_record(design: SystemDesign, spec: PartSpec, shape: cq.Solid, files: dict[str, str], mesh: trimesh.Trimesh, count: int, wall_samples: int) -> dict[str, Any]:
+def _part_record(
+    design: SystemDesign,
+    spec: PartSpec,
+    shape: cq.Solid,
+    files: dict[str, str],
+    mesh: trimesh.Trimesh,
+    count: int,
+    wall_samples: int,
+) -> dict[str, Any]:
     min_wall_mm = design.mechanics.min_wall_mm
     report = check_mesh(mesh, wall_samples)
     exact = shape.Volume()
@@ -103,7 +111,15 @@ def export_design(
     return manifest
 
 
-def _export_into(design: SystemDesign, folder: Path, formats: tuple[str, ...], tolerance_mm: float, pictures: bool, wall_samples: int, show_progress: bool) -> dict[str, Any]:
+def _export_into(
+    design: SystemDesign,
+    folder: Path,
+    formats: tuple[str, ...],
+    tolerance_mm: float,
+    pictures: bool,
+    wall_samples: int,
+    show_progress: bool,
+) -> dict[str, Any]:
     timings: dict[str, float] = {}
     specs = part_specs(design)
     built: dict[str, cq.Workplane] = {}
@@ -141,9 +157,14 @@ def _export_into(design: SystemDesign, folder: Path, formats: tuple[str, ...], t
             progress.update(task, description="rendering pictures")
             start = time.perf_counter()
             for spec in specs:
-                render_meshes([(meshes[spec.name], spec.material)], folder / f"{spec.name}.png", title=f"{spec.name} — {spec.description}")
+                render_part(meshes[spec.name], spec.material, folder / f"{spec.name}.png", f"{spec.name} — {spec.description}")
             render_meshes(assembly_meshes, folder / "assembly.png", title=f"{design.name} assembly")
-            render_meshes(assembly_meshes, folder / "assembly_section.png", title=f"{design.name} section y = 0", section_normal=(0.0, 1.0, 0.0))
+            render_meshes(
+                assembly_meshes,
+                folder / "assembly_section.png",
+                title=f"{design.name} section y = 0",
+                section_normal=(0.0, 1.0, 0.0),
+            )
             timings["pictures"] = time.perf_counter() - start
         progress.advance(task)
     manifest = {
@@ -170,11 +191,65 @@ def _export_into(design: SystemDesign, folder: Path, formats: tuple[str, ...], t
         "timings_s": {k: round(v, 3) for k, v in timings.items()},
     }
     write_json_atomic(folder / "manifest.json", manifest)
+    write_text_atomic(folder / "README.md", parts_readme(design, manifest))
     design.save(folder / "design.yaml")
     return manifest
 
 
-def _write_assembly(design: SystemDesign, folder: Path, formats: tuple[str, ...], placed: list[PlacedPart], meshes: list[tuple[trimesh.Trimesh, str]]) -> dict[str, str]:
+def size_text(bbox_mm: list[list[float]]) -> str:
+    """``[[x0, y0, z0], [x1, y1, z1]]`` → ``"dx × dy × dz"`` (mm, two decimals)."""
+    lower, upper = bbox_mm
+    return " × ".join(f"{high - low:.2f}" for low, high in zip(lower, upper, strict=True))
+
+
+def parts_readme(design: SystemDesign, manifest: dict[str, Any]) -> str:
+    """A README for the exported folder: what each file is, how to print and assemble."""
+    lines = [
+        f"# Parts of `{design.name}`",
+        "",
+        f"Exported by cm2optics {manifest['package_version']} from `design.yaml` (parameter hash "
+        f"`{manifest['parameter_hash']}`) with an STL chord tolerance of {manifest['tolerance_um']} µm. "
+        f"Regenerate with `cm2 cad export --preset design.yaml --out <folder>`; `manifest.json` holds every number below.",
+        "",
+        "Each part file is in the part's own frame; `assembly.*` places every instance in the device frame "
+        "(origin on the sensor surface, +z towards the sample, mm).",
+        "",
+        "| file | part | n | kind | material | volume mm³ | size mm | min wall mm | watertight |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for part in manifest["parts"]:
+        size = size_text(part["bbox_mm"])
+        kind = "print" if part["printed"] else "buy / cut"
+        lines.append(
+            f"| `{part['file']}` | {part['description']} | {part['count']} | {kind} | {part['material']} | "
+            f"{part['volume_mm3']:.3f} | {size} | {part['min_wall_mm']:.3f} | {'yes' if part['watertight'] else 'NO'} |"
+        )
+    lines += [
+        "",
+        "## Printing",
+        f"Printed parts need walls ≥ {design.mechanics.min_wall_mm} mm (all pass: see *min wall*). Print the housings in black "
+        "resin (light-tight), the collimators in clear resin and varnish their outer TIR surface with a thin coat of diluted "
+        "clear resin for optical smoothness, as the original authors did. Seats are sized for "
+        f"{design.mechanics.clearance_mm} mm clearance per side; adjust `mechanics.clearance_mm` (0.05–0.2) to your printer.",
+        "",
+        "## Fits",
+        "",
+        "| seated part | seat | clearance mm |",
+        "|---|---|---|",
+    ]
+    lines += [f"| {f['part']} | {f['seat']} | {f['clearance_mm']} |" for f in manifest["assembly"]["fits"]]
+    clashes = manifest["assembly"]["interferences"]
+    lines += ["", f"Interfering solids in the assembly: {'none' if not clashes else clashes}.", ""]
+    return "\n".join(lines)
+
+
+def _write_assembly(
+    design: SystemDesign,
+    folder: Path,
+    formats: tuple[str, ...],
+    placed: list[PlacedPart],
+    meshes: list[tuple[trimesh.Trimesh, str]],
+) -> dict[str, str]:
     files = {}
     if "stl" in formats:
         trimesh.util.concatenate([m for m, _ in meshes]).export(folder / "assembly.stl")
@@ -183,6 +258,6 @@ def _write_assembly(design: SystemDesign, folder: Path, formats: tuple[str, ...]
         assembly = cq.Assembly(name=design.name)
         for p in placed:
             assembly.add(cq.Workplane().add(p.solid), name=p.instance)
-        assembly.save(str(folder / "assembly.step"), exportType="STEP")
+        assembly.export(str(folder / "assembly.step"), exportType="STEP")
         files["step"] = "assembly.step"
     return files

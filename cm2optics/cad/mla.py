@@ -76,12 +76,16 @@ def land_height_mm(mla: MicrolensArray) -> float:
 def _cell_column(mla: MicrolensArray, cell: LensCell) -> cq.Solid:
     t, r, half = mla.thickness_mm, mla.radius_mm, mla.aperture_mm / 2
     land = land_height_mm(mla)
-    footprint = cq.Solid.makeBox(cell.x_max - cell.x_min, cell.y_max - cell.y_min, land, cq.Vector(cell.x_min, cell.y_min, 0))
+    footprint = cq.Solid.makeBox(
+        cell.x_max - cell.x_min, cell.y_max - cell.y_min, land, cq.Vector(cell.x_min, cell.y_min, 0)
+    )
     lens_x0, lens_x1 = max(cell.x_min, cell.vertex_x - half), min(cell.x_max, cell.vertex_x + half)
     lens_y0, lens_y1 = max(cell.y_min, cell.vertex_y - half), min(cell.y_max, cell.vertex_y + half)
     # The ball covers the whole aperture down to just below the land, where its section is wider.
     margin = 0.05 * mla.corner_sag_mm + 1e-3
-    cap_box = cq.Solid.makeBox(lens_x1 - lens_x0, lens_y1 - lens_y0, t - land + margin, cq.Vector(lens_x0, lens_y0, land - margin))
+    cap_box = cq.Solid.makeBox(
+        lens_x1 - lens_x0, lens_y1 - lens_y0, t - land + margin, cq.Vector(lens_x0, lens_y0, land - margin)
+    )
     # Poles along x, outside the cap: a pole inside it meshes into degenerate, open triangles.
     centre = cq.Vector(cell.vertex_x, cell.vertex_y, t - r)
     ball = cq.Solid.makeSphere(r, centre, cq.Vector(1, 0, 0), angleDegrees1=-90, angleDegrees2=90)
@@ -140,18 +144,28 @@ def sphere_deviation_um(mla: MicrolensArray, points_mm: np.ndarray) -> np.ndarra
     pts = np.asarray(points_mm, dtype=float)
     dev = np.full(len(pts), np.nan)
     for cell in lens_cells(mla):
-        inside = (pts[:, 0] >= cell.x_min) & (pts[:, 0] <= cell.x_max) & (pts[:, 1] >= cell.y_min) & (pts[:, 1] <= cell.y_max)
+        inside = (
+            (pts[:, 0] >= cell.x_min)
+            & (pts[:, 0] <= cell.x_max)
+            & (pts[:, 1] >= cell.y_min)
+            & (pts[:, 1] <= cell.y_max)
+        )
         centre = np.array([cell.vertex_x, cell.vertex_y, mla.thickness_mm - mla.radius_mm])
         dist = np.abs(np.linalg.norm(pts - centre, axis=1) - mla.radius_mm) * 1000.0
         dev = np.where(inside & np.isnan(dev), dist, dev)
     return dev
 
 
-def lens_rms_deviation_um(design: SystemDesign, mesh: trimesh.Trimesh, samples: int = 100_000, seed: int = 0) -> dict[str, float]:
+def lens_rms_deviation_um(
+    design: SystemDesign, mesh: trimesh.Trimesh, samples: int = 100_000, seed: int = 0
+) -> dict[str, float]:
     """RMS and maximum distance (µm) of a tessellated MLA's lens faces from the design spheres,
     sampled uniformly over their area (mesh in the MLA's local frame)."""
     lens_faces = np.flatnonzero(mesh.face_normals[:, 2] > 0.2)
     lens = mesh.submesh([lens_faces], append=True)
     points, _ = trimesh.sample.sample_surface(lens, samples, seed=seed)
     deviation = sphere_deviation_um(design.mla, points)
-    return {"lens_rms_deviation_um": float(np.sqrt(np.mean(deviation**2))), "lens_max_deviation_um": float(deviation.max())}
+    return {
+        "lens_rms_deviation_um": float(np.sqrt(np.mean(deviation**2))),
+        "lens_max_deviation_um": float(deviation.max()),
+    }

@@ -50,7 +50,9 @@ def bore_steps(design: SystemDesign) -> list[BoreStep]:
     steps = []
     if film is not None:
         z_film = design.imaging.film_to_sensor_mm
-        steps.append(BoreStep("film seat", film.width_mm + 2 * c, film.length_mm + 2 * c, z_film, z_film + film.thickness_mm))
+        steps.append(
+            BoreStep("film seat", film.width_mm + 2 * c, film.length_mm + 2 * c, z_film, z_film + film.thickness_mm)
+        )
         spacer_w, spacer_l = film.width_mm - 2 * lip, film.length_mm - 2 * lip
         spacer_z0 = z_film + film.thickness_mm
     else:
@@ -59,8 +61,16 @@ def bore_steps(design: SystemDesign) -> list[BoreStep]:
     steps += [
         BoreStep("spacer", spacer_w, spacer_l, spacer_z0, z_mla),
         BoreStep("MLA seat", mla.width_mm + 2 * c, mla.length_mm + 2 * c, z_mla, design.mask_z_mm),
-        BoreStep("mask seat", mask.outer_mm + 2 * c, mask.outer_mm + 2 * c, design.mask_z_mm, design.emission_filter_z_mm),
-        BoreStep("filter seat", filt.width_mm + 2 * c, filt.length_mm + 2 * c, design.emission_filter_z_mm, mla_housing_envelope(design).tower_top_z_mm),
+        BoreStep(
+            "mask seat", mask.outer_mm + 2 * c, mask.outer_mm + 2 * c, design.mask_z_mm, design.emission_filter_z_mm
+        ),
+        BoreStep(
+            "filter seat",
+            filt.width_mm + 2 * c,
+            filt.length_mm + 2 * c,
+            design.emission_filter_z_mm,
+            mla_housing_envelope(design).tower_top_z_mm,
+        ),
     ]
     return steps
 
@@ -81,7 +91,13 @@ def _mla_pads(design: SystemDesign, spacer: BoreStep) -> cq.Workplane | None:
         for sy in (-1, 1):
             corner = (sx * half_w, sy * half_l)
             tri = [corner, (corner[0] - sx * leg, corner[1]), (corner[0], corner[1] - sy * leg)]
-            pad = cq.Workplane().polyline(tri).close().extrude(spacer.z1_mm - spacer.z0_mm).translate((0, 0, spacer.z0_mm))
+            pad = (
+                cq.Workplane()
+                .polyline(tri)
+                .close()
+                .extrude(spacer.z1_mm - spacer.z0_mm)
+                .translate((0, 0, spacer.z0_mm))
+            )
             pads = pad if pads is None else pads.union(pad)
     return pads
 
@@ -158,5 +174,7 @@ def mla_housing_fits(design: SystemDesign) -> list[Fit]:
         Fit("emission filter", "filter seat", (steps["filter seat"].width_mm - design.emission_filter.width_mm) / 2),
     ]
     if design.absorption_filter is not None:
-        fits.append(Fit("absorption film", "film seat", (steps["film seat"].width_mm - design.absorption_filter.width_mm) / 2))
+        fits.append(
+            Fit("absorption film", "film seat", (steps["film seat"].width_mm - design.absorption_filter.width_mm) / 2)
+        )
     return fits

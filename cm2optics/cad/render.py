@@ -62,3 +62,27 @@ def render_meshes(
     write_atomic(Path(path), lambda tmp: plotter.screenshot(str(tmp)))
     plotter.close()
     return Path(path)
+
+
+def render_part(mesh: trimesh.Trimesh, material: str, path: Path, title: str, size: tuple[int, int] = (1400, 700)) -> Path:
+    """Two panels: the part seen from above at an angle, and its section through the centre
+    of its bounding box (plane y = const, seen along −y)."""
+    poly = _to_pyvista(mesh)
+    centre = mesh.bounds.mean(axis=0)
+    plotter = pv.Plotter(off_screen=True, window_size=list(size), shape=(1, 2))
+    colour = _COLOURS.get(material, "#8899aa")
+    plotter.subplot(0, 0)
+    plotter.set_background("white")
+    plotter.add_mesh(poly, color=colour, specular=0.2)
+    plotter.add_text(title, font_size=10, color="black")
+    plotter.view_isometric()
+    plotter.show_axes()
+    plotter.subplot(0, 1)
+    plotter.set_background("white")
+    plotter.add_mesh(poly.clip(normal=(0.0, 1.0, 0.0), origin=tuple(centre), invert=False), color=colour, specular=0.2)
+    plotter.add_text("section through the centre", font_size=10, color="black")
+    plotter.view_vector((0.0, -1.0, 0.0), viewup=(0.0, 0.0, 1.0))
+    plotter.show_axes()
+    write_atomic(Path(path), lambda tmp: plotter.screenshot(str(tmp)))
+    plotter.close()
+    return Path(path)

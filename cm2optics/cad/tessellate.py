@@ -17,4 +17,6 @@ DEFAULT_TOLERANCE_UM = 0.5
 def export_stl(shape: cq.Shape, path: Path, tolerance_mm: float) -> None:
     """Write ``shape`` as binary STL with chord deviation ≤ ``tolerance_mm`` (mm)."""
     BRepTools.Clean_s(shape.wrapped)  # drop any coarser triangulation cached on the shape
-    cq.exporters.export(cq.Workplane().add(shape), str(path), tolerance=tolerance_mm, angularTolerance=ANGULAR_TOLERANCE_RAD)
+    cq.exporters.export(
+        cq.Workplane().add(shape), str(path), tolerance=tolerance_mm, angularTolerance=ANGULAR_TOLERANCE_RAD
+    )

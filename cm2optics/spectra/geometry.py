@@ -1,0 +1,331 @@
+"""Angles of incidence at the emission filters, from the design's geometry.
+
+Light reaches the emission path from the object plane (the nominal focal plane, where the
+sample's surface is taken to lie) along three kinds of rays:
+
+* fluorescence, isotropic, from points spread evenly over the imaged field (:func:`field_sources`);
+* excitation light scattered back diffusely by the sample (Lambertian) wherever the LED beams
+  land (:func:`excitation_footprint`): four tilted beams of finite width and étendue-limited
+  spread reach beyond the imaged field, and glow far off-axis meets the filter obliquely;
+* excitation light reflected specularly by the sample's flat surface (:func:`specular_rays`):
+  the shallow edge of each tilted beam bounces back across the axis towards the mask.
+
+Rays are traced (:func:`trace_rays`) through the emission filter (a parallel plate), the
+aperture mask (both faces), one lenslet (exact refraction at its sphere and its flat face),
+the absorption film's footprint (stopped by its seat outside it) and the film, to the sensor,
+and kept if they land on the active area. Heights are those of the device frame (z = 0 on the
+sensor, +z towards the sample); refractive indices at ``imaging.design_wavelength_nm``.
+
+For point sources, directions are sampled on a square grid over the mask opening (plus a
+margin), each standing for the solid angle dΩ = cos³θ dA / h² of its cell; an isotropic
+source sends dΩ / 4π of its power along it, a Lambertian one cos θ dΩ / π.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from enum import StrEnum
+
+import numpy as np
+
+from cm2optics.design import SystemDesign
+from cm2optics.materials import refractive_index
+from cm2optics.spectra.absorption import fresnel_transmittance
+
+__all__ = [
+    "EmissionRays",
+    "Emitter",
+    "Sources",
+    "excitation_beams",
+    "excitation_footprint",
+    "excitation_half_angle_rad",
+    "field_sources",
+    "specular_rays",
+    "trace_from_sources",
+    "trace_rays",
+]
+
+_UP = np.array([0.0, 0.0, 1.0])
+
+
+class Emitter(StrEnum):
+    """Angular distribution of a source in the object plane."""
+
+    ISOTROPIC = "isotropic"
+    LAMBERTIAN = "lambertian"
+
+
+@dataclass(frozen=True, eq=False)
+class EmissionRays:
+    """Rays that reach the sensor's active area.
+
+    aoi_filter_rad: angle of incidence at the interference filter (in air), rad.
+    aoi_film_rad: angle of incidence at the absorption film (in air), rad (0 with no film).
+    power: fraction of the sources' total emitted (or incident) power each ray carries.
+    """
+
+    aoi_filter_rad: np.ndarray
+    aoi_film_rad: np.ndarray
+    power: np.ndarray
+
+    @property
+    def collection(self) -> float:
+        """Fraction of the power that reaches the sensor (no filter losses)."""
+        return float(self.power.sum())
+
+
+@dataclass(frozen=True, eq=False)
+class Sources:
+    """Points of the object plane that emit, and the share of the power each emits.
+
+    points_mm: (N, 2) lateral positions (x, y) in the device frame, mm.
+    weights: (N,) shares of the emitted power, summing to 1.
+    """
+
+    points_mm: np.ndarray
+    weights: np.ndarray
+
+    def __post_init__(self) -> None:
+        points = np.asarray(self.points_mm, dtype=float)
+        weights = np.asarray(self.weights, dtype=float)
+        if points.ndim != 2 or points.shape[1] != 2 or points.shape[0] == 0:
+            raise ValueError(f"points_mm has shape {points.shape}: must be (N, 2) with N ≥ 1")
+        if not np.all(np.isfinite(points)):
+            raise ValueError("points_mm must be finite")
+        if weights.shape != (points.shape[0],) or not np.all(np.isfinite(weights)) or np.any(weights < 0):
+            raise ValueError("weights must be one finite value ≥ 0 per point")
+        if not math.isclose(float(weights.sum()), 1.0, rel_tol=1e-9):
+            raise ValueError(f"weights sum to {weights.sum():g}: must sum to 1")
+
+    def radius_mm(self, fraction: float = 0.95) -> float:
+        """Radius of the centred disc that holds ``fraction`` (0–1] of the power, mm."""
+        r = np.hypot(self.points_mm[:, 0], self.points_mm[:, 1])
+        order = np.argsort(r)
+        cumulative = np.cumsum(self.weights[order])
+        return float(r[order][min(int(np.searchsorted(cumulative, fraction - 1e-12)), r.size - 1)])
+
+
+# ----------------------------------------------------------------------------- sources
+
+
+def field_sources(design: SystemDesign, step_mm: float = 0.4) -> Sources:
+    """Fluorescent points spread evenly over the imaged field (``volume.field_mm``): a square grid
+    of spacing ``step_mm`` (mm, 0.01–2) inside the field's disc, equal shares."""
+    if not (math.isfinite(step_mm) and 0.01 <= step_mm <= 2.0):
+        raise ValueError(f"step_mm = {step_mm!r}: must lie within 0.01–2 mm")
+    radius = design.volume.field_mm / 2
+    n = int(math.ceil(radius / step_mm))
+    axis = np.arange(-n, n + 1) * step_mm
+    x, y = np.meshgrid(axis, axis)
+    keep = x**2 + y**2 <= radius**2 + 1e-12
+    points = np.column_stack([x[keep], y[keep]])
+    return Sources(points, np.full(len(points), 1.0 / len(points)))
+
+
+def excitation_half_angle_rad(design: SystemDesign) -> float:
+    """Half-angle of the cone of excitation light leaving an LED unit, rad.
+
+    With a collimator: the étendue limit of a Lambertian emitter of side e through a square exit
+    face of side b, sin δ = e / b (a perfect collimator can do no better). A bare LED: the widest
+    ray from the emitter's edge through the excitation filter's far edge.
+    """
+    led = design.led
+    if design.collimator is not None:
+        return math.asin(min(1.0, led.emitter_mm / design.collimator.footprint_mm))
+    half = max(design.excitation_filter.width_mm, design.excitation_filter.length_mm) / 2
+    return math.atan((half + led.emitter_mm / 2) / design.led_array.excitation_gap_mm)
+
+
+def excitation_beams(design: SystemDesign, samples: int = 8) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rays leaving the LED units and the power share of each: (origins_mm, directions, power).
+
+    Each unit (``led_array``: ``count`` units ``offset_mm`` off the axis, tilted ``tilt_deg``, aimed
+    at the field's centre) emits from its exit face — the collimator's square exit
+    (``collimator.footprint_mm``) or, bare, the excitation filter — into a cone of half-angle
+    :func:`excitation_half_angle_rad` with uniform radiance: ``samples``² points on the face times
+    ``samples`` × 2·``samples`` directions of equal projected solid angle. Origins are in the
+    device frame, mm; only rays heading towards the sample (+z) are returned.
+    """
+    if not (isinstance(samples, int) and 2 <= samples <= 64):
+        raise ValueError(f"samples = {samples!r}: must be an integer within 2–64")
+    arr = design.led_array
+    tilt = math.radians(arr.tilt_deg)
+    half_angle = excitation_half_angle_rad(design)
+    width = design.collimator.footprint_mm if design.collimator is not None else design.excitation_filter.width_mm
+    height = design.object_plane_z_mm - (arr.offset_mm / math.tan(tilt) if tilt > 1e-9 else design.working_distance_mm)
+
+    u = (np.arange(samples) + 0.5) / samples - 0.5
+    face_a, face_b = (g.ravel() * width for g in np.meshgrid(u, u))
+    ring = np.arcsin(np.sqrt((np.arange(samples) + 0.5) / samples) * math.sin(half_angle))
+    spin = 2 * math.pi * (np.arange(2 * samples) + 0.5) / (2 * samples)
+    polar, azimuth = (g.ravel() for g in np.meshgrid(ring, spin))
+
+    origins, directions = [], []
+    for k in range(arr.count):
+        phi = math.radians(arr.azimuth_deg) + 2 * math.pi * k / arr.count
+        radial = np.array([math.cos(phi), math.sin(phi), 0.0])
+        axis = -math.sin(tilt) * radial + math.cos(tilt) * _UP  # towards the field's centre
+        across = np.array([-math.sin(phi), math.cos(phi), 0.0])
+        other = np.cross(axis, across)
+        start = arr.offset_mm * radial + height * _UP + face_a[:, None] * across + face_b[:, None] * other
+        direction = (
+            np.cos(polar)[:, None] * axis
+            + (np.sin(polar) * np.cos(azimuth))[:, None] * across
+            + (np.sin(polar) * np.sin(azimuth))[:, None] * other
+        )
+        origins.append(np.repeat(start, len(direction), axis=0))
+        directions.append(np.tile(direction, (len(start), 1)))
+    origins, directions = np.concatenate(origins), np.concatenate(directions)
+    power = np.full(len(origins), 1.0 / len(origins))
+    up = directions[:, 2] > 1e-6
+    return origins[up], directions[up], power[up]
+
+
+def _beam_hits(design: SystemDesign, samples: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    origins, directions, power = excitation_beams(design, samples)
+    t = (design.object_plane_z_mm - origins[:, 2]) / directions[:, 2]
+    return origins + directions * t[:, None], directions, power
+
+
+def excitation_footprint(design: SystemDesign, step_mm: float = 0.5, samples: int = 8) -> Sources:
+    """Where the LED beams (:func:`excitation_beams`) land on the object plane, counted on a grid of
+    ``step_mm`` (mm): the glow of diffusely scattered excitation light. Hits so far out that
+    nothing from there can reach the sensor (more than 75° off the axis, seen from the mask)
+    are dropped."""
+    if not (math.isfinite(step_mm) and 0.05 <= step_mm <= 5.0):
+        raise ValueError(f"step_mm = {step_mm!r}: must lie within 0.05–5 mm")
+    hits, _, power = _beam_hits(design, samples)
+    reach = (design.object_plane_z_mm - design.mask_z_mm) * math.tan(math.radians(75.0))
+    keep = np.hypot(hits[:, 0], hits[:, 1]) <= reach + design.aperture_mask.opening_mm
+    cells = np.rint(hits[keep, :2] / step_mm).astype(int)
+    unique, inverse = np.unique(cells, axis=0, return_inverse=True)
+    weights = np.bincount(inverse.ravel(), weights=power[keep])
+    return Sources(unique * step_mm, weights / weights.sum())
+
+
+def specular_rays(design: SystemDesign, surface_index: float, samples: int = 24) -> tuple[np.ndarray, ...]:
+    """The LED beams mirrored by a flat sample surface of index ``surface_index`` (≥ 1) in the object
+    plane: (origins_mm, directions, power), power = share of the beam × unpolarised Fresnel
+    reflectance at the beam ray's angle. Trace them with :func:`trace_rays`."""
+    hits, directions, power = _beam_hits(design, samples)
+    cos_i = directions[:, 2]
+    reflectance = 1.0 - fresnel_transmittance(np.arccos(np.clip(cos_i, -1, 1)), surface_index)
+    mirrored = directions * np.array([1.0, 1.0, -1.0])
+    return hits, mirrored, power * reflectance
+
+
+# ----------------------------------------------------------------------------- tracing
+
+
+def _refract(d: np.ndarray, normal: np.ndarray, n1: float, n2: float) -> tuple[np.ndarray, np.ndarray]:
+    """Snell's law in vector form; ``normal`` faces the incoming ray's side. Returns (direction, ok):
+    a totally reflected ray is not ok and keeps a harmless straight-down direction."""
+    eta = n1 / n2
+    cos_i = -np.sum(d * normal, axis=-1)
+    k = 1.0 - eta**2 * (1.0 - cos_i**2)
+    ok = (k > 0) & (cos_i > 0)
+    t = eta * d + (eta * cos_i - np.sqrt(np.clip(k, 0, None)))[:, None] * normal
+    t[~ok] = (0.0, 0.0, -1.0)
+    return t, ok
+
+
+def _to_z(p: np.ndarray, d: np.ndarray, z: float) -> np.ndarray:
+    """Where rays from ``p`` along ``d`` (all going down, d_z < 0) cross the plane at height ``z``."""
+    return p + d * ((z - p[:, 2]) / d[:, 2])[:, None]
+
+
+def _inside(p: np.ndarray, half_x: float, half_y: float, cx: np.ndarray | float = 0.0, cy: np.ndarray | float = 0.0):
+    return (np.abs(p[:, 0] - cx) <= half_x) & (np.abs(p[:, 1] - cy) <= half_y)
+
+
+def trace_rays(design: SystemDesign, origins_mm: np.ndarray, directions: np.ndarray, power: np.ndarray) -> EmissionRays:
+    """Trace rays (device-frame origins, mm; unit directions; power shares) from above the emission
+    filter through it, the mask, one lenslet and the film to the sensor; keep those that land."""
+    d = np.asarray(directions, dtype=float)
+    p = np.asarray(origins_mm, dtype=float)
+    power = np.asarray(power, dtype=float)
+    down = d[:, 2] < -1e-9
+    d, p, power = d[down], p[down], power[down]
+    lam = design.imaging.design_wavelength_nm
+    mla, mask, filt, film = design.mla, design.aperture_mask, design.emission_filter, design.absorption_filter
+    n_filter = refractive_index(filt.material, lam)
+    n_lens = refractive_index(mla.material, lam)
+    up = np.broadcast_to(_UP, d.shape)
+
+    # Emission filter: a parallel plate that shifts the ray sideways.
+    p = _to_z(p, d, design.emission_filter_z_mm + filt.thickness_mm)
+    ok = _inside(p, filt.width_mm / 2, filt.length_mm / 2)
+    inside_glass, _ = _refract(d, up, 1.0, n_filter)
+    p = _to_z(p, inside_glass, design.emission_filter_z_mm)
+
+    # Aperture mask: both faces must be in the opening.
+    for z in (design.mask_z_mm + mask.thickness_mm, design.mask_z_mm):
+        p = _to_z(p, d, z)
+        ok &= _inside(p, mask.opening_mm / 2, mask.opening_mm / 2)
+
+    # Lenslet: the sphere of the cell the ray crosses (re-chosen once from the hit point).
+    z_vertex, radius = design.mla_vertex_z_mm, mla.radius_mm
+    x0, y0 = (mla.cols - 1) / 2, (mla.rows - 1) / 2
+
+    def sphere_hit(near: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        ix = np.clip(np.rint(near[:, 0] / mla.pitch_mm + x0), 0, mla.cols - 1)
+        iy = np.clip(np.rint(near[:, 1] / mla.pitch_mm + y0), 0, mla.rows - 1)
+        centre = np.column_stack(
+            [(ix - x0) * mla.pitch_mm, (iy - y0) * mla.pitch_mm, np.full(len(ix), z_vertex - radius)]
+        )
+        oc = p - centre
+        b = np.sum(d * oc, axis=1)
+        disc = b**2 - (np.sum(oc * oc, axis=1) - radius**2)
+        s = -b - np.sqrt(np.clip(disc, 0, None))
+        return p + d * s[:, None], centre, disc >= 0
+
+    h, centre, _ = sphere_hit(_to_z(p, d, z_vertex))
+    h, centre, on_sphere = sphere_hit(h)
+    ok &= on_sphere & _inside(h, mla.aperture_mm / 2, mla.aperture_mm / 2, centre[:, 0], centre[:, 1])
+    in_lens, refracted = _refract(d, (h - centre) / radius, 1.0, n_lens)
+    ok &= refracted
+
+    # Flat face of the MLA, then air, the film and the sensor.
+    p = _to_z(h, in_lens, design.imaging.mla_to_sensor_mm)
+    ok &= _inside(p, mla.width_mm / 2, mla.length_mm / 2)
+    out, leaves = _refract(in_lens, up, n_lens, 1.0)
+    ok &= leaves
+    aoi_film = np.zeros(len(d))
+    if film is not None:
+        p = _to_z(p, out, design.imaging.film_to_sensor_mm + film.thickness_mm)
+        ok &= _inside(p, film.width_mm / 2, film.length_mm / 2)
+        aoi_film = np.arccos(np.clip(-out[:, 2], -1, 1))
+        in_film, _ = _refract(out, up, 1.0, refractive_index(film.material, lam))
+        p = _to_z(p, in_film, design.imaging.film_to_sensor_mm)
+    p = _to_z(p, out, 0.0)
+    ok &= _inside(p, design.sensor.active_width_mm / 2, design.sensor.active_length_mm / 2)
+    return EmissionRays(np.arccos(np.clip(-d[ok, 2], -1, 1)), aoi_film[ok], power[ok])
+
+
+def trace_from_sources(
+    design: SystemDesign, sources: Sources, emitter: Emitter | str, pupil_samples: int = 24
+) -> EmissionRays:
+    """Trace ``sources`` in the object plane, each emitting as ``emitter``, to the sensor.
+
+    pupil_samples: directions per source along each side of the mask opening (4–200).
+    """
+    emitter = Emitter(emitter)
+    if not (isinstance(pupil_samples, int) and 4 <= pupil_samples <= 200):
+        raise ValueError(f"pupil_samples = {pupil_samples!r}: must be an integer within 4–200")
+    z_object = design.object_plane_z_mm
+    z_target = design.mask_z_mm + design.aperture_mask.thickness_mm
+    half = design.aperture_mask.opening_mm / 2 + 0.3  # margin: the filter plate shifts rays sideways
+    cell = 2 * half / pupil_samples
+    axis = -half + cell * (np.arange(pupil_samples) + 0.5)
+    tx, ty = (a.ravel() for a in np.meshgrid(axis, axis))
+    points = sources.points_mm
+    origins = np.repeat(np.column_stack([points, np.full(len(points), z_object)]), tx.size, axis=0)
+    targets = np.column_stack([np.tile(tx, len(points)), np.tile(ty, len(points)), np.full(len(origins), z_target)])
+    d = targets - origins
+    d /= np.linalg.norm(d, axis=1)[:, None]
+    cos_theta = -d[:, 2]
+    solid_angle = cos_theta**3 * cell**2 / (z_object - z_target) ** 2
+    intensity = 1 / (4 * math.pi) if emitter is Emitter.ISOTROPIC else cos_theta / math.pi
+    power = np.repeat(sources.weights, tx.size) * intensity * solid_angle
+    return trace_rays(design, origins, d, power)
