@@ -79,11 +79,8 @@ def _collimator_comparison(report: Report, design: SystemDesign) -> None:
 
     comparison = compare_with_reference(design, reference)
     report.paragraph("The collimator beside the original authors' printed part (reference data, not shipped):")
-    keys = sorted(set(comparison["design"]) | set(comparison["reference"]))
-    report.table(
-        ["quantity", "this design", "authors' part"],
-        [[k, comparison["design"].get(k, ""), comparison["reference"].get(k, "")] for k in keys],
-    )
+    rows = [[quantity, values["ours"], values["reference"]] for quantity, values in comparison.items()]
+    report.table(["quantity", "this design", "authors' part"], rows)
 
 
 def run_demo(design: SystemDesign, out_dir: str | Path) -> Path:

@@ -22,6 +22,12 @@ def v1() -> SystemDesign:
     return load_preset("cm2-v1")
 
 
+@pytest.fixture(scope="module", params=["cm2-v2", "cm2-v1"])
+def design(request) -> SystemDesign:
+    """Each shipped preset in turn (a module-scoped parametrisation)."""
+    return load_preset(request.param)
+
+
 @pytest.fixture(scope="session")
 def reference_dir() -> Path:
     if not REFERENCE_DIR.is_dir():

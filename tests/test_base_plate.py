@@ -22,11 +22,6 @@ from cm2optics.layout import led_poses, mla_housing_envelope
 SHARED = 1e-6  # mm³: shared faces and edges, not overlap
 
 
-@pytest.fixture(scope="module", params=["cm2-v2", "cm2-v1"])
-def design(request):
-    return load_preset(request.param)
-
-
 @pytest.fixture(scope="module")
 def plate(design) -> cq.Solid:
     return build_base_plate(design).val()

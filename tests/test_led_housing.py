@@ -14,14 +14,9 @@ from OCP.IntCurvesFace import IntCurvesFace_ShapeIntersector
 
 from cm2optics.cad.led_housing import Box, build_led_housing, led_housing_fits, led_housing_layout, led_unit_parts
 from cm2optics.cad.mesh_checks import min_wall_thickness_mm
-from cm2optics.design import DesignError, load_preset
+from cm2optics.design import DesignError
 
 SHARED = 1e-6  # mm³: shared faces and edges, not overlap
-
-
-@pytest.fixture(scope="module", params=["cm2-v2", "cm2-v1"])
-def design(request):
-    return load_preset(request.param)
 
 
 @pytest.fixture(scope="module")

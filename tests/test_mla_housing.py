@@ -14,13 +14,6 @@ from cm2optics.cad.tessellate import export_stl
 from cm2optics.layout import mla_housing_envelope
 
 
-@pytest.fixture(scope="module", params=["cm2-v2", "cm2-v1"])
-def design(request):
-    from cm2optics.design import load_preset
-
-    return load_preset(request.param)
-
-
 @pytest.fixture(scope="module")
 def housing(design) -> cq.Solid:
     return build_mla_housing(design).val()
