@@ -19,6 +19,7 @@ from rich.table import Table
 
 import cm2optics
 from cm2optics.design import DesignError, SystemDesign, available_presets, load_preset
+from cm2optics.illumination.cli import illum_app
 from cm2optics.spectra.cli import spectra_app
 
 app = typer.Typer(
@@ -34,6 +35,7 @@ cad_app = typer.Typer(help="Parametric CAD: printable parts, assembly, STL/STEP 
 app.add_typer(design_app, name="design")
 app.add_typer(cad_app, name="cad")
 app.add_typer(spectra_app, name="spectra")
+app.add_typer(illum_app, name="illum")
 
 err = Console(stderr=True, soft_wrap=True)
 out = Console()

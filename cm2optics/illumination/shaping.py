@@ -1,0 +1,293 @@
+"""Beam-shaping TIR collimators: the cm2-v2 architecture, designed for a flat-top beam.
+
+:mod:`cm2optics.collimator` designs both optical surfaces to send every ray from the LED's
+centre parallel to the axis. A collimated beam lights a spot the size of the exit face; the
+field of view is twice as wide, so the array's irradiance peaks in the middle. Here the same
+two surfaces — the lens on the cavity floor and the freeform TIR wall — are designed for a
+prescribed ray mapping instead: the ray leaving the LED at θ must leave the exit face (in air)
+at ψ(θ) from the axis, chosen so that each sub-beam lights a disc uniformly on a plane across
+the beam:
+
+* lens rays, 0 ≤ θ ≤ θ_L:   tan ψ = tan α_lens · F_lens^γ, F_lens = sin²θ / sin²θ_L;
+* TIR rays, θ_L < θ ≤ θ_max: tan ψ = ± tan α_tir · F_tir^γ, F_tir = (sin²θ_max − sin²θ) / (sin²θ_max − sin²θ_L),
+
+(F is the sub-beam's flux fraction for a Lambertian source; with γ = ½ each sub-beam lights a
+disc uniformly, as a uniform disc's flux grows as tan²ψ), ``+`` spreading outwards, ``−``
+crossing the axis. In the material the ray must then
+travel at φ with sin ψ = n sin φ (the flat exit face refracts it to ψ).
+
+Surfaces from the mapping (meridional plane, LED at the origin, (r, z)):
+
+* lens: P = ρ(θ) (sin θ, cos θ); its normal is parallel to e − n w (vector Snell, e the ray,
+  w = (sin φ, cos φ)), which gives ``ρ'/ρ = n sin(θ − φ) / (n cos(θ − φ) − 1)``
+  (with φ ≡ 0 the hyperbola of :mod:`cm2optics.collimator`); scaled so that its edge meets the
+  cavity wall on the ray θ_L;
+* TIR wall: P = W + s u (W on the cavity wall, u the ray refracted there); the mirror normal is
+  parallel to w − u, which gives ``s' = −(ẑ·N + s u'·N) / (u·N)`` along the wall height, started
+  where the surface's tangent meets the entry plane ``entry_wall_mm`` outside the cavity.
+
+With α = 0 both reduce exactly to the collimating design. :func:`revolve_profile` turns the
+section into a watertight mesh (rings swept about the axis, the flange's square rings included)
+without CAD, for tracing, sweeps and STL export.
+
+Status: these two spreads are not (yet) fields of :class:`cm2optics.design.Collimator`; a
+design found with them is written as the base design's YAML plus ``shaping.json`` with the
+spreads, and the STL from :func:`revolve_profile`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import trimesh
+from scipy.integrate import solve_ivp
+
+from cm2optics.collimator import CollimatorProfile
+from cm2optics.design import Collimator, DesignError
+from cm2optics.materials import refractive_index
+
+__all__ = ["BeamShape", "revolve_profile", "shaped_profile"]
+
+
+@dataclass(frozen=True)
+class BeamShape:
+    """Output half-angles (in air, degrees) of the two sub-beams for a point source.
+
+    lens_spread_deg: ψ of the lens-edge ray, 0–40°.
+    tir_spread_deg: |ψ| of the lens-edge ray's TIR neighbour (the TIR sub-beam's edge), 0–40°.
+    tir_crossing: the TIR sub-beam crosses the axis (ψ < 0) rather than spreading outwards.
+    lens_exponent, tir_exponent: the mapping's exponent γ in tan ψ ∝ F^γ (F the sub-beam's
+        flux fraction): 0.5 lights a disc uniformly; smaller values push power outwards, to
+        make up for the filter's loss at oblique incidence and the tilted sample plane (0.1–1).
+    """
+
+    lens_spread_deg: float = 0.0
+    tir_spread_deg: float = 0.0
+    tir_crossing: bool = False
+    lens_exponent: float = 0.5
+    tir_exponent: float = 0.5
+
+    def __post_init__(self) -> None:
+        for name in ("lens_spread_deg", "tir_spread_deg"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and 0.0 <= value <= 40.0):
+                raise ValueError(f"{name} = {value!r}: must lie within 0–40°")
+        for name in ("lens_exponent", "tir_exponent"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and 0.1 <= value <= 1.0):
+                raise ValueError(f"{name} = {value!r}: must lie within 0.1–1")
+
+
+def _inside_angle(psi: np.ndarray, n: float) -> np.ndarray:
+    return np.arcsin(np.sin(psi) / n)
+
+
+def shaped_profile(
+    collimator: Collimator, wavelength_nm: float, shape: BeamShape, samples: int = 241
+) -> CollimatorProfile:
+    """The collimator's section designed for the ray mapping of ``shape`` (module docstring).
+
+    collimator: envelope and lens angle (as for :func:`cm2optics.collimator.profile_from_parameters`).
+    wavelength_nm: design wavelength, nm. samples: points on each freeform curve.
+    Raises :class:`DesignError` when the optics cannot be built in the envelope.
+    """
+    n = float(refractive_index(collimator.material, wavelength_nm))
+    a, g = collimator.cavity_radius_mm, collimator.led_gap_mm
+    theta_l = math.radians(collimator.lens_half_angle_deg)
+    theta_max = math.atan2(a, g)
+    if theta_l >= theta_max:
+        raise DesignError(
+            "collimator.lens_half_angle_deg",
+            collimator.lens_half_angle_deg,
+            "must be below the cavity mouth's ray angle",
+        )
+    tan_lens = math.tan(math.radians(shape.lens_spread_deg))
+    tan_tir = math.tan(math.radians(shape.tir_spread_deg))
+    sign = -1.0 if shape.tir_crossing else 1.0
+
+    # Lens: ρ'/ρ = n sin(θ − φ)/(n cos(θ − φ) − 1), integrated as log ρ.
+    def phi_lens(theta):
+        fraction = (np.sin(theta) / math.sin(theta_l)) ** 2
+        return _inside_angle(np.arctan(tan_lens * fraction**shape.lens_exponent), n)
+
+    def lens_rhs(theta, log_rho):
+        delta = theta - phi_lens(theta)
+        denominator = n * np.cos(delta) - 1.0
+        return [n * np.sin(delta) / denominator]
+
+    theta = np.linspace(0.0, theta_l, samples)
+    if np.any(n * np.cos(theta - phi_lens(theta)) - 1.0 <= 1e-6):
+        raise DesignError(
+            "collimator.lens_half_angle_deg",
+            collimator.lens_half_angle_deg,
+            "no refracting lens reaches this cone with this spread (the ray would graze the surface)",
+        )
+    lens = solve_ivp(lens_rhs, (0.0, theta_l), [0.0], t_eval=theta, rtol=1e-10, atol=1e-12)
+    if not lens.success:
+        raise RuntimeError(f"lens integration failed: {lens.message}")
+    rho_rel = np.exp(lens.y[0])
+    scale = (a / math.sin(theta_l)) / rho_rel[-1]
+    rho = scale * rho_rel
+    vertex = float(rho[0])
+    lens_r, lens_z = rho * np.sin(theta), rho * np.cos(theta)
+    lens_edge = a / math.tan(theta_l)
+    lens_r[-1], lens_z[-1] = a, lens_edge
+    if vertex <= g:
+        raise DesignError(
+            "collimator.lens_half_angle_deg",
+            collimator.lens_half_angle_deg,
+            f"the lens vertex (z = {vertex:.3f} mm) must lie above the entry plane (led_gap_mm = {g})",
+        )
+    if np.any(np.diff(lens_r) <= 0):
+        raise DesignError("collimator", "lens", "the lens profile folds back on itself for this spread")
+
+    # TIR wall along the cavity wall height z_w (mouth ray at z_w = g up to the lens-edge ray).
+    sin2_max, sin2_l = math.sin(theta_max) ** 2, math.sin(theta_l) ** 2
+
+    def rays(zw):
+        rho_w = np.hypot(a, zw)
+        uz = zw / (n * rho_w)
+        ur = np.sqrt(1.0 - uz**2)
+        duz = a**2 / (n * rho_w**3)
+        dur = -uz * duz / ur
+        th = np.arctan2(a, zw)
+        fraction = np.clip((sin2_max - np.sin(th) ** 2) / (sin2_max - sin2_l), 0.0, 1.0)
+        phi = sign * _inside_angle(np.arctan(tan_tir * fraction**shape.tir_exponent), n)
+        return ur, uz, dur, duz, np.sin(phi), np.cos(phi)
+
+    def normal(ur, uz, wr, wz):
+        nr, nz = wr - ur, wz - uz
+        length = np.hypot(nr, nz)
+        return nr / length, nz / length
+
+    def tir_rhs(zw, s):
+        ur, uz, dur, duz, wr, wz = rays(zw)
+        nr, nz = normal(ur, uz, wr, wz)
+        return [-(nz + s[0] * (dur * nr + duz * nz)) / (ur * nr + uz * nz)]
+
+    ur0, uz0, _, _, wr0, wz0 = rays(g)
+    nr0, nz0 = normal(ur0, uz0, wr0, wz0)
+    tr, tz = nz0, -nr0  # tangent
+    s0 = collimator.entry_wall_mm / (ur0 - uz0 * tr / tz)
+    if not (math.isfinite(s0) and s0 > 0):
+        raise DesignError("collimator.entry_wall_mm", collimator.entry_wall_mm, "the TIR wall cannot start there")
+    tir_theta = np.linspace(theta_max, theta_l, samples)
+    wall_z = a / np.tan(tir_theta)
+    wall_z[0], wall_z[-1] = g, lens_edge
+    tir = solve_ivp(tir_rhs, (g, lens_edge), [s0], t_eval=wall_z, method="DOP853", rtol=1e-10, atol=1e-12)
+    if not tir.success or tir.y.shape[1] != len(wall_z):
+        raise DesignError("collimator", "TIR wall", f"integration failed ({tir.message})")
+    s = tir.y[0]
+    ur, uz, _, _, wr, wz = rays(wall_z)
+    tir_r, tir_z = a + s * ur, wall_z + s * uz
+    nr, nz = normal(ur, uz, wr, wz)
+    incidence = np.arccos(np.clip(np.abs(ur * nr + uz * nz), 0.0, 1.0))
+    margin = np.degrees(incidence - math.asin(1.0 / n))
+    if margin.min() <= 0:
+        raise DesignError(
+            "collimator", "TIR wall", f"rays would leak through the TIR wall (margin {margin.min():.1f}°)"
+        )
+    if np.any(s <= 0) or np.any(np.diff(tir_z) <= 0):
+        raise DesignError("collimator", "TIR wall", "the TIR wall folds back on itself for this spread")
+
+    exit_z = g + collimator.height_mm
+    flange_bottom = exit_z - collimator.flange_mm
+    r_end, z_end = float(tir_r[-1]), float(tir_z[-1])
+    if z_end > flange_bottom + 1e-9:
+        raise DesignError(
+            "collimator.height_mm",
+            collimator.height_mm,
+            f"the TIR surface ends at z = {z_end:.3f} mm, above the flange's underside: needs ≥ {z_end + collimator.flange_mm - g:.3f} mm",
+        )
+    if r_end >= collimator.footprint_mm / 2 or np.max(tir_r) >= collimator.footprint_mm / 2:
+        raise DesignError(
+            "collimator.footprint_mm", collimator.footprint_mm, f"the TIR surface reaches r = {np.max(tir_r):.3f} mm"
+        )
+    if np.max(tir_r) > r_end + 1e-9:
+        raise DesignError(
+            "collimator", "TIR wall", "the TIR wall bulges beyond its end radius (not printable as revolved)"
+        )
+    return CollimatorProfile(
+        refractive_index=n,
+        wavelength_nm=float(wavelength_nm),
+        entry_z_mm=g,
+        exit_z_mm=exit_z,
+        flange_bottom_z_mm=flange_bottom,
+        footprint_mm=collimator.footprint_mm,
+        cavity_radius_mm=a,
+        lens_r_mm=lens_r,
+        lens_z_mm=lens_z,
+        cavity_r_mm=np.array([a, a]),
+        cavity_z_mm=np.array([lens_edge, g]),
+        tir_r_mm=tir_r,
+        tir_z_mm=tir_z,
+        tir_angle_deg=np.degrees(tir_theta),
+        exit_r_mm=np.array([0.0, collimator.footprint_mm / 2]),
+        lens_vertex_z_mm=vertex,
+        lens_edge_z_mm=lens_edge,
+        outer_radius_entry_mm=a + collimator.entry_wall_mm,
+        outer_radius_exit_mm=r_end,
+        lens_half_angle_deg=collimator.lens_half_angle_deg,
+        max_angle_deg=math.degrees(theta_max),
+        min_tir_margin_deg=float(margin.min()),
+        min_wall_mm=min(collimator.entry_wall_mm, exit_z - vertex, collimator.flange_mm),
+    )
+
+
+def _square_ring(half: float, z: float, angles: np.ndarray) -> np.ndarray:
+    c, s = np.cos(angles), np.sin(angles)
+    k = half / np.maximum(np.abs(c), np.abs(s))
+    return np.column_stack([k * c, k * s, np.full_like(angles, z)])
+
+
+def revolve_profile(profile: CollimatorProfile, segments: int = 256) -> trimesh.Trimesh:
+    """A watertight mesh of the collimator: the section's rings swept about the axis
+    (``segments`` per turn, a multiple of 8 so that the flange's corners are vertices), from the
+    exit face's centre round the flange, down the outer wall, in through the cavity to the
+    lens vertex. Outward normals."""
+    if segments % 8:
+        raise ValueError(f"segments = {segments}: must be a multiple of 8")
+    angles = 2 * np.pi * np.arange(segments) / segments
+    half = profile.footprint_mm / 2
+    ring_list: list[np.ndarray | tuple[float, float]] = [(0.0, profile.exit_z_mm)]  # pole
+    ring_list.append(_square_ring(half, profile.exit_z_mm, angles))
+    ring_list.append(_square_ring(half, profile.flange_bottom_z_mm, angles))
+    r_end, z_end = profile.tir_r_mm[-1], profile.tir_z_mm[-1]
+    section: list[tuple[float, float]] = [(r_end, profile.flange_bottom_z_mm)]
+    if profile.flange_bottom_z_mm - z_end > 1e-6:
+        section.append((r_end, z_end))
+    section += list(zip(profile.tir_r_mm[::-1][1:], profile.tir_z_mm[::-1][1:], strict=True))
+    section += [(profile.outer_radius_entry_mm, profile.entry_z_mm), (profile.cavity_radius_mm, profile.entry_z_mm)]
+    section += list(zip(profile.lens_r_mm[::-1], profile.lens_z_mm[::-1], strict=True))[:-1]
+    for r, z in section:
+        ring_list.append(np.column_stack([r * np.cos(angles), r * np.sin(angles), np.full(segments, z)]))
+    ring_list.append((0.0, float(profile.lens_z_mm[0])))  # pole at the lens vertex
+    vertices: list[np.ndarray] = []
+    faces: list[np.ndarray] = []
+    offsets = []
+    count = 0
+    for ring in ring_list:
+        if isinstance(ring, tuple):
+            vertices.append(np.array([[0.0, 0.0, ring[1]]]))
+            offsets.append((count, 1))
+            count += 1
+        else:
+            vertices.append(ring)
+            offsets.append((count, segments))
+            count += segments
+    k = np.arange(segments)
+    k1 = (k + 1) % segments
+    for (a0, na), (b0, nb) in zip(offsets[:-1], offsets[1:], strict=True):
+        if na == 1:
+            faces.append(np.column_stack([np.full(segments, a0), b0 + k, b0 + k1]))
+        elif nb == 1:
+            faces.append(np.column_stack([a0 + k, np.full(segments, b0), a0 + k1]))
+        else:
+            faces.append(np.column_stack([a0 + k, b0 + k, b0 + k1]))
+            faces.append(np.column_stack([a0 + k, b0 + k1, a0 + k1]))
+    mesh = trimesh.Trimesh(np.vstack(vertices), np.vstack(faces), process=True)
+    if mesh.volume < 0:
+        mesh.invert()
+    return mesh

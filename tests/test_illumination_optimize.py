@@ -1,0 +1,106 @@
+"""Beam-shaping profiles, the étendue bound and the Dask design sweep."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from cm2optics.collimator import collimator_profile
+from cm2optics.design import DesignError, load_design
+from cm2optics.illumination.optimize import etendue_bound
+from cm2optics.illumination.shaping import BeamShape, revolve_profile, shaped_profile
+
+
+def test_zero_spread_is_exactly_the_collimating_design(v2):
+    reference = collimator_profile(v2)
+    shaped = shaped_profile(v2.collimator, v2.led.peak_nm, BeamShape())
+    assert shaped.lens_vertex_z_mm == pytest.approx(reference.lens_vertex_z_mm, rel=1e-8)
+    np.testing.assert_allclose(shaped.lens_z_mm, reference.lens_height_mm(shaped.lens_r_mm), atol=1e-8)
+    assert shaped.tir_r_mm[-1] == pytest.approx(reference.tir_r_mm[-1], rel=1e-8)
+    assert shaped.tir_z_mm[-1] == pytest.approx(reference.tir_z_mm[-1], rel=1e-8)
+
+
+def test_spread_lens_sends_its_edge_ray_at_the_requested_angle(v2):
+    """Refract the lens-edge ray at the computed surface and the flat exit face: ψ = α."""
+    shape = BeamShape(lens_spread_deg=20.0, tir_spread_deg=25.0, tir_crossing=True)
+    profile = shaped_profile(v2.collimator, v2.led.peak_nm, shape)
+    n = profile.refractive_index
+    r, z = profile.lens_r_mm, profile.lens_z_mm
+    k = len(r) - 2  # a point near the edge, central differences for the tangent
+    tangent = np.array([r[k + 1] - r[k - 1], z[k + 1] - z[k - 1]])
+    normal = np.array([tangent[1], -tangent[0]]) / np.linalg.norm(tangent)
+    e = np.array([r[k], z[k]]) / math.hypot(r[k], z[k])
+    if normal @ e > 0:
+        normal = -normal
+    cos_i = -e @ normal
+    w = e / n + (cos_i / n - math.sqrt(1 - (1 - cos_i**2) / n**2)) * normal
+    psi = math.degrees(math.asin(n * w[0]))
+    theta = math.atan2(r[k], z[k])
+    expected = math.degrees(
+        math.atan(
+            math.tan(math.radians(20.0)) * (math.sin(theta) / math.sin(math.radians(v2.collimator.lens_half_angle_deg)))
+        )
+    )
+    assert psi == pytest.approx(expected, abs=0.05)
+
+
+def test_revolved_mesh_is_a_closed_solid_with_the_cad_volume(v2):
+    from cm2optics.cad.collimator import build_collimator
+
+    mesh = revolve_profile(shaped_profile(v2.collimator, v2.led.peak_nm, BeamShape()))
+    assert mesh.is_watertight and mesh.is_winding_consistent and mesh.volume > 0
+    exact = build_collimator(v2).val().Volume()
+    assert mesh.volume == pytest.approx(exact, rel=2e-3)
+
+
+def test_impossible_shapes_are_design_errors(v2):
+    with pytest.raises(ValueError, match="0–40"):
+        BeamShape(lens_spread_deg=60.0)
+    with pytest.raises(DesignError):
+        shaped_profile(v2.collimator, v2.led.peak_nm, BeamShape(tir_spread_deg=30.0))  # spreading outwards: too tall
+
+
+def test_etendue_bound(v2):
+    bound = etendue_bound(v2, samples=200_000)
+    assert bound["g_source_mm2sr"] == pytest.approx(math.pi * v2.led.emitter_mm**2, rel=1e-4)
+    # Aperture 3.4 × 3.4 mm, the 8-mm circle ≈ 8 mm away at 45°: ≈ 11.6 × 50.3 × cos 45° / 64 ≈ 6 mm² sr.
+    assert 4.0 < bound["g_target_mm2sr"] < 8.0
+    assert bound["geometric_bound"] == 1.0
+    assert 0.7 < bound["spectral_ceiling"] < 0.9
+    assert bound["delivered_bound"] == pytest.approx(bound["spectral_ceiling"])
+
+
+def test_optimize_writes_a_printable_design(tmp_path):
+    from cm2optics.illumination.cli import illum_app
+
+    result = CliRunner().invoke(
+        illum_app,
+        [
+            "optimize",
+            "--samples",
+            "4",
+            "--rounds",
+            "0",
+            "--rays",
+            "20000",
+            "--workers",
+            "1",
+            "--json",
+            "--out",
+            str(tmp_path),
+        ],
+    )
+    assert result.exit_code == 0, result.output
+    data = json.loads(result.stdout)
+    for key in ("delivered_fraction", "uniformity_cv", "etendue_bound", "printability", "parameters"):
+        assert key in data
+    assert data["printability"]["watertight"]
+    design = load_design(tmp_path / "design.yaml")
+    assert design.collimator.lens_half_angle_deg == pytest.approx(
+        data["parameters"]["collimator.lens_half_angle_deg"], rel=1e-4
+    )
+    assert (tmp_path / "collimator.stl").is_file() and (tmp_path / "sweep.json").is_file()
