@@ -250,7 +250,14 @@ def profile_from_parameters(collimator: Collimator, wavelength_nm: float, sample
     wavelength_nm: design wavelength, nm (sets the index of ``collimator.material``).
     samples: points on each freeform curve (lens and TIR surface).
     Raises :class:`DesignError` when the optics cannot be built in the given envelope.
+    A collimator with output spreads (``not collimator.collimates``) is designed by
+    :func:`cm2optics.collimator_shaping.shaped_profile` instead.
     """
+    if not collimator.collimates:
+        # Imported here: the shaping module builds on this module's CollimatorProfile.
+        from cm2optics.collimator_shaping import shaped_profile
+
+        return shaped_profile(collimator, wavelength_nm, samples)
     n = float(refractive_index(collimator.material, wavelength_nm))
     a, g = collimator.cavity_radius_mm, collimator.led_gap_mm
     theta_lens = math.radians(collimator.lens_half_angle_deg)

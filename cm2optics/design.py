@@ -420,6 +420,12 @@ class Collimator:
     footprint_mm: side of the square exit flange, mm.
     height_mm: entry plane to exit face, mm.
     flange_mm: thickness of the square exit flange, mm.
+    lens_spread_deg: output half-angle (in air) of the lens sub-beam's edge ray, degrees;
+        0 collimates it, more spreads it into a flat-top cone (:mod:`cm2optics.collimator_shaping`).
+    tir_spread_deg: output half-angle of the TIR sub-beam's edge ray, degrees (0: collimated).
+    tir_crossing: the TIR sub-beam crosses the axis rather than spreading outwards.
+    lens_exponent, tir_exponent: exponent γ of each sub-beam's ray mapping tan ψ ∝ F^γ (F the
+        sub-beam's flux fraction): 0.5 lights a disc uniformly, smaller pushes power outwards.
     """
 
     material: Material
@@ -430,6 +436,16 @@ class Collimator:
     footprint_mm: float
     height_mm: float
     flange_mm: float
+    lens_spread_deg: float
+    tir_spread_deg: float
+    tir_crossing: bool
+    lens_exponent: float
+    tir_exponent: float
+
+    @property
+    def collimates(self) -> bool:
+        """Whether both sub-beams are designed parallel to the axis (no beam shaping)."""
+        return self.lens_spread_deg == 0.0 and self.tir_spread_deg == 0.0
 
     def __post_init__(self) -> None:
         _check("material", self.material, self.material.is_transparent, "a collimator must be transparent")
@@ -444,6 +460,10 @@ class Collimator:
             f"the cavity and its wall must fit inside footprint_mm/2 = {self.footprint_mm / 2} "
             f"(cavity_radius_mm + entry_wall_mm = {self.cavity_radius_mm + self.entry_wall_mm})",
         )
+        _in_range(self, "lens_spread_deg", 0.0, 40.0, "°")
+        _in_range(self, "tir_spread_deg", 0.0, 40.0, "°")
+        _in_range(self, "lens_exponent", 0.1, 1.0)
+        _in_range(self, "tir_exponent", 0.1, 1.0)
 
 
 @dataclass(frozen=True)

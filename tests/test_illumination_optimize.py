@@ -10,14 +10,20 @@ import pytest
 from typer.testing import CliRunner
 
 from cm2optics.collimator import collimator_profile
+from cm2optics.collimator_shaping import shaped_profile
 from cm2optics.design import DesignError, load_design
 from cm2optics.illumination.optimize import etendue_bound
-from cm2optics.illumination.shaping import BeamShape, revolve_profile, shaped_profile
+from cm2optics.illumination.revolve import revolve_profile
+
+
+def _shaped(design, **fields):
+    """``design`` with beam-shaping collimator fields changed (``lens_spread_deg=20`` …)."""
+    return design.with_changes({f"collimator.{k}": v for k, v in fields.items()})
 
 
 def test_zero_spread_is_exactly_the_collimating_design(v2):
     reference = collimator_profile(v2)
-    shaped = shaped_profile(v2.collimator, v2.led.peak_nm, BeamShape())
+    shaped = shaped_profile(v2.collimator, v2.led.peak_nm)
     assert shaped.lens_vertex_z_mm == pytest.approx(reference.lens_vertex_z_mm, rel=1e-8)
     np.testing.assert_allclose(shaped.lens_z_mm, reference.lens_height_mm(shaped.lens_r_mm), atol=1e-8)
     assert shaped.tir_r_mm[-1] == pytest.approx(reference.tir_r_mm[-1], rel=1e-8)
@@ -26,8 +32,8 @@ def test_zero_spread_is_exactly_the_collimating_design(v2):
 
 def test_spread_lens_sends_its_edge_ray_at_the_requested_angle(v2):
     """Refract the lens-edge ray at the computed surface and the flat exit face: ψ = α."""
-    shape = BeamShape(lens_spread_deg=20.0, tir_spread_deg=25.0, tir_crossing=True)
-    profile = shaped_profile(v2.collimator, v2.led.peak_nm, shape)
+    design = _shaped(v2, lens_spread_deg=20.0, tir_spread_deg=25.0, tir_crossing=True)
+    profile = collimator_profile(design)  # dispatches to the shaping design for non-zero spreads
     n = profile.refractive_index
     r, z = profile.lens_r_mm, profile.lens_z_mm
     k = len(r) - 2  # a point near the edge, central differences for the tangent
@@ -51,17 +57,29 @@ def test_spread_lens_sends_its_edge_ray_at_the_requested_angle(v2):
 def test_revolved_mesh_is_a_closed_solid_with_the_cad_volume(v2):
     from cm2optics.cad.collimator import build_collimator
 
-    mesh = revolve_profile(shaped_profile(v2.collimator, v2.led.peak_nm, BeamShape()))
+    mesh = revolve_profile(shaped_profile(v2.collimator, v2.led.peak_nm))
     assert mesh.is_watertight and mesh.is_winding_consistent and mesh.volume > 0
     exact = build_collimator(v2).val().Volume()
     assert mesh.volume == pytest.approx(exact, rel=2e-3)
 
 
 def test_impossible_shapes_are_design_errors(v2):
-    with pytest.raises(ValueError, match="0–40"):
-        BeamShape(lens_spread_deg=60.0)
+    with pytest.raises(DesignError, match="collimator.lens_spread_deg.*0.0–40.0"):
+        _shaped(v2, lens_spread_deg=60.0)
     with pytest.raises(DesignError):
-        shaped_profile(v2.collimator, v2.led.peak_nm, BeamShape(tir_spread_deg=30.0))  # spreading outwards: too tall
+        collimator_profile(_shaped(v2, tir_spread_deg=30.0))  # spreading outwards: too tall
+
+
+def test_the_design_yaml_rebuilds_the_shaped_part(v2, tmp_path):
+    from cm2optics.cad.collimator import build_collimator
+
+    design = _shaped(v2, lens_spread_deg=15.0, tir_spread_deg=20.0, tir_crossing=True)
+    design.save(tmp_path / "d.yaml")
+    again = load_design(tmp_path / "d.yaml")
+    shaped_volume = build_collimator(again).val().Volume()
+    mesh = revolve_profile(collimator_profile(again))
+    assert mesh.volume == pytest.approx(shaped_volume, rel=2e-3)
+    assert abs(shaped_volume - build_collimator(v2).val().Volume()) > 1e-3
 
 
 def test_etendue_bound(v2):
@@ -104,3 +122,4 @@ def test_optimize_writes_a_printable_design(tmp_path):
         data["parameters"]["collimator.lens_half_angle_deg"], rel=1e-4
     )
     assert (tmp_path / "collimator.stl").is_file() and (tmp_path / "sweep.json").is_file()
+    assert design.collimator.lens_spread_deg == pytest.approx(data["parameters"]["collimator.lens_spread_deg"], rel=1e-4)

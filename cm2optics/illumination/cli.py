@@ -283,10 +283,10 @@ def optimize(
 ) -> None:
     """Search the collimator's parameters for the largest delivered fraction whose array
     uniformity (CV inside the circle) is ≤ --max-cv, as a parallel sweep on Dask, and write
-    the best design (`design.yaml`), its collimator (`collimator.stl`, checked for printing:
-    watertight, walls ≥ mechanics.min_wall_mm), its output spreads (`shaping.json`) and every
+    the best design (`design.yaml`, which rebuilds the part), its CAD collimator
+    (`collimator.stl`, checked for printing: watertight, walls ≥ mechanics.min_wall_mm) and every
     candidate (`sweep.json`). Swept: lens angle, cavity radius, LED gap, entry wall, height,
-    and the two sub-beams' output spreads and mapping exponents (cm2optics.illumination.shaping;
+    and the two sub-beams' output spreads and mapping exponents (collimator.lens_spread_deg …;
     zero spreads = the collimating cm2-v2 architecture). Reports the étendue bound beside it.
     """
     from cm2optics.design import load_preset

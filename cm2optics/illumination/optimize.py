@@ -4,9 +4,10 @@ Objective: the array's delivered fraction into the field circle, subject to its 
 ``CV ≤ max_cv`` inside the circle (:mod:`.metrics`). A candidate is a set of values for
 :data:`PARAMETERS`: the collimator's own fields (lens angle, cavity, LED gap, entry wall,
 height; the filter stays on the exit face: ``led_array.excitation_gap_mm = led_gap_mm +
-height_mm``) and the two output spreads and mapping exponents of :mod:`.shaping` (with zero
-spreads a candidate is exactly the collimating cm2-v2 architecture). Each candidate's section
-is computed, revolved into a mesh (:func:`.shaping.revolve_profile`) and traced with the LED,
+height_mm``) and the beam-shaping fields (output spreads and mapping exponents, see
+:mod:`cm2optics.collimator_shaping`; with zero spreads a candidate is exactly the collimating
+cm2-v2 architecture). Each candidate's section is computed, revolved into a mesh
+(:func:`.revolve.revolve_profile`) and traced with the LED,
 filter, housings and sample plane of the design. Candidates whose optics cannot be built in
 the envelope (the TIR surface above the flange, the lens vertex below the entry plane, a TIR
 wall that would leak …) are recorded as infeasible with the reason.
@@ -23,10 +24,10 @@ tool here.
 
 The best candidate meeting the constraint (else the best ranked) is traced again with 4× the
 rays (its figures in the result come from that run; ``meets_uniformity`` there asks the
-measured CV itself, noise included, to be ≤ max_cv), written as STL and checked for printing
-with :func:`cm2optics.cad.mesh_checks.check_mesh` (watertight, consistently wound, thinnest
-wall ≥ ``mechanics.min_wall_mm``). ``design.yaml`` holds the design with the new collimator
-fields; the spreads, which the design schema does not hold yet, go to ``shaping.json``.
+measured CV itself, noise included, to be ≤ max_cv). ``design.yaml`` holds the improved
+design; ``collimator.stl`` is the CAD part built from it (:mod:`cm2optics.cad.collimator`),
+checked for printing with :func:`cm2optics.cad.mesh_checks.check_mesh` (watertight,
+consistently wound, thinnest wall ≥ ``mechanics.min_wall_mm``).
 
 The étendue bound (:func:`etendue_bound`) is reported beside the result.
 """
@@ -51,18 +52,20 @@ PARAMETERS: dict[str, tuple[float, float]] = {
     "collimator.led_gap_mm": (0.05, 0.4),
     "collimator.entry_wall_mm": (0.41, 0.7),
     "collimator.height_mm": (1.6, 2.6),
-    "shaping.lens_spread_deg": (0.0, 40.0),
-    "shaping.tir_spread_deg": (0.0, 40.0),
-    "shaping.lens_exponent": (0.2, 0.6),
-    "shaping.tir_exponent": (0.2, 0.6),
+    "collimator.lens_spread_deg": (0.0, 40.0),
+    "collimator.tir_spread_deg": (0.0, 40.0),
+    "collimator.lens_exponent": (0.2, 0.6),
+    "collimator.tir_exponent": (0.2, 0.6),
 }
 #: Segments per turn of the revolved mesh in the sweep (the written STL uses 256).
 SWEEP_SEGMENTS = 128
 
 
-def _changes(values: dict[str, float]) -> dict[str, float]:
-    """The design fields of a candidate (the shaping values are not design fields)."""
-    changes = {k: float(v) for k, v in values.items() if not k.startswith("shaping.")}
+def _changes(values: dict[str, float]) -> dict[str, Any]:
+    """The design changes of a candidate: its values, the TIR sub-beam crossing the axis, and
+    the excitation filter kept on the collimator's exit face."""
+    changes: dict[str, Any] = {k: float(v) for k, v in values.items()}
+    changes["collimator.tir_crossing"] = True
     gap = changes.get("collimator.led_gap_mm")
     height = changes.get("collimator.height_mm")
     if gap is not None and height is not None:
@@ -70,29 +73,14 @@ def _changes(values: dict[str, float]) -> dict[str, float]:
     return changes
 
 
-def _shape(values: dict[str, float]) -> Any:
-    from cm2optics.illumination.shaping import BeamShape
-
-    return BeamShape(
-        lens_spread_deg=float(values.get("shaping.lens_spread_deg", 0.0)),
-        tir_spread_deg=float(values.get("shaping.tir_spread_deg", 0.0)),
-        tir_crossing=True,
-        lens_exponent=float(values.get("shaping.lens_exponent", 0.5)),
-        tir_exponent=float(values.get("shaping.tir_exponent", 0.5)),
-    )
-
-
 def candidate_collimator(design: SystemDesign, values: dict[str, float], segments: int = SWEEP_SEGMENTS) -> Any:
     """(design with the candidate's fields, its collimator mesh, its profile)."""
+    from cm2optics.collimator import collimator_profile
     from cm2optics.illumination.geometry import CollimatorMesh
-    from cm2optics.illumination.shaping import revolve_profile, shaped_profile
+    from cm2optics.illumination.revolve import revolve_profile
 
     candidate = design.with_changes(_changes(values))
-    profile = shaped_profile(candidate.collimator, candidate.led.peak_nm, _shape(values))
-    if profile.min_wall_mm < candidate.mechanics.min_wall_mm - 1e-9:
-        raise DesignError(
-            "collimator", f"thinnest wall {profile.min_wall_mm:.3f} mm", f"must be ≥ {candidate.mechanics.min_wall_mm}"
-        )
+    profile = collimator_profile(candidate)
     mesh = CollimatorMesh(
         f"{design.name} (optimised)", revolve_profile(profile, segments), candidate.collimator.material
     )
@@ -305,23 +293,12 @@ def optimize_collimator(
 
     improved = design.with_changes({**_changes(best["parameters"]), "name": f"{design.name}-optimised"})
     out_dir = Path(out_dir)
-    stl_path, checks = _export(design, best["parameters"], out_dir)
+    stl_path, checks = _export(improved, out_dir)
     improved.save(out_dir / "design.yaml")
-    shaping = {k.removeprefix("shaping."): v for k, v in best["parameters"].items() if k.startswith("shaping.")}
-    shaping["tir_crossing"] = True
-    write_json_atomic(
-        out_dir / "shaping.json",
-        {
-            "beam_shape": shaping,
-            "note": "output spreads of cm2optics.illumination.shaping.BeamShape: not yet fields of the design "
-            "schema; collimator.stl is the part with them (trace it with cm2 illum run --collimator collimator.stl)",
-        },
-    )
     bound = etendue_bound(improved)
     result = {
         "design": str(out_dir / "design.yaml"),
         "stl": str(stl_path),
-        "shaping": str(out_dir / "shaping.json"),
         "parameters": best["parameters"],
         "meets_uniformity": bool(confirm.get("feasible") and confirm["uniformity_cv"] <= max_cv),
         "max_cv": max_cv,
@@ -345,16 +322,18 @@ def optimize_collimator(
     return result
 
 
-def _export(design: SystemDesign, values: dict[str, float], out_dir: Path) -> tuple[Path, dict[str, Any]]:
-    """Write the candidate's collimator STL (256 segments per turn) and check it for printing."""
-    from cm2optics.cad.mesh_checks import check_mesh
-    from cm2optics.io import write_atomic
-
-    _, collimator, _ = candidate_collimator(design, values, segments=256)
-    path = out_dir / "collimator.stl"
-    write_atomic(path, lambda tmp: collimator.mesh.export(tmp, file_type="stl"))
+def _export(design: SystemDesign, out_dir: Path) -> tuple[Path, dict[str, Any]]:
+    """Write the design's CAD collimator as STL and check it for printing."""
     import trimesh
 
+    from cm2optics.cad.collimator import build_collimator
+    from cm2optics.cad.mesh_checks import check_mesh
+    from cm2optics.cad.tessellate import DEFAULT_TOLERANCE_UM, export_stl
+    from cm2optics.io import write_atomic
+
+    path = out_dir / "collimator.stl"
+    solid = build_collimator(design).val()
+    write_atomic(path, lambda tmp: export_stl(solid, tmp, DEFAULT_TOLERANCE_UM / 1000.0))
     report = check_mesh(trimesh.load_mesh(path, force="mesh"))
     min_wall = design.mechanics.min_wall_mm
     checks = {

@@ -26,70 +26,34 @@ Surfaces from the mapping (meridional plane, LED at the origin, (r, z)):
   parallel to w − u, which gives ``s' = −(ẑ·N + s u'·N) / (u·N)`` along the wall height, started
   where the surface's tangent meets the entry plane ``entry_wall_mm`` outside the cavity.
 
-With α = 0 both reduce exactly to the collimating design. :func:`revolve_profile` turns the
-section into a watertight mesh (rings swept about the axis, the flange's square rings included)
-without CAD, for tracing, sweeps and STL export.
-
-Status: these two spreads are not (yet) fields of :class:`cm2optics.design.Collimator`; a
-design found with them is written as the base design's YAML plus ``shaping.json`` with the
-spreads, and the STL from :func:`revolve_profile`.
+With α = 0 both reduce exactly to the collimating design. The mapping's parameters are fields
+of :class:`cm2optics.design.Collimator` (``lens_spread_deg``, ``tir_spread_deg``,
+``tir_crossing``, ``lens_exponent``, ``tir_exponent``), so a design YAML rebuilds the shaped
+part; :func:`cm2optics.collimator.profile_from_parameters` calls :func:`shaped_profile` for them.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import numpy as np
-import trimesh
 from scipy.integrate import solve_ivp
 
 from cm2optics.collimator import CollimatorProfile
 from cm2optics.design import Collimator, DesignError
 from cm2optics.materials import refractive_index
 
-__all__ = ["BeamShape", "revolve_profile", "shaped_profile"]
-
-
-@dataclass(frozen=True)
-class BeamShape:
-    """Output half-angles (in air, degrees) of the two sub-beams for a point source.
-
-    lens_spread_deg: ψ of the lens-edge ray, 0–40°.
-    tir_spread_deg: |ψ| of the lens-edge ray's TIR neighbour (the TIR sub-beam's edge), 0–40°.
-    tir_crossing: the TIR sub-beam crosses the axis (ψ < 0) rather than spreading outwards.
-    lens_exponent, tir_exponent: the mapping's exponent γ in tan ψ ∝ F^γ (F the sub-beam's
-        flux fraction): 0.5 lights a disc uniformly; smaller values push power outwards, to
-        make up for the filter's loss at oblique incidence and the tilted sample plane (0.1–1).
-    """
-
-    lens_spread_deg: float = 0.0
-    tir_spread_deg: float = 0.0
-    tir_crossing: bool = False
-    lens_exponent: float = 0.5
-    tir_exponent: float = 0.5
-
-    def __post_init__(self) -> None:
-        for name in ("lens_spread_deg", "tir_spread_deg"):
-            value = getattr(self, name)
-            if not (math.isfinite(value) and 0.0 <= value <= 40.0):
-                raise ValueError(f"{name} = {value!r}: must lie within 0–40°")
-        for name in ("lens_exponent", "tir_exponent"):
-            value = getattr(self, name)
-            if not (math.isfinite(value) and 0.1 <= value <= 1.0):
-                raise ValueError(f"{name} = {value!r}: must lie within 0.1–1")
+__all__ = ["shaped_profile"]
 
 
 def _inside_angle(psi: np.ndarray, n: float) -> np.ndarray:
     return np.arcsin(np.sin(psi) / n)
 
 
-def shaped_profile(
-    collimator: Collimator, wavelength_nm: float, shape: BeamShape, samples: int = 241
-) -> CollimatorProfile:
-    """The collimator's section designed for the ray mapping of ``shape`` (module docstring).
+def shaped_profile(collimator: Collimator, wavelength_nm: float, samples: int = 241) -> CollimatorProfile:
+    """The collimator's section designed for its ray mapping (module docstring).
 
-    collimator: envelope and lens angle (as for :func:`cm2optics.collimator.profile_from_parameters`).
+    collimator: envelope, lens angle and beam shape (spreads, crossing, exponents).
     wavelength_nm: design wavelength, nm. samples: points on each freeform curve.
     Raises :class:`DesignError` when the optics cannot be built in the envelope.
     """
@@ -103,14 +67,14 @@ def shaped_profile(
             collimator.lens_half_angle_deg,
             "must be below the cavity mouth's ray angle",
         )
-    tan_lens = math.tan(math.radians(shape.lens_spread_deg))
-    tan_tir = math.tan(math.radians(shape.tir_spread_deg))
-    sign = -1.0 if shape.tir_crossing else 1.0
+    tan_lens = math.tan(math.radians(collimator.lens_spread_deg))
+    tan_tir = math.tan(math.radians(collimator.tir_spread_deg))
+    sign = -1.0 if collimator.tir_crossing else 1.0
 
     # Lens: ρ'/ρ = n sin(θ − φ)/(n cos(θ − φ) − 1), integrated as log ρ.
     def phi_lens(theta):
         fraction = (np.sin(theta) / math.sin(theta_l)) ** 2
-        return _inside_angle(np.arctan(tan_lens * fraction**shape.lens_exponent), n)
+        return _inside_angle(np.arctan(tan_lens * fraction**collimator.lens_exponent), n)
 
     def lens_rhs(theta, log_rho):
         delta = theta - phi_lens(theta)
@@ -154,7 +118,7 @@ def shaped_profile(
         dur = -uz * duz / ur
         th = np.arctan2(a, zw)
         fraction = np.clip((sin2_max - np.sin(th) ** 2) / (sin2_max - sin2_l), 0.0, 1.0)
-        phi = sign * _inside_angle(np.arctan(tan_tir * fraction**shape.tir_exponent), n)
+        phi = sign * _inside_angle(np.arctan(tan_tir * fraction**collimator.tir_exponent), n)
         return ur, uz, dur, duz, np.sin(phi), np.cos(phi)
 
     def normal(ur, uz, wr, wz):
@@ -234,60 +198,3 @@ def shaped_profile(
         min_tir_margin_deg=float(margin.min()),
         min_wall_mm=min(collimator.entry_wall_mm, exit_z - vertex, collimator.flange_mm),
     )
-
-
-def _square_ring(half: float, z: float, angles: np.ndarray) -> np.ndarray:
-    c, s = np.cos(angles), np.sin(angles)
-    k = half / np.maximum(np.abs(c), np.abs(s))
-    return np.column_stack([k * c, k * s, np.full_like(angles, z)])
-
-
-def revolve_profile(profile: CollimatorProfile, segments: int = 256) -> trimesh.Trimesh:
-    """A watertight mesh of the collimator: the section's rings swept about the axis
-    (``segments`` per turn, a multiple of 8 so that the flange's corners are vertices), from the
-    exit face's centre round the flange, down the outer wall, in through the cavity to the
-    lens vertex. Outward normals."""
-    if segments % 8:
-        raise ValueError(f"segments = {segments}: must be a multiple of 8")
-    angles = 2 * np.pi * np.arange(segments) / segments
-    half = profile.footprint_mm / 2
-    ring_list: list[np.ndarray | tuple[float, float]] = [(0.0, profile.exit_z_mm)]  # pole
-    ring_list.append(_square_ring(half, profile.exit_z_mm, angles))
-    ring_list.append(_square_ring(half, profile.flange_bottom_z_mm, angles))
-    r_end, z_end = profile.tir_r_mm[-1], profile.tir_z_mm[-1]
-    section: list[tuple[float, float]] = [(r_end, profile.flange_bottom_z_mm)]
-    if profile.flange_bottom_z_mm - z_end > 1e-6:
-        section.append((r_end, z_end))
-    section += list(zip(profile.tir_r_mm[::-1][1:], profile.tir_z_mm[::-1][1:], strict=True))
-    section += [(profile.outer_radius_entry_mm, profile.entry_z_mm), (profile.cavity_radius_mm, profile.entry_z_mm)]
-    section += list(zip(profile.lens_r_mm[::-1], profile.lens_z_mm[::-1], strict=True))[:-1]
-    for r, z in section:
-        ring_list.append(np.column_stack([r * np.cos(angles), r * np.sin(angles), np.full(segments, z)]))
-    ring_list.append((0.0, float(profile.lens_z_mm[0])))  # pole at the lens vertex
-    vertices: list[np.ndarray] = []
-    faces: list[np.ndarray] = []
-    offsets = []
-    count = 0
-    for ring in ring_list:
-        if isinstance(ring, tuple):
-            vertices.append(np.array([[0.0, 0.0, ring[1]]]))
-            offsets.append((count, 1))
-            count += 1
-        else:
-            vertices.append(ring)
-            offsets.append((count, segments))
-            count += segments
-    k = np.arange(segments)
-    k1 = (k + 1) % segments
-    for (a0, na), (b0, nb) in zip(offsets[:-1], offsets[1:], strict=True):
-        if na == 1:
-            faces.append(np.column_stack([np.full(segments, a0), b0 + k, b0 + k1]))
-        elif nb == 1:
-            faces.append(np.column_stack([a0 + k, np.full(segments, b0), a0 + k1]))
-        else:
-            faces.append(np.column_stack([a0 + k, b0 + k, b0 + k1]))
-            faces.append(np.column_stack([a0 + k, b0 + k1, a0 + k1]))
-    mesh = trimesh.Trimesh(np.vstack(vertices), np.vstack(faces), process=True)
-    if mesh.volume < 0:
-        mesh.invert()
-    return mesh
