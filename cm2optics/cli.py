@@ -19,6 +19,7 @@ from rich.table import Table
 
 import cm2optics
 from cm2optics.design import DesignError, SystemDesign, available_presets, load_preset
+from cm2optics.emission.cli import psf_app
 from cm2optics.illumination.cli import illum_app
 from cm2optics.spectra.cli import spectra_app
 
@@ -36,6 +37,7 @@ app.add_typer(design_app, name="design")
 app.add_typer(cad_app, name="cad")
 app.add_typer(spectra_app, name="spectra")
 app.add_typer(illum_app, name="illum")
+app.add_typer(psf_app, name="psf")
 
 err = Console(stderr=True, soft_wrap=True)
 out = Console()

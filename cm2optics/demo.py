@@ -3,7 +3,7 @@
 Stages so far: the design's first-order optics; the printable parts (CAD export with checks
 and pictures), with the collimator compared to the original authors' part when the reference
 data is present beside the repository; the spectra, filters and the hybrid filter's SBR; the illumination traced through the
-collimators and excitation filters onto the sample.
+collimators and excitation filters onto the sample; a small synthetic PSF calibration scan.
 """
 
 from __future__ import annotations
@@ -15,6 +15,7 @@ from rich.console import Console
 
 from cm2optics.design import SystemDesign
 from cm2optics.report import Report
+from cm2optics.emission.report import add_psf_section
 from cm2optics.illumination.report import add_illumination_section
 from cm2optics.spectra.report import add_spectra_section
 
@@ -90,12 +91,14 @@ def run_demo(design: SystemDesign, out_dir: str | Path) -> Path:
     out_dir = Path(out_dir)
     console = Console(stderr=True)
     report = Report(f"cm2optics demo — {design.name}")
-    console.print("[bold]1/4[/] design optics")
+    console.print("[bold]1/5[/] design optics")
     _design_section(report, design)
-    console.print("[bold]2/4[/] CAD export and checks")
+    console.print("[bold]2/5[/] CAD export and checks")
     _cad_section(report, design, out_dir)
-    console.print("[bold]3/4[/] spectra, filters and SBR")
+    console.print("[bold]3/5[/] spectra, filters and SBR")
     add_spectra_section(report, design, out_dir, title="3. Spectra, filters and the hybrid emission filter")
-    console.print("[bold]4/4[/] illumination")
-    add_illumination_section(report, design, out_dir)
+    console.print("[bold]4/5[/] illumination")
+    add_illumination_section(report, design, out_dir, heading="4. Illumination")
+    console.print("[bold]5/5[/] PSFs and a calibration scan")
+    add_psf_section(report, design, out_dir, title="5. PSFs and calibration scans")
     return report.write(out_dir)

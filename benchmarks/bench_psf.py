@@ -1,0 +1,87 @@
+"""Benchmark: our single-lenslet PSF against Optiland's FFT PSF, in the same run.
+
+Both compute the PSF of the central lenslet of cm2-v2 (filter plate, lens, film; one wavelength)
+for a point source in the nominal focal plane, after a warm-up call:
+
+* ours: :meth:`cm2optics.emission.psf.EmissionModel.foci` for that lenslet and one band — the
+  whole pipeline: coarse and fine traces (Dr.Jit), pupil on the reference sphere, Debye integral
+  by FFT, pixel integration on the sensor's 2.4-µm pixels;
+* Optiland: ``FFTPSF(num_rays=128, grid_size=256)`` (its optic built once, outside the timing).
+
+Printed: the best of ``--repeat`` timings of each, their ratio (Optiland / ours: > 1 means we are
+faster), and for scale the time of one full source position (nine lenslets, all bands). Needs
+``pip install optiland`` (a test dependency).
+
+    .venv/bin/python benchmarks/bench_psf.py
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import time
+import warnings
+
+from cm2optics.design import load_preset
+from cm2optics.emission.analysis import central_lenslet
+from cm2optics.emission.backend import variant
+from cm2optics.emission.crosscheck import optiland_lenslet
+from cm2optics.emission.psf import EmissionModel, PSFSettings
+from cm2optics.emission.source import calibration_pinhole
+
+
+def best_of(repeat: int, call) -> float:
+    times = []
+    for _ in range(repeat):
+        start = time.perf_counter()
+        call()
+        times.append(time.perf_counter() - start)
+    return min(times)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--repeat", type=int, default=20, help="timed runs of each (the best is kept)")
+    parser.add_argument("--field-mm", type=float, default=0.0, help="source height in the focal plane, mm")
+    args = parser.parse_args()
+
+    from optiland.psf import FFTPSF
+
+    design = load_preset("cm2-v2")
+    model = EmissionModel(design, calibration_pinhole(), settings=PSFSettings(binning=1))
+    k = central_lenslet(model)
+    band = model._mid_band
+    wavelength_nm = float(model.bands.wavelength_nm[band])
+    position = (0.0, args.field_mm, 0.0)
+    optic = optiland_lenslet(design, wavelength_nm, args.field_mm)
+    field = (0.0, 1.0 if args.field_mm > 0 else 0.0)
+
+    def ours() -> None:
+        model.foci(position, lenslets=[k], bands=[band])
+
+    def theirs() -> None:
+        FFTPSF(optic, field, wavelength_nm / 1000.0, num_rays=128, grid_size=256)
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        ours()
+        theirs()  # warm-up: kernels compiled, caches filled
+        t_ours = best_of(args.repeat, ours)
+        t_theirs = best_of(args.repeat, theirs)
+        t_position = best_of(max(3, args.repeat // 5), lambda: model.foci(position))
+
+    print(
+        f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores; Mitsuba variant {variant().variant}"
+    )
+    print(f"case: central lenslet of {design.name}, source at {position} mm, {wavelength_nm:.1f} nm")
+    print(f"ours     (one lenslet, one band, pixel-integrated): {t_ours * 1000:8.2f} ms")
+    print(f"Optiland (FFTPSF, 128 rays, 256 grid):               {t_theirs * 1000:8.2f} ms")
+    print(f"ratio Optiland / ours: {t_theirs / t_ours:.2f}  (> 1: ours is faster)")
+    print(
+        f"one full source position (9 lenslets x {len(model.bands)} bands, 2.4-um pixels): {t_position * 1000:.0f} ms"
+    )
+
+
+if __name__ == "__main__":
+    main()

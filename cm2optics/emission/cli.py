@@ -1,0 +1,199 @@
+"""``cm2 psf``: synthetic PSF calibration scans and brute-force measurements of emitters.
+
+Registered by :mod:`cm2optics.cli` as ``app.add_typer(psf_app, name="psf")``. User errors end in
+one line and exit status 2 through :func:`cm2optics.cli.user_errors`, looked up when a command
+runs (so that ``cm2optics.cli`` may import this module at any point of its own import).
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Annotated, Any, TypeVar
+
+import typer
+from rich.console import Console
+from rich.table import Table
+
+__all__ = ["psf_app"]
+
+F = TypeVar("F", bound=Callable[..., Any])
+out = Console()
+err = Console(stderr=True)
+
+psf_app = typer.Typer(
+    help="Emission path and PSFs: point sources traced through filter, lenslets and film to the sensor "
+    "(Mitsuba 3 / Dr.Jit ray trace + Fourier optics), written as PSF calibration scans or measurements.",
+    no_args_is_help=True,
+    context_settings={"help_option_names": ["-h", "--help"]},
+)
+
+# The same options as cm2optics.cli (not imported from it: that module imports this one).
+PresetOption = Annotated[
+    str,
+    typer.Option("--preset", "-p", help="Preset name (cm2-v2, cm2-v1) or path to a design YAML."),
+]
+JsonOption = Annotated[bool, typer.Option("--json", help="Print machine-readable JSON on stdout.")]
+BinningOption = Annotated[
+    int, typer.Option("--binning", "-b", help="Sensor pixels per saved pixel along each axis (1–16).")
+]
+
+
+def _user_errors(command: F) -> F:
+    """cm2optics.cli.user_errors, looked up when the command runs (no import cycle)."""
+
+    @functools.wraps(command)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        from cm2optics.cli import user_errors
+
+        return user_errors(command)(*args, **kwargs)
+
+    return wrapper  # type: ignore[return-value]
+
+
+@psf_app.command("simulate")
+@_user_errors
+def simulate(
+    preset: PresetOption = "cm2-v2",
+    grid: Annotated[
+        str | None,
+        typer.Option(
+            "--grid",
+            help="NXxNYxNZ positions over the design's calibration volume (the square around the imaged field, "
+            "1.25 × its depth: 9x9x11 gives the paper's −4…4 mm in 1-mm and −0.5…0.5 mm in 100-µm steps). "
+            "Default when --positions is not given: 9x9x11.",
+        ),
+    ] = None,
+    positions: Annotated[
+        Path | None,
+        typer.Option(
+            "--positions", help="CSV with columns x_mm,y_mm,z_mm (object space; a full grid) instead of --grid."
+        ),
+    ] = None,
+    binning: BinningOption = 1,
+    out_dir: Annotated[Path, typer.Option("--out", "-o", help="Scan folder to write.")] = Path("out/psf-scan"),
+    dask_address: Annotated[
+        str | None,
+        typer.Option("--dask-address", help="Dask scheduler to run on (tcp://host:8786); default: a local cluster."),
+    ] = None,
+    workers: Annotated[
+        int | None, typer.Option("--workers", help="Local worker processes (default: one per core).")
+    ] = None,
+    field_mm: Annotated[
+        float | None, typer.Option("--field-mm", help="Lateral extent of --grid, mm (default: volume.field_mm).")
+    ] = None,
+    depth_mm: Annotated[
+        float | None, typer.Option("--depth-mm", help="Axial extent of --grid, mm (default: 1.25 × volume.depth_mm).")
+    ] = None,
+    pinhole_um: Annotated[float, typer.Option("--pinhole-um", help="Pinhole diameter, µm.")] = 5.0,
+    half_angle_deg: Annotated[
+        float,
+        typer.Option("--half-angle-deg", help="1/e² half-angle of the pinhole's Gaussian emission profile, degrees."),
+    ] = 26.0,
+    band_nm: Annotated[float, typer.Option("--band-nm", help="Widest wavelength band traced, nm.")] = 10.0,
+    as_json: JsonOption = False,
+) -> None:
+    """Simulate a PSF calibration scan: positions.csv, 16-bit TIFFs, scan.yaml (the measured-scan format),
+    montage.png and manifest.json in --out.
+
+    Positions are in object space: x_mm, y_mm from the central lenslet's axis, z_mm from the nominal
+    focal plane, +z towards the device. Images: the sensor frame (column along +x, row along +y),
+    binned; scan.yaml's pixel_um is the saved pitch. The positions run on Dask with a progress bar;
+    an interrupted run resumes where it stopped when run again with the same options.
+    """
+    from cm2optics.design import load_preset
+    from cm2optics.emission.psf import PSFSettings
+    from cm2optics.emission.scan import ScanSettings, calibration_grid_mm, parse_grid, read_positions_csv, simulate_scan
+    from cm2optics.emission.source import calibration_pinhole
+
+    if grid is not None and positions is not None:
+        raise ValueError("give --grid or --positions, not both")
+    design = load_preset(preset)
+    if positions is not None:
+        points = read_positions_csv(positions)
+    else:
+        points = calibration_grid_mm(design, parse_grid(grid or "9x9x11"), field_mm, depth_mm)
+    settings = ScanSettings(
+        psf=PSFSettings(binning=binning, band_nm=band_nm), source=calibration_pinhole(pinhole_um, half_angle_deg)
+    )
+    start = time.perf_counter()
+    try:
+        manifest = simulate_scan(
+            design, points, out_dir, settings, dask_address=dask_address, workers=workers, progress=not as_json
+        )
+    except KeyboardInterrupt:
+        err.print(
+            f"[yellow]interrupted: finished positions are kept; run the same command again to resume into {out_dir}[/]"
+        )
+        raise typer.Exit(130) from None
+    manifest["timings"]["total_s"] = round(time.perf_counter() - start, 2)
+    if as_json:
+        print(json.dumps({"out": str(out_dir), **manifest}, indent=2, ensure_ascii=False))
+        return
+    table = Table(title=f"{design.name}: PSF scan in {out_dir}")
+    table.add_column("quantity")
+    table.add_column("value", justify="right")
+    rows = [
+        ("positions", manifest["inputs"]["positions"]),
+        ("grid (x × y × z)", " × ".join(str(n) for n in manifest["inputs"]["grid_shape"])),
+        ("binning / pixel", f"{binning} / {design.sensor.pixel_um * binning:g} µm"),
+        ("wall time", f"{manifest['timings']['total_s']:.1f} s"),
+        ("per position (worker)", f"{manifest['timings']['per_position_s_mean']:.3f} s mean"),
+        ("exposure", f"{manifest['metrics']['exposure_ms_min']:.3g}–{manifest['metrics']['exposure_ms_max']:.3g} ms"),
+    ]
+    for key, value in rows:
+        table.add_row(key, str(value))
+    out.print(table)
+
+
+@psf_app.command("image")
+@_user_errors
+def image(
+    emitters: Annotated[
+        Path, typer.Option("--emitters", "-e", help="CSV x_um,y_um,z_um,diameter_um,intensity (object space).")
+    ],
+    preset: PresetOption = "cm2-v2",
+    binning: BinningOption = 1,
+    out_path: Annotated[
+        Path, typer.Option("--out", "-o", help="Measurement TIFF to write (a .yaml sidecar goes beside it).")
+    ] = Path("out/psf-image/measurement.tif"),
+    fill: Annotated[float, typer.Option("--fill", help="Brightest pixel as a fraction of full scale.")] = 0.8,
+    as_json: JsonOption = False,
+) -> None:
+    """Render a measurement of a few emitters by tracing each one through the emission path: the
+    brute-force reference that the 3D-LSV model is checked against.
+
+    Emitters: x_um, y_um from the central lenslet's axis, z_um from the nominal focal plane (+z towards
+    the device), bead diameter in µm, relative intensity. Writes a 16-bit TIFF (sensor frame, column
+    along +x, row along +y) and a YAML sidecar with the count scale.
+    """
+    from cm2optics.design import load_preset
+    from cm2optics.emission.image import read_emitters_csv, render_emitters, write_measurement
+    from cm2optics.emission.psf import PSFSettings
+
+    design = load_preset(preset)
+    table = read_emitters_csv(emitters)
+    settings = PSFSettings(binning=binning)
+    start = time.perf_counter()
+    frame = render_emitters(design, table, settings, progress=not as_json)
+    elapsed = time.perf_counter() - start
+    tif, sidecar = write_measurement(
+        out_path, frame, design, binning, fill=fill, extra={"emitters": str(emitters), "count": len(table)}
+    )
+    result = {
+        "out": str(tif),
+        "sidecar": str(sidecar),
+        "emitters": len(table),
+        "shape": list(frame.shape),
+        "pixel_um": design.sensor.pixel_um * binning,
+        "seconds": round(elapsed, 2),
+    }
+    if as_json:
+        print(json.dumps(result, indent=2))
+        return
+    out.print(
+        f"[green]measurement:[/] {tif} ({len(table)} emitters, {frame.shape[1]}×{frame.shape[0]} px, {elapsed:.1f} s)"
+    )

@@ -1,0 +1,87 @@
+"""The opaque parts around the emission path as a Mitsuba scene: mask and housing bore.
+
+Each opening of :attr:`EmissionOptics.bores` (the mask's opening, the seats and the spacer of
+the printed MLA housing) becomes a square tube of four wall quads plus a floor and a ceiling:
+square annuli from the opening out to :data:`OUTER_MM`, so that a ray outside the opening at
+either end is stopped too. The tracer (:mod:`.trace`) casts each straight air segment of a ray
+against this scene with ``scene.ray_test`` (Embree on the CPU, OptiX on CUDA): any hit blocks
+the ray. Mitsuba finds surfaces; the optics (refraction, optical path) stays in float64 in
+the tracer. The scene is built in memory from a dict, one ``mi.Mesh`` per opening.
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from typing import Any
+
+import numpy as np
+
+from cm2optics.emission.backend import mitsuba
+from cm2optics.emission.optics import Bore, EmissionOptics
+
+__all__ = ["OUTER_MM", "bore_mesh", "housing_scene", "segment_test"]
+
+#: Half-width of the annuli that close each opening's floor and ceiling, mm.
+OUTER_MM = 20.0
+
+
+def _rect(x0: float, x1: float, y0: float, y1: float, z: float) -> np.ndarray:
+    return np.array([[x0, y0, z], [x1, y0, z], [x1, y1, z], [x0, y1, z]])
+
+
+def bore_mesh(bore: Bore, outer_mm: float = OUTER_MM) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices (mm) and triangles of one opening: four walls, and an annulus at each end."""
+    hx, hy, z0, z1 = bore.half_x_mm, bore.half_y_mm, bore.z0_mm, bore.z1_mm
+    o = outer_mm
+    quads = [
+        np.array([[-hx, -hy, z0], [hx, -hy, z0], [hx, -hy, z1], [-hx, -hy, z1]]),
+        np.array([[-hx, hy, z0], [hx, hy, z0], [hx, hy, z1], [-hx, hy, z1]]),
+        np.array([[hx, -hy, z0], [hx, hy, z0], [hx, hy, z1], [hx, -hy, z1]]),
+        np.array([[-hx, -hy, z0], [-hx, hy, z0], [-hx, hy, z1], [-hx, -hy, z1]]),
+    ]
+    for z in (z0, z1):
+        quads += [
+            _rect(-o, o, hy, o, z),
+            _rect(-o, o, -o, -hy, z),
+            _rect(hx, o, -hy, hy, z),
+            _rect(-o, -hx, -hy, hy, z),
+        ]
+    vertices = np.concatenate(quads).reshape(-1, 3)
+    base = 4 * np.arange(len(quads))[:, None]
+    faces = np.concatenate([base + [0, 1, 2], base + [0, 2, 3]])
+    return vertices, faces
+
+
+def _mesh(mi: Any, name: str, vertices: np.ndarray, faces: np.ndarray) -> Any:
+    mesh = mi.Mesh(name, len(vertices), len(faces))
+    params = mi.traverse(mesh)
+    params["vertex_positions"] = type(params["vertex_positions"])(np.ascontiguousarray(vertices, np.float32).ravel())
+    params["faces"] = type(params["faces"])(np.ascontiguousarray(faces, np.uint32).ravel())
+    params.update()
+    return mesh
+
+
+@lru_cache(maxsize=8)
+def housing_scene(optics: EmissionOptics) -> Any:
+    """The Mitsuba scene of ``optics``' openings (cached per optics)."""
+    mi = mitsuba()
+    scene: dict[str, Any] = {"type": "scene"}
+    for k, bore in enumerate(optics.bores):
+        scene[f"bore_{k}"] = _mesh(mi, bore.name, *bore_mesh(bore))
+    return mi.load_dict(scene)
+
+
+def segment_test(scene: Any):
+    """A segment test for :func:`cm2optics.emission.trace._trace` that casts the segment against
+    ``scene``: True where nothing lies along it."""
+    mi = mitsuba()
+
+    def test(px, py, pz, dx, dy, dz, length, z_low, z_high):
+        ray = mi.Ray3f(
+            mi.Point3f(mi.Float(px), mi.Float(py), mi.Float(pz)),
+            mi.Vector3f(mi.Float(dx), mi.Float(dy), mi.Float(dz)),
+        )
+        ray.maxt = mi.Float(length) * (1.0 - 1e-6)
+        return ~scene.ray_test(ray)
+
+    return test

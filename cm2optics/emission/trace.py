@@ -1,0 +1,370 @@
+"""Exact, vectorised ray trace of the emission path: point source → filter → mask → lenslet → film → sensor.
+
+Every ray leaves a source point with direction ``(u, v, −1)/√(1 + u² + v²)`` (``u, v`` the
+direction tangents; the light goes towards the device, −z) and is aimed at one lenslet. All
+rays of a call — any mix of sources, lenslets and wavelength bands — advance together through
+the same surfaces, in closed form (plane and sphere intersections, Snell's law in vector form):
+
+1. the emission filter, a plane-parallel plate of the design's glass (rays outside the plate
+   hit the housing);
+2. air, through the mask's opening and the housing bore;
+3. the lenslet's sphere (centre ``radius_mm`` below the vertex); the hit must lie inside the
+   lenslet's clear aperture (its cell, as on a 100 %-fill-factor array);
+4. the PMMA down to the flat face, which the ray must leave through (not the array's sides;
+   no total internal reflection);
+5. air, through the spacer between the array and the film;
+6. the film (gelatin plate), if the design has one; rays outside it meet its opaque seat;
+7. air to the sensor plane z = 0; the ray must land on the active area.
+
+Optical path lengths are summed in float64 (they feed the wavefront, :mod:`.wavefront`);
+refractive indices are per ray (each ray carries its band's wavelength). The ray keeps its
+geometry even where it is blocked, so that the pupil mapping stays smooth: ``traced`` says the
+geometry exists (no sphere miss, no TIR), ``passed`` that nothing blocked the ray.
+
+Engines (``engine``):
+
+* ``"drjit"`` (default where Mitsuba has a JIT variant): the trace is recorded on Dr.Jit
+  float64 arrays and runs as one compiled kernel (LLVM on every CPU core, or CUDA), and the
+  housing is a Mitsuba scene of meshes (:mod:`.housing`) that the air segments are tested
+  against (``scene.ray_test``);
+* ``"numpy"``: the same code on NumPy arrays, with the housing's openings tested in closed
+  form. Used as the reference in the tests and where no JIT variant exists.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from cm2optics.emission.backend import is_jit, mitsuba
+from cm2optics.emission.optics import EmissionOptics
+
+__all__ = ["ENGINES", "RayBatch", "TracedRays", "default_engine", "trace_rays"]
+
+ENGINES = ("drjit", "numpy")
+
+
+@dataclass(frozen=True, eq=False)
+class RayBatch:
+    """Rays to trace, one value per ray (1-D arrays of one length).
+
+    source_mm: (n, 3) source point in the device frame, mm.
+    u, v: direction tangents d_x/|d_z|, d_y/|d_z| of the ray leaving the source.
+    lenslet: index into :attr:`EmissionOptics.lenslets` of the lenslet the ray is aimed at.
+    n_filter, n_lens, n_film: refractive indices of the filter glass, the lens and the film at
+        the ray's wavelength.
+    """
+
+    source_mm: np.ndarray
+    u: np.ndarray
+    v: np.ndarray
+    lenslet: np.ndarray
+    n_filter: np.ndarray
+    n_lens: np.ndarray
+    n_film: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.u)
+
+
+@dataclass(frozen=True, eq=False)
+class TracedRays:
+    """The traced rays (NumPy arrays, one value per ray).
+
+    traced: the geometry exists down to the sensor plane (no sphere miss, no TIR).
+    passed: traced and not blocked by any aperture, the housing or the sensor's edge.
+    x_mm, y_mm: where the ray meets the sensor plane (device frame), mm.
+    direction: (n, 3) unit direction of the last segment (in air, towards −z).
+    opl_mm: optical path length from the source to the sensor plane, mm.
+    aoi_filter_rad, aoi_film_rad: angles of incidence (in air) at the filter and the film, rad.
+    fresnel: unpolarised power transmittance of the lens's two faces (sphere in, flat face out).
+    """
+
+    traced: np.ndarray
+    passed: np.ndarray
+    x_mm: np.ndarray
+    y_mm: np.ndarray
+    direction: np.ndarray
+    opl_mm: np.ndarray
+    aoi_filter_rad: np.ndarray
+    aoi_film_rad: np.ndarray
+    fresnel: np.ndarray
+
+
+_WARNED = False
+
+
+def default_engine() -> str:
+    """``"drjit"`` when Mitsuba runs a JIT variant (LLVM/CUDA), else ``"numpy"`` (warned once)."""
+    global _WARNED
+    if is_jit():
+        return "drjit"
+    if not _WARNED:
+        _WARNED = True
+        warnings.warn(
+            "emission: no JIT variant of Mitsuba (LLVM ≥ 17 or CUDA) is available; tracing with NumPy "
+            "(several times slower). Install LLVM ≥ 17 (Debian/Ubuntu: apt install libllvm19).",
+            RuntimeWarning,
+            stacklevel=2,
+        )
+    return "numpy"
+
+
+# ----------------------------------------------------------------------------- array operations
+
+
+class _NumpyOps:
+    sqrt = staticmethod(np.sqrt)
+    abs = staticmethod(np.abs)
+    select = staticmethod(np.where)
+    maximum = staticmethod(np.maximum)
+
+    @staticmethod
+    def full(value: float, like: np.ndarray) -> np.ndarray:
+        return np.full(like.shape, value, dtype=float)
+
+
+class _DrJitOps:
+    def __init__(self) -> None:
+        import drjit as dr
+
+        mi = mitsuba()
+        self.dr = dr
+        self.sqrt = dr.sqrt
+        self.abs = dr.abs
+        self.select = dr.select
+        self.maximum = dr.maximum
+        self.Float64 = mi.Float64
+
+    def full(self, value: float, like: Any) -> Any:
+        return self.dr.full(self.Float64, value, self.dr.width(like))
+
+
+def _refract(ops: Any, dx: Any, dy: Any, dz: Any, nx: Any, ny: Any, nz: Any, eta: Any):
+    """Snell's law: unit direction d through a surface of unit normal n facing the incoming ray
+    (n·d < 0), index ratio eta = n₁/n₂. Returns (tx, ty, tz, cos_i, cos_t, ok); ok False on TIR."""
+    cos_i = -(dx * nx + dy * ny + dz * nz)
+    k = 1.0 - eta * eta * (1.0 - cos_i * cos_i)
+    ok = k > 0.0
+    cos_t = ops.sqrt(ops.maximum(k, 0.0))
+    f = eta * cos_i - cos_t
+    return eta * dx + f * nx, eta * dy + f * ny, eta * dz + f * nz, cos_i, cos_t, ok
+
+
+def _fresnel(ops: Any, cos_i: Any, cos_t: Any, n1: Any, n2: Any) -> Any:
+    """Unpolarised power transmittance 1 − (R_s + R_p)/2 of an interface n1 → n2."""
+    rs = (n1 * cos_i - n2 * cos_t) / (n1 * cos_i + n2 * cos_t)
+    rp = (n2 * cos_i - n1 * cos_t) / (n2 * cos_i + n1 * cos_t)
+    return 1.0 - 0.5 * (rs * rs + rp * rp)
+
+
+def _inside(ops: Any, x: Any, y: Any, x0: Any, x1: Any, y0: Any, y1: Any) -> Any:
+    return (x >= x0) & (x <= x1) & (y >= y0) & (y <= y1)
+
+
+def _bores_between(optics: EmissionOptics, z_low: float, z_high: float) -> list[tuple[float, float, float, float]]:
+    """(half_x, half_y, z_a, z_b) of the bores overlapping the height range [z_low, z_high]."""
+    out = []
+    for bore in optics.bores:
+        a, b = max(z_low, bore.z0_mm), min(z_high, bore.z1_mm)
+        if b > a:
+            out.append((bore.half_x_mm, bore.half_y_mm, a, b))
+    return out
+
+
+def _trace(ops: Any, optics: EmissionOptics, r: dict[str, Any], test_segment: Any) -> dict[str, Any]:
+    """The trace itself, written once for NumPy and Dr.Jit arrays (see the module docstring).
+
+    ``test_segment(px, py, pz, dx, dy, dz, length, z_low, z_high)`` returns True where the air
+    segment from p, ``length`` mm along d (downwards), clears the housing; ``z_low``–``z_high``
+    (mm) bound the heights the segments of that stretch of the path can reach."""
+    sx, sy, sz = r["sx"], r["sy"], r["sz"]
+    norm = ops.sqrt(1.0 + r["u"] * r["u"] + r["v"] * r["v"])
+    dx, dy, dz = r["u"] / norm, r["v"] / norm, -1.0 / norm
+    aoi_filter_cos = -dz
+
+    filt = optics.filter
+    # 1. Filter top face.
+    t = (filt.z1_mm - sz) / dz
+    px, py, pz = sx + t * dx, sy + t * dy, ops.full(filt.z1_mm, sx)
+    opl = t
+    passed = _inside(ops, px, py, -filt.half_x_mm, filt.half_x_mm, -filt.half_y_mm, filt.half_y_mm)
+    # Inside the glass.
+    gx, gy, gz, _, _, ok = _refract(ops, dx, dy, dz, 0.0, 0.0, 1.0, 1.0 / r["n_filter"])
+    traced = ok
+    t = (filt.z0_mm - filt.z1_mm) / gz
+    px, py, pz = px + t * gx, py + t * gy, ops.full(filt.z0_mm, sx)
+    opl = opl + r["n_filter"] * t
+    passed = passed & _inside(ops, px, py, -filt.half_x_mm, filt.half_x_mm, -filt.half_y_mm, filt.half_y_mm)
+    # Out of the glass: the original direction (parallel faces).
+
+    # 3. The lenslet's sphere.
+    radius = optics.radius_mm
+    cx, cy, cz = r["cx"], r["cy"], optics.vertex_z_mm - radius
+    ox, oy, oz = px - cx, py - cy, pz - cz
+    b = dx * ox + dy * oy + dz * oz
+    c = ox * ox + oy * oy + oz * oz - radius * radius
+    disc = b * b - c
+    traced = traced & (disc >= 0.0)
+    t = -b - ops.sqrt(ops.maximum(disc, 0.0))
+    hx, hy, hz = px + t * dx, py + t * dy, pz + t * dz
+    opl = opl + t
+    passed = passed & test_segment(px, py, pz, dx, dy, dz, t, optics.land_z_mm, filt.z0_mm)
+    passed = passed & _inside(ops, hx, hy, r["ax0"], r["ax1"], r["ay0"], r["ay1"])
+    nx, ny, nz = (hx - cx) / radius, (hy - cy) / radius, (hz - cz) / radius
+    n_lens = r["n_lens"]
+    lx, ly, lz, cos_i, cos_t, ok = _refract(ops, dx, dy, dz, nx, ny, nz, 1.0 / n_lens)
+    traced = traced & ok
+    fresnel = _fresnel(ops, cos_i, cos_t, 1.0, n_lens)
+
+    # 4. Down through the PMMA to the flat face.
+    t = (optics.flat_z_mm - hz) / lz
+    px, py, pz = hx + t * lx, hy + t * ly, ops.full(optics.flat_z_mm, sx)
+    opl = opl + n_lens * t
+    (x0, x1), (y0, y1) = optics.mla_x_mm, optics.mla_y_mm
+    passed = passed & _inside(ops, px, py, x0, x1, y0, y1)
+    ex, ey, ez, cos_i, cos_t, ok = _refract(ops, lx, ly, lz, 0.0, 0.0, 1.0, n_lens)
+    traced = traced & ok
+    fresnel = fresnel * _fresnel(ops, cos_i, cos_t, n_lens, 1.0)
+    aoi_film_cos = -ez
+
+    # 5-6. Air to the film, through it, and on to the sensor.
+    film = optics.film
+    if film is not None:
+        t = (film.z1_mm - pz) / ez
+        qx, qy = px + t * ex, py + t * ey
+        opl = opl + t
+        passed = passed & test_segment(px, py, pz, ex, ey, ez, t, film.z1_mm, optics.flat_z_mm)
+        passed = passed & _inside(ops, qx, qy, -film.half_x_mm, film.half_x_mm, -film.half_y_mm, film.half_y_mm)
+        fx, fy, fz, _, _, ok = _refract(ops, ex, ey, ez, 0.0, 0.0, 1.0, 1.0 / r["n_film"])
+        traced = traced & ok
+        t = (film.z0_mm - film.z1_mm) / fz
+        qx, qy = qx + t * fx, qy + t * fy
+        opl = opl + r["n_film"] * t
+        passed = passed & _inside(ops, qx, qy, -film.half_x_mm, film.half_x_mm, -film.half_y_mm, film.half_y_mm)
+        t = -film.z0_mm / ez
+        px, py = qx + t * ex, qy + t * ey
+        opl = opl + t
+    else:
+        t = -optics.flat_z_mm / ez
+        passed = passed & test_segment(px, py, pz, ex, ey, ez, t, 0.0, optics.flat_z_mm)
+        px, py = px + t * ex, py + t * ey
+        opl = opl + t
+    sh_x, sh_y = optics.sensor_half_x_mm, optics.sensor_half_y_mm
+    passed = passed & _inside(ops, px, py, -sh_x, sh_x, -sh_y, sh_y) & traced
+    return {
+        "traced": traced,
+        "passed": passed,
+        "x": px,
+        "y": py,
+        "dx": ex,
+        "dy": ey,
+        "dz": ez,
+        "opl": opl,
+        "cos_filter": aoi_filter_cos,
+        "cos_film": aoi_film_cos,
+        "fresnel": fresnel,
+    }
+
+
+def _per_ray(optics: EmissionOptics, rays: RayBatch) -> dict[str, np.ndarray]:
+    index = np.asarray(rays.lenslet, dtype=np.int64)
+    table = np.array(
+        [[c.vertex_x_mm, c.vertex_y_mm, c.x0_mm, c.x1_mm, c.y0_mm, c.y1_mm] for c in optics.lenslets], dtype=float
+    )
+    if index.size and (index.min() < 0 or index.max() >= len(table)):
+        raise ValueError(f"lenslet indices must lie within 0–{len(table) - 1}")
+    per = table[index]
+    source = np.asarray(rays.source_mm, dtype=float)
+    if source.shape != (len(index), 3):
+        raise ValueError(f"source_mm has shape {source.shape}: must be ({len(index)}, 3)")
+    return {
+        "sx": source[:, 0],
+        "sy": source[:, 1],
+        "sz": source[:, 2],
+        "u": np.asarray(rays.u, dtype=float),
+        "v": np.asarray(rays.v, dtype=float),
+        "cx": per[:, 0],
+        "cy": per[:, 1],
+        "ax0": per[:, 2],
+        "ax1": per[:, 3],
+        "ay0": per[:, 4],
+        "ay1": per[:, 5],
+        "n_filter": np.asarray(rays.n_filter, dtype=float),
+        "n_lens": np.asarray(rays.n_lens, dtype=float),
+        "n_film": np.asarray(rays.n_film, dtype=float),
+    }
+
+
+def _analytic_segment_test(ops: Any, optics: EmissionOptics):
+    """Closed-form housing test: a straight segment stays inside a (convex) rectangular bore
+    over a height range exactly when it is inside at both ends of that range."""
+
+    def test(px, py, pz, dx, dy, dz, length, z_low, z_high):
+        ok = None
+        for half_x, half_y, a, b in _bores_between(optics, z_low, z_high):
+            for z in (a, b):
+                t = (z - pz) / dz
+                x, y = px + t * dx, py + t * dy
+                inside = _inside(ops, x, y, -half_x, half_x, -half_y, half_y)
+                ok = inside if ok is None else ok & inside
+        return ok if ok is not None else (px == px)
+
+    return test
+
+
+def _numpy(value: Any) -> np.ndarray:
+    return value.numpy() if hasattr(value, "numpy") else np.asarray(value)
+
+
+def _result(arrays: dict[str, Any]) -> TracedRays:
+    a = {k: _numpy(v) for k, v in arrays.items()}
+    return TracedRays(
+        traced=a["traced"].astype(bool, copy=False),
+        passed=a["passed"].astype(bool, copy=False),
+        x_mm=a["x"],
+        y_mm=a["y"],
+        direction=np.stack([a["dx"], a["dy"], a["dz"]], axis=1),
+        opl_mm=a["opl"],
+        aoi_filter_rad=np.arccos(np.clip(a["cos_filter"], -1.0, 1.0)),
+        aoi_film_rad=np.arccos(np.clip(a["cos_film"], -1.0, 1.0)),
+        fresnel=np.nan_to_num(a["fresnel"]),
+    )
+
+
+def trace_rays(optics: EmissionOptics, rays: RayBatch, engine: str | None = None) -> TracedRays:
+    """Trace ``rays`` through ``optics`` (see the module docstring) on ``engine``
+    (``"drjit"`` or ``"numpy"``; default :func:`default_engine`)."""
+    engine = engine or default_engine()
+    if engine not in ENGINES:
+        raise ValueError(f"engine = {engine!r}: must be one of {', '.join(ENGINES)}")
+    per = _per_ray(optics, rays)
+    if len(rays) == 0:
+        empty = np.zeros(0)
+        return TracedRays(
+            empty.astype(bool), empty.astype(bool), empty, empty, np.zeros((0, 3)), empty, empty, empty, empty
+        )
+    if engine == "numpy" or not is_jit():
+        if engine == "drjit":
+            raise ValueError("engine = 'drjit' needs a JIT variant of Mitsuba (LLVM ≥ 17 or CUDA)")
+        ops = _NumpyOps()
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return _result(_trace(ops, optics, per, _analytic_segment_test(ops, optics)))
+    from cm2optics.emission.housing import housing_scene, segment_test
+
+    ops = _DrJitOps()
+    r = {k: ops.Float64(v) for k, v in per.items()}
+    out = _trace(ops, optics, r, segment_test(housing_scene(optics)))
+    ops.dr.eval(*out.values())
+    return _result(out)
+
+
+def paraxial_reach_mm(optics: EmissionOptics, source_z_mm: float, n_filter: float, z_mm: float) -> float:
+    """Reduced distance (mm) from a source at height ``source_z_mm`` down to height ``z_mm`` below
+    the filter: the filter's thickness counts as t/n (the plate's paraxial effect)."""
+    t = optics.filter.thickness_mm
+    return (source_z_mm - z_mm) - t + t / n_filter if math.isfinite(n_filter) else source_z_mm - z_mm
