@@ -20,6 +20,10 @@ from rich.table import Table
 import cm2optics
 from cm2optics.design import DesignError, SystemDesign, available_presets, load_preset
 from cm2optics.emission.cli import psf_app
+from cm2optics.lsv.cli import lsv_app, simulate_command
+from cm2optics.metrics.cli import evaluate_command
+from cm2optics.recon.cli import reconstruct_command
+from cm2optics.synth.cli import synth_command
 from cm2optics.illumination.cli import illum_app
 from cm2optics.spectra.cli import spectra_app
 
@@ -38,6 +42,11 @@ app.add_typer(cad_app, name="cad")
 app.add_typer(spectra_app, name="spectra")
 app.add_typer(illum_app, name="illum")
 app.add_typer(psf_app, name="psf")
+app.add_typer(lsv_app, name="lsv")
+app.command("simulate")(simulate_command)
+app.command("synth")(synth_command)
+app.command("evaluate")(evaluate_command)
+app.command("reconstruct")(reconstruct_command)
 
 err = Console(stderr=True, soft_wrap=True)
 out = Console()

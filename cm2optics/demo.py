@@ -3,7 +3,9 @@
 Stages so far: the design's first-order optics; the printable parts (CAD export with checks
 and pictures), with the collimator compared to the original authors' part when the reference
 data is present beside the repository; the spectra, filters and the hybrid filter's SBR; the illumination traced through the
-collimators and excitation filters onto the sample; a small synthetic PSF calibration scan.
+collimators and excitation filters onto the sample; a small synthetic PSF calibration scan;
+a 3D-LSV forward model and a simulated measurement; a synthetic volume reconstructed with the
+model-based baselines and evaluated.
 """
 
 from __future__ import annotations
@@ -17,6 +19,8 @@ from cm2optics.design import SystemDesign
 from cm2optics.report import Report
 from cm2optics.emission.report import add_psf_section
 from cm2optics.illumination.report import add_illumination_section
+from cm2optics.lsv.report import add_lsv_section
+from cm2optics.recon.report import add_baseline_section
 from cm2optics.spectra.report import add_spectra_section
 
 #: Where the original device's reference data sits in a developer checkout (absent for users).
@@ -91,14 +95,18 @@ def run_demo(design: SystemDesign, out_dir: str | Path) -> Path:
     out_dir = Path(out_dir)
     console = Console(stderr=True)
     report = Report(f"cm2optics demo — {design.name}")
-    console.print("[bold]1/5[/] design optics")
+    console.print("[bold]1/7[/] design optics")
     _design_section(report, design)
-    console.print("[bold]2/5[/] CAD export and checks")
+    console.print("[bold]2/7[/] CAD export and checks")
     _cad_section(report, design, out_dir)
-    console.print("[bold]3/5[/] spectra, filters and SBR")
+    console.print("[bold]3/7[/] spectra, filters and SBR")
     add_spectra_section(report, design, out_dir, title="3. Spectra, filters and the hybrid emission filter")
-    console.print("[bold]4/5[/] illumination")
+    console.print("[bold]4/7[/] illumination")
     add_illumination_section(report, design, out_dir, heading="4. Illumination")
-    console.print("[bold]5/5[/] PSFs and a calibration scan")
+    console.print("[bold]5/7[/] PSFs and a calibration scan")
     add_psf_section(report, design, out_dir, title="5. PSFs and calibration scans")
+    console.print("[bold]6/7[/] 3D-LSV forward model")
+    add_lsv_section(report, design, None, out_dir, title="6. The 3D-LSV forward model")
+    console.print("[bold]7/7[/] synthetic volume, model-based reconstruction, metrics")
+    add_baseline_section(report, design, None, out_dir, title="7. Synthetic data, baselines and metrics")
     return report.write(out_dir)

@@ -1,0 +1,254 @@
+"""Benchmark: the 3D-LSV forward model against the naive per-(k, z) scipy FFT convolution.
+
+The model is a full-size synthetic CM² V2 model (3088 × 2076 sensor, 9 × 9 × 11 calibration
+nodes, K = 64, foci cropped at 160 × 160 px; ``--no-trim`` keeps the full crops, by default their
+dark margins are cut as ``cm2 lsv build`` does) of the analytic CM²-like PSF
+(:mod:`cm2optics.lsv.analytic`). The volume is a dense random 1920 × 1920 × 80 volume at the
+model's native voxel (4.15 × 4.15 × 10 µm).
+
+- **Ours**: :class:`cm2optics.lsv.operators.LSVOperator` forward (torch, float32), timed
+  ``--repeat`` times; peak resident memory of the process during the call.
+- **Reference**: :func:`cm2optics.lsv.reference.reference_forward`, the model's definition
+  evaluated naively — for every (k, z) one scipy ``fftconvolve`` per lenslet (float64), with the
+  coefficient maps interpolated pixel by pixel. A full run is K·nz = 5,120 (k, z) pairs (hours on
+  this machine), so by default it is timed on one depth plane: the per-plane set-up
+  (splat, shifts, coefficient maps) and the per-(k, z) convolutions separately, then
+  extrapolated linearly to all pairs (the cost of a pair does not depend on k or z);
+  ``--full-reference`` runs it all.
+- **Accuracy**: both on the same full-size problem restricted to ``--check-planes`` planes and
+  ``--check-ranks`` basis PSFs (the rest zero), so that the reference can run every pair: the
+  relative error ‖ours − reference‖ / ‖reference‖ (the issue asks ≤ 1e-4).
+- **Sparse**: 5,000 emitters (balls of 10–20 µm in a 7-mm disc, ±0.4 mm deep) through the sparse
+  path (:mod:`cm2optics.lsv.sparse`).
+
+Absolute times are noisy on a shared machine: each figure is the best of its repeats, all
+repeats are printed, and the load average is shown.
+
+    .venv/bin/python benchmarks/bench_lsv.py            # full size (≈ 5 min)
+    .venv/bin/python benchmarks/bench_lsv.py --small    # binned 4×, 20 planes (≈ 1 min)
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from cm2optics.design import load_preset
+from cm2optics.lsv.analytic import AnalyticCM2, analytic_model
+from cm2optics.lsv.model import LSVModel
+from cm2optics.lsv.reference import reference_forward
+from cm2optics.volume_io import Emitters, VolumeGrid
+
+
+class PeakMemory:
+    """Peak resident set size (bytes) of this process while the block runs (sampled every 20 ms,
+    after resetting the kernel's high-water mark where Linux allows it)."""
+
+    def __enter__(self) -> PeakMemory:
+        self.peak = 0
+        self._stop = threading.Event()
+        try:
+            Path("/proc/self/clear_refs").write_text("5")
+        except OSError:
+            pass
+        self._thread = threading.Thread(target=self._sample, daemon=True)
+        self._thread.start()
+        return self
+
+    def _rss(self) -> int:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith(("VmRSS", "VmHWM")):
+                self.peak = max(self.peak, int(line.split()[1]) * 1024)
+        return self.peak
+
+    def _sample(self) -> None:
+        while not self._stop.is_set():
+            self._rss()
+            time.sleep(0.02)
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        self._thread.join()
+        self._rss()
+
+
+def load() -> str:
+    return " ".join(Path("/proc/loadavg").read_text().split()[:3]) if Path("/proc/loadavg").exists() else "n/a"
+
+
+def restricted(model: LSVModel, ranks: int) -> LSVModel:
+    """The same model with every coefficient beyond the first ``ranks`` basis PSFs set to zero."""
+    from dataclasses import replace
+
+    coefficients = model.coefficients.copy()
+    coefficients[ranks:] = 0
+    return replace(model, coefficients=coefficients)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--small", action="store_true", help="binned 4× sensor, 480 × 480 × 20 volume: a quick run")
+    parser.add_argument("--rank", type=int, default=64)
+    parser.add_argument("--no-trim", action="store_true", help="keep the full 160-px crops (no dark-margin trimming)")
+    parser.add_argument("--repeat", type=int, default=2, help="timed runs of ours (best kept)")
+    parser.add_argument(
+        "--reference-ranks", type=int, default=3, help="(k, z) pairs of one plane timed for the reference"
+    )
+    parser.add_argument("--full-reference", action="store_true", help="run the reference on every (k, z) pair (hours)")
+    parser.add_argument("--check-planes", type=int, default=2)
+    parser.add_argument("--check-ranks", type=int, default=2)
+    parser.add_argument("--emitters", type=int, default=5000)
+    parser.add_argument("--threads", type=int, default=min(2, os.cpu_count() or 1))
+    parser.add_argument("--json", type=Path, help="also write the results here")
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    binning, nz, n_lateral = (4, 20, 480) if args.small else (1, 80, 1920)
+    results: dict[str, object] = {
+        "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, torch threads {args.threads}",
+        "load_at_start": load(),
+        "small": args.small,
+    }
+
+    print(f"building the synthetic model (binning {binning}, K = {args.rank}) …", flush=True)
+    start = time.perf_counter()
+    design = load_preset("cm2-v2")
+    analytic = AnalyticCM2.from_design(design, binning=binning, sigma0_um=2.4 * binning)
+    axis = np.linspace(-4, 4, 9)
+    model = analytic_model(
+        analytic, axis, axis, np.linspace(-0.5, 0.5, 11), rank=args.rank, trim=None if args.no_trim else 1e-6
+    )
+    native = model.default_grid.voxel_um[1]
+    grid = VolumeGrid((nz, n_lateral, n_lateral), (10.0, native, native))
+    results["model"] = {
+        "sensor": list(model.sensor_shape),
+        "rank": model.rank,
+        "patch_px": list(model.patch_shape),
+        "crop_px": model.provenance["svd"]["crop_px"],
+        "nmse_calibration": model.provenance["svd"]["nmse"],
+        "seconds": round(time.perf_counter() - start, 1),
+    }
+    results["grid"] = grid.to_dict()
+    print(
+        f"  sensor {model.sensor_shape}, patch {model.patch_shape} (crops {model.provenance['svd']['crop_px']}), "
+        f"volume {grid.shape} × {tuple(round(v, 3) for v in grid.voxel_um)} µm",
+        flush=True,
+    )
+
+    rng = np.random.default_rng(0)
+    volume = torch.rand(grid.shape, generator=torch.Generator().manual_seed(0))
+    op = model.operator(grid)
+
+    # ours: dense forward
+    times = []
+    peak = 0
+    for _ in range(args.repeat):
+        with PeakMemory() as memory:
+            start = time.perf_counter()
+            image = op.forward(volume)
+            times.append(time.perf_counter() - start)
+        peak = max(peak, memory.peak)
+    results["ours"] = {
+        "seconds_best": min(times),
+        "seconds_all": times,
+        "peak_rss_gib": peak / 2**30,
+        "volume_gib": volume.numel() * 4 / 2**30,
+        "load": load(),
+    }
+    print(
+        f"ours: forward {min(times):.1f} s (all {[round(t, 1) for t in times]}), peak RSS {peak / 2**30:.2f} GiB "
+        f"(the volume alone {volume.numel() * 4 / 2**30:.2f} GiB), load {load()}",
+        flush=True,
+    )
+    del image
+
+    # reference: time one plane's set-up and its per-(k, z) convolutions, extrapolate
+    volume_np = volume.numpy()
+    K = model.rank
+    z0 = nz // 2
+    if args.full_reference:
+        start = time.perf_counter()
+        reference_forward(model, op, volume_np)
+        total = time.perf_counter() - start
+        results["reference"] = {"seconds": total, "extrapolated": False}
+    else:
+        timings = {}
+        for n in (1, 1 + args.reference_ranks):
+            start = time.perf_counter()
+            reference_forward(model, op, volume_np, pairs=[(k, z0) for k in range(n)])
+            timings[n] = time.perf_counter() - start
+        per_pair = (timings[1 + args.reference_ranks] - timings[1]) / args.reference_ranks
+        per_plane = max(timings[1] - per_pair, 0.0)
+        total = nz * per_plane + K * nz * per_pair
+        results["reference"] = {
+            "seconds": total,
+            "extrapolated": True,
+            "per_plane_setup_s": per_plane,
+            "per_kz_pair_s": per_pair,
+            "pairs": K * nz,
+            "load": load(),
+        }
+        print(
+            f"reference: {per_pair:.2f} s per (k, z) pair ({model.n_lenslets} fftconvolves) + {per_plane:.2f} s set-up per plane "
+            f"→ {total / 60:.1f} min for all {K * nz} pairs (extrapolated), load {load()}",
+            flush=True,
+        )
+    ratio = total / min(times)
+    results["speed_ratio"] = ratio
+    print(f"ratio reference / ours: {ratio:.0f}×", flush=True)
+
+    # accuracy on a restricted problem the reference can run in full
+    check = restricted(model, args.check_ranks)
+    check_op = check.operator(grid)
+    planes = np.linspace(1, nz - 2, args.check_planes).round().astype(int)
+    sparse_volume = np.zeros(grid.shape, np.float32)
+    sparse_volume[planes] = volume_np[planes]
+    fast = check_op.forward(sparse_volume).astype(np.float64)
+    naive = reference_forward(
+        check, check_op, sparse_volume, pairs=[(k, int(z)) for z in planes for k in range(args.check_ranks)]
+    )
+    error = float(np.linalg.norm(fast - naive) / np.linalg.norm(naive))
+    results["relative_error"] = error
+    results["relative_error_problem"] = f"full size, planes {planes.tolist()}, basis PSFs 1–{args.check_ranks}"
+    print(
+        f"relative error ours vs reference: {error:.2e} (planes {planes.tolist()}, k < {args.check_ranks}, full size)",
+        flush=True,
+    )
+
+    # sparse emitters
+    n = args.emitters
+    radius = 3.5 * np.sqrt(rng.random(n))
+    angle = 2 * np.pi * rng.random(n)
+    emitters = Emitters(
+        radius * np.cos(angle) * 1000,
+        radius * np.sin(angle) * 1000,
+        rng.uniform(-400, 400, n),
+        rng.uniform(10, 20, n),
+        rng.uniform(0.5, 1.0, n),
+    )
+    model.forward_sparse(emitters.subset(np.arange(10)))
+    sparse_times = []
+    for _ in range(3):
+        start = time.perf_counter()
+        model.forward_sparse(emitters)
+        sparse_times.append(time.perf_counter() - start)
+    results["sparse"] = {"emitters": n, "seconds_best": min(sparse_times), "seconds_all": sparse_times, "load": load()}
+    print(
+        f"sparse: {n} emitters in {min(sparse_times):.2f} s (all {[round(t, 2) for t in sparse_times]}), load {load()}",
+        flush=True,
+    )
+
+    print(json.dumps(results, indent=2))
+    if args.json:
+        args.json.write_text(json.dumps(results, indent=2) + "\n")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,329 @@
+"""``cm2 lsv build``: a PSF scan folder → an :class:`~cm2optics.lsv.model.LSVModel`.
+
+Steps (the paper's, Supplement 1): dark level, exposure and background removed; the imaging
+geometry fitted (foci, magnification against depth, axial shear from the on-axis stack); the
+nine foci cropped around their chief rays (``patch`` px, 160 at full resolution) with the shear
+undone; a truncated SVD into K basis PSFs and coefficients on the calibration grid; the model
+scaled so that the in-focus image of a unit source on the axis sums to 1. The coefficients are
+interpolated in x, y and z whenever the model is used (trilinearly, along each lenslet's chief
+rays), onto whatever grid the volume has; ``default_grid`` (4.15 × 4.15 × 10 µm for a CM² V2:
+one sensor pixel per voxel at the focal plane) spans the scanned volume.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+import cm2optics
+from cm2optics.design import SystemDesign
+from cm2optics.lsv.decompose import Decomposition, decompose, numerical_rank, trim_window
+from cm2optics.lsv.model import LSVModel
+from cm2optics.lsv.preprocess import Geometry, GeometryFit, estimate_geometry, extract_crops
+from cm2optics.psf_scan import ScanError, ScanIndex, open_scan
+from cm2optics.volume_io import VolumeGrid
+
+__all__ = ["BuildResult", "build_model", "default_patch_px", "model_from_crops", "scan_fingerprint"]
+
+Progress = Callable[[str, int, int], None]
+#: Crop side at full resolution (the paper's 160 × 160 px per focus).
+FULL_RESOLUTION_PATCH_PX = 160
+#: Stage/sensor cross-coupling that moves no point of the scanned field by 0.1 px is set to zero.
+ALIGNMENT_SNAP_PX = 0.1
+
+
+@dataclass(frozen=True)
+class BuildResult:
+    """model; decomposition (all singular values, NMSE against K); geometry fit; crops (N, J,
+    h, w) as fitted; grid_index (N, 3) of every crop as (ix, iy, iz); seconds per step."""
+
+    model: LSVModel
+    decomposition: Decomposition
+    fit: GeometryFit
+    crops: np.ndarray
+    grid_index: np.ndarray
+    seconds: dict[str, float]
+
+    def summary(self) -> dict[str, Any]:
+        """The numbers ``cm2 lsv build --json`` prints."""
+        model, dec = self.model, self.decomposition
+        ks = sorted({k for k in (1, 2, 4, 8, 16, 32, 64, 128, 256, model.rank) if k < len(dec.nmse)})
+        return {
+            "rank": model.rank,
+            "nmse_calibration": float(dec.nmse[model.rank]),
+            "nmse_calibration_per_psf": float(dec.nmse_per_psf[model.rank]),
+            "numerical_rank": numerical_rank(dec.singular_values),
+            "nmse_vs_rank": {str(k): float(dec.nmse[k]) for k in ks},
+            "nmse_per_psf_vs_rank": {str(k): float(dec.nmse_per_psf[k]) for k in ks},
+            "n_positions": int(len(self.crops)),
+            "calibration_grid": {
+                "x_mm": model.grid_x_mm.tolist(),
+                "y_mm": model.grid_y_mm.tolist(),
+                "z_mm": model.grid_z_mm.tolist(),
+            },
+            "patch_px": list(model.patch_shape),
+            "lenslets": [model.geometry.rows, model.geometry.cols],
+            "default_grid": model.default_grid.to_dict(),
+            "geometry": model.provenance.get("geometry", {}),
+            "seconds": {k: round(v, 3) for k, v in self.seconds.items()},
+        }
+
+
+def default_patch_px(binning: int) -> int:
+    """Crop side (even) for images binned ``binning``×: 160 px at full resolution."""
+    return max(8, 2 * int(round(FULL_RESOLUTION_PATCH_PX / binning / 2)))
+
+
+def scan_fingerprint(index: ScanIndex) -> str:
+    """SHA-256 of positions.csv, scan.yaml and the names and sizes of the images."""
+    digest = hashlib.sha256()
+    for name in ("positions.csv", "scan.yaml"):
+        digest.update((index.folder / name).read_bytes())
+    for name in sorted({f.partition("#")[0] for f in index.files}):
+        digest.update(f"{name}:{(index.folder / name).stat().st_size};".encode())
+    return digest.hexdigest()
+
+
+def _layout(index: ScanIndex, design: SystemDesign | None) -> tuple[int, int]:
+    value = index.meta.extra.get("lenslets")
+    if value is not None:
+        try:
+            rows, cols = (int(v) for v in value)
+        except (TypeError, ValueError):
+            raise ScanError(f"{index.folder / 'scan.yaml'}: lenslets = {value!r}: must be [rows, cols]") from None
+        if rows < 1 or cols < 1:
+            raise ScanError(f"{index.folder / 'scan.yaml'}: lenslets = {value!r}: must be positive")
+        return rows, cols
+    if design is None:
+        raise ScanError(f"{index.folder / 'scan.yaml'}: no `lenslets: [rows, cols]` and no design to take them from")
+    return design.mla.rows, design.mla.cols
+
+
+def _design_fallback(design: SystemDesign | None, pixel_um: float) -> Callable[[float], np.ndarray] | None:
+    if design is None:
+        return None
+    from cm2optics.lsv.analytic import AnalyticCM2
+
+    analytic = AnalyticCM2.from_design(design)
+
+    def fallback(z_mm: float) -> np.ndarray:
+        m = float(analytic.magnification_at(z_mm)) * 1000.0 / pixel_um
+        return np.array([[0.0, -m], [-m, 0.0]])  # row ← y, col ← x, inverted
+
+    return fallback
+
+
+def _snap_alignment(geometry: Geometry, xs: np.ndarray, ys: np.ndarray, zs: np.ndarray) -> tuple[Geometry, str]:
+    """Zero the stage/sensor cross terms of A when they move a point by < 0.01 px over the field."""
+    A = geometry.A(zs)
+    half = np.array([max(abs(xs[0]), abs(xs[-1])), max(abs(ys[0]), abs(ys[-1]))])
+    diag = np.max(np.abs(A[:, 0, 0]) * half[0] + np.abs(A[:, 1, 1]) * half[1])
+    anti = np.max(np.abs(A[:, 0, 1]) * half[1] + np.abs(A[:, 1, 0]) * half[0])
+    poly = geometry.A_poly.copy()
+    if diag < ALIGNMENT_SNAP_PX:
+        poly[:, 0, 0] = 0.0
+        poly[:, 1, 1] = 0.0
+        return replace(geometry, A_poly=poly), "aligned: rows follow y, columns follow x"
+    if anti < ALIGNMENT_SNAP_PX:
+        poly[:, 0, 1] = 0.0
+        poly[:, 1, 0] = 0.0
+        return replace(geometry, A_poly=poly), "aligned: rows follow x, columns follow y"
+    angle = math.degrees(math.atan2(min(diag, anti), max(diag, anti)))
+    return (
+        geometry,
+        f"stage and sensor axes are not aligned (cross-coupling up to {min(diag, anti):.2f} px, ≈ {angle:.3f}°): modelled as such",
+    )
+
+
+def build_model(
+    scan_dir: str | Path,
+    *,
+    rank: int = 64,
+    patch_px: int | None = None,
+    lateral_um: float | None = None,
+    axial_um: float = 10.0,
+    design: SystemDesign | None = None,
+    degree: int = 2,
+    trim: float | None = 1e-6,
+    progress: Progress | None = None,
+) -> BuildResult:
+    """Build an LSV model from the scan folder ``scan_dir`` (see the module docstring).
+
+    rank: K, the number of basis PSFs (capped by the number of positions).
+    patch_px: crop side per focus in image pixels (default: 160 at full resolution, scaled by
+        the scan's binning).
+    lateral_um, axial_um: voxel pitch of the default reconstruction grid, µm (lateral default:
+        one sensor pixel per voxel at the focal plane).
+    design: the design to take the lenslet layout from (unless scan.yaml says ``lenslets``) and
+        to fall back on for the magnification if the scan's positions cannot fix it.
+    trim: share of the PSF energy the basis may lose when its crops' dark margins are cut
+        (None: keep the full crops).
+    """
+    if rank < 1:
+        raise ValueError(f"rank = {rank}: must be ≥ 1")
+    if axial_um <= 0 or (lateral_um is not None and lateral_um <= 0):
+        raise ValueError("voxel sizes must be > 0 µm")
+    seconds: dict[str, float] = {}
+    start = time.perf_counter()
+    index = open_scan(scan_dir)
+    rows, cols = _layout(index, design)
+    patch = patch_px if patch_px is not None else default_patch_px(index.meta.binning)
+    if patch < 4:
+        raise ValueError(f"patch_px = {patch}: must be ≥ 4")
+    seconds["open"] = time.perf_counter() - start
+
+    start = time.perf_counter()
+    fit = estimate_geometry(
+        index, rows, cols, fallback_A=_design_fallback(design, index.meta.pixel_um), degree=degree, progress=progress
+    )
+    xs, ys, zs = index.grid_axes_mm()
+    geometry, alignment = _snap_alignment(fit.geometry, xs, ys, zs)
+    seconds["geometry"] = time.perf_counter() - start
+
+    start = time.perf_counter()
+    crops = extract_crops(index, geometry, (patch, patch), progress=progress)
+    seconds["crops"] = time.perf_counter() - start
+
+    start = time.perf_counter()
+    gi = index.grid_index()
+    x0, y0 = fit.axis_position_mm
+    provenance = {
+        "scan": {
+            "folder": str(index.folder.resolve()),
+            "fingerprint": scan_fingerprint(index),
+            "n_positions": len(index),
+            "grid_shape_xyz": [len(xs), len(ys), len(zs)],
+            "pixel_um": index.meta.pixel_um,
+            "binning": index.meta.binning,
+            "meta": index.meta.to_dict(),
+        },
+        "options": {
+            "rank": rank,
+            "patch_px": patch,
+            "trim": trim,
+            "lateral_um": lateral_um,
+            "axial_um": axial_um,
+            "degree": degree,
+            "design": design.name if design is not None else None,
+        },
+        "geometry": {
+            "axis_position_mm": [x0, y0],
+            "lattice_pitch_px": round(fit.pitch_px, 3),
+            "shear_rms_residual_px": round(fit.shear_residual_px, 4),
+            "max_translation_residual_px": float(np.nanmax(fit.residual_px))
+            if np.any(np.isfinite(fit.residual_px))
+            else None,
+            "dark_images": int(np.sum(~fit.bright)),
+            "alignment": alignment,
+            "notes": list(fit.notes),
+        },
+    }
+    model, decomposition = model_from_crops(
+        crops,
+        gi,
+        (xs, ys, zs),
+        geometry,
+        rank=rank,
+        sensor_shape=index.shape,
+        pixel_um=index.meta.pixel_um,
+        lateral_um=lateral_um,
+        axial_um=axial_um,
+        trim=trim,
+        provenance=provenance,
+    )
+    seconds["svd"] = time.perf_counter() - start
+    model.provenance["seconds"] = {k: round(v, 3) for k, v in seconds.items()}
+    return BuildResult(model, decomposition, replace(fit, geometry=geometry), crops, gi, seconds)
+
+
+def model_from_crops(
+    crops: np.ndarray,
+    grid_index: np.ndarray,
+    axes: tuple[np.ndarray, np.ndarray, np.ndarray],
+    geometry: Geometry,
+    *,
+    rank: int,
+    sensor_shape: tuple[int, int],
+    pixel_um: float,
+    lateral_um: float | None = None,
+    axial_um: float = 10.0,
+    trim: float | None = 1e-6,
+    provenance: dict[str, Any] | None = None,
+) -> tuple[LSVModel, Decomposition]:
+    """Truncated SVD of registered ``crops`` (N, J, h, w) at grid positions ``grid_index`` (N, 3)
+    as (ix, iy, iz) of ``axes`` (x, y, z mm), scaled so that the in-focus on-axis image of a unit
+    source sums to 1, with a default grid spanning the axes. ``trim``: drop the crops' dark
+    margins holding less than this share of the PSF energy (None: keep the full crops)."""
+    xs, ys, zs = axes
+    decomposition = decompose(crops, rank)
+    K = decomposition.rank
+    crop_shape = crops.shape[2:]
+    if trim:
+        rows, cols = trim_window(decomposition.basis, decomposition.singular_values, trim)
+        decomposition = replace(decomposition, basis=np.ascontiguousarray(decomposition.basis[:, :, rows, cols]))
+    gi = np.asarray(grid_index)
+    coefficients = np.zeros((K, len(zs), len(ys), len(xs)), np.float32)
+    coefficients[:, gi[:, 2], gi[:, 1], gi[:, 0]] = decomposition.coefficients.T
+    A0 = geometry.A(0.0)
+    native_um = 1000.0 / math.sqrt(abs(float(np.linalg.det(A0))))
+    dxy = lateral_um if lateral_um is not None else native_um
+    shape = (
+        int(math.floor((zs[-1] - zs[0]) * 1000.0 / axial_um + 1e-9)) + 1,
+        int(math.floor((ys[-1] - ys[0]) * 1000.0 / dxy + 1e-9)) + 1,
+        int(math.floor((xs[-1] - xs[0]) * 1000.0 / dxy + 1e-9)) + 1,
+    )
+    model = LSVModel(
+        basis=decomposition.basis,
+        coefficients=coefficients,
+        grid_x_mm=xs,
+        grid_y_mm=ys,
+        grid_z_mm=zs,
+        geometry=geometry,
+        sensor_shape=sensor_shape,
+        pixel_um=pixel_um,
+        default_grid=VolumeGrid(shape, (axial_um, dxy, dxy)),
+    )
+    on_axis = model.focus_patches(0.0, 0.0, 0.0).sum(dtype=np.float64)
+    if not on_axis > 0:
+        raise ScanError("the in-focus PSF on the axis is empty after background removal")
+    scale = 1.0 / float(on_axis)
+    provenance = dict(provenance or {})
+    provenance.setdefault("created", datetime.now(UTC).isoformat(timespec="seconds"))
+    provenance.setdefault("cm2optics_version", cm2optics.__version__)
+    provenance.setdefault("geometry", {})
+    provenance["geometry"].update(
+        {
+            "magnification_at_focus": round(math.sqrt(abs(float(np.linalg.det(A0)))) * pixel_um / 1000.0, 6),
+            "native_lateral_um": round(native_um, 5),
+            "shear_px_over_scan": [
+                [round(float(v), 3) for v in row] for row in (geometry.offsets(zs[-1]) - geometry.offsets(zs[0]))
+            ],
+        }
+    )
+    provenance["svd"] = {
+        "rank": K,
+        "crop_px": list(crop_shape),
+        "patch_px": list(model.patch_shape),
+        "trim_energy": trim,
+        "numerical_rank": numerical_rank(decomposition.singular_values),
+        "nmse": float(decomposition.nmse[K]),
+        "nmse_per_psf": float(decomposition.nmse_per_psf[K]),
+    }
+    model = replace(
+        model,
+        coefficients=coefficients * np.float32(scale),
+        scale=scale,
+        singular_values=decomposition.singular_values * scale,
+        nmse=decomposition.nmse,
+        nmse_per_psf=decomposition.nmse_per_psf,
+        provenance=provenance,
+    )
+    return model, decomposition

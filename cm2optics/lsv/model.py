@@ -1,0 +1,244 @@
+"""The 3D-LSV model: basis PSFs, coefficients on the calibration grid, the imaging geometry,
+and its provenance; saved as one HDF5 file.
+
+The image of a source at (x, y, z) is, lenslet by lenslet, the basis PSFs weighted by the
+coefficients interpolated at the source (:mod:`cm2optics.lsv.interpolate`), each focus placed
+with its centre pixel ``(h//2, w//2)`` on ``r0(z) + A(z)·(x, y) + o_j(z)``
+(:class:`~cm2optics.lsv.preprocess.Geometry`) by the Keys cubic kernel. Units: the model's
+images are in the scan's normalised units scaled so that the in-focus image of a unit source on
+the axis sums to 1 (``scale`` records the factor).
+
+File layout (HDF5, ``format = "cm2optics-lsv"``, ``version = 1``): ``basis`` (K, J, h, w),
+``coefficients`` (K, nz, ny, nx), ``grid/x_mm|y_mm|z_mm``, ``geometry/r0_poly|A_poly|o_poly|layout``,
+``svd/singular_values|nmse|nmse_per_psf``, attributes ``sensor_shape``, ``pixel_um``, ``scale``,
+``default_grid`` (JSON) and ``provenance`` (JSON: scan, its fingerprint, build options,
+geometry fit, package version, time).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import h5py
+import numpy as np
+
+from cm2optics.io import write_atomic
+from cm2optics.lsv.interpolate import chief_ray_nodes, trilinear_coefficients
+from cm2optics.lsv.preprocess import Geometry
+from cm2optics.volume_io import Emitters, VolumeGrid
+
+if TYPE_CHECKING:  # pragma: no cover
+    from cm2optics.lsv.operators import LSVOperator
+
+__all__ = ["FORMAT", "LSVModel", "ModelError", "load_model"]
+
+FORMAT = "cm2optics-lsv"
+VERSION = 1
+
+
+class ModelError(ValueError):
+    """A model file that cannot be used, or a request the model cannot serve."""
+
+
+@dataclass(frozen=True, eq=False)
+class LSVModel:
+    """basis: (K, J, h, w) float32; coefficients: (K, nz, ny, nx) float32 on the calibration
+    grid ``grid_x_mm`` × ``grid_y_mm`` × ``grid_z_mm`` (sorted, mm); geometry; sensor_shape (y, x)
+    px; pixel_um: image pixel pitch (µm); default_grid: the reconstruction grid by default."""
+
+    basis: np.ndarray
+    coefficients: np.ndarray
+    grid_x_mm: np.ndarray
+    grid_y_mm: np.ndarray
+    grid_z_mm: np.ndarray
+    geometry: Geometry
+    sensor_shape: tuple[int, int]
+    pixel_um: float
+    default_grid: VolumeGrid
+    scale: float = 1.0
+    singular_values: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    nmse: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    nmse_per_psf: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    provenance: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        basis = np.ascontiguousarray(self.basis, dtype=np.float32)
+        coefficients = np.ascontiguousarray(self.coefficients, dtype=np.float32)
+        if basis.ndim != 4:
+            raise ModelError(f"basis must be (K, J, h, w), got shape {basis.shape}")
+        if coefficients.ndim != 4 or coefficients.shape[0] != basis.shape[0]:
+            raise ModelError(f"coefficients must be (K = {basis.shape[0]}, nz, ny, nx), got shape {coefficients.shape}")
+        axes = [np.asarray(a, float) for a in (self.grid_x_mm, self.grid_y_mm, self.grid_z_mm)]
+        if tuple(len(a) for a in axes[::-1]) != coefficients.shape[1:]:
+            raise ModelError(
+                f"grid axes ({', '.join(str(len(a)) for a in axes)}) do not match coefficients {coefficients.shape}"
+            )
+        for name, a in zip("xyz", axes, strict=True):
+            if np.any(np.diff(a) <= 0):
+                raise ModelError(f"grid_{name}_mm must increase strictly")
+        if basis.shape[1] != self.geometry.n_lenslets:
+            raise ModelError(f"basis has {basis.shape[1]} foci, the geometry {self.geometry.n_lenslets} lenslets")
+        if not (np.all(np.isfinite(basis)) and np.all(np.isfinite(coefficients))):
+            raise ModelError("basis or coefficients contain NaN or infinite values")
+        object.__setattr__(self, "basis", basis)
+        object.__setattr__(self, "coefficients", coefficients)
+        object.__setattr__(self, "grid_x_mm", axes[0])
+        object.__setattr__(self, "grid_y_mm", axes[1])
+        object.__setattr__(self, "grid_z_mm", axes[2])
+        object.__setattr__(self, "sensor_shape", tuple(int(s) for s in self.sensor_shape))
+        object.__setattr__(self, "_operators", {})
+
+    # -- shape ------------------------------------------------------------------------------
+    @property
+    def rank(self) -> int:
+        return self.basis.shape[0]
+
+    @property
+    def n_lenslets(self) -> int:
+        return self.basis.shape[1]
+
+    @property
+    def patch_shape(self) -> tuple[int, int]:
+        return self.basis.shape[2], self.basis.shape[3]
+
+    @property
+    def axes(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Calibration grid (x, y, z), mm."""
+        return self.grid_x_mm, self.grid_y_mm, self.grid_z_mm
+
+    def truncated(self, rank: int) -> LSVModel:
+        """The same model keeping its first ``rank`` basis PSFs."""
+        if not 1 <= rank <= self.rank:
+            raise ModelError(f"rank = {rank}: must lie within 1–{self.rank}")
+        return replace(self, basis=self.basis[:rank], coefficients=self.coefficients[:rank])
+
+    # -- point responses (numpy, for checks and figures) ----------------------------------
+    def coefficients_at(self, x_mm, y_mm, z_mm, lenslet: int | None = None) -> np.ndarray:
+        """Interpolated coefficients (…, K) at sources (x, y, z) mm: plain trilinear, or along
+        ``lenslet``'s chief rays (what the operators use)."""
+        if lenslet is None:
+            return trilinear_coefficients(self.coefficients, self.axes, x_mm, y_mm, z_mm)
+        nodes, weights = chief_ray_nodes(self.geometry, self.axes, lenslet, x_mm, y_mm, z_mm)
+        values = self.coefficients[:, nodes[..., 0], nodes[..., 1], nodes[..., 2]]  # (K, …, 8)
+        return np.moveaxis((values * weights).sum(-1), 0, -1)
+
+    def focus_patches(self, x_mm: float, y_mm: float, z_mm: float) -> np.ndarray:
+        """(J, h, w) focus patches of a unit point source at (x, y, z), before placement."""
+        out = np.zeros((self.n_lenslets,) + self.patch_shape, np.float32)
+        for j in range(self.n_lenslets):
+            c = self.coefficients_at(x_mm, y_mm, z_mm, lenslet=j)
+            out[j] = np.tensordot(c, self.basis[:, j], axes=(0, 0))
+        return out
+
+    # -- operators (torch) ----------------------------------------------------------------
+    def operator(self, grid: VolumeGrid | None = None, device: str = "cpu") -> LSVOperator:
+        """The forward/adjoint operator on ``grid`` (default: ``default_grid``), cached."""
+        from cm2optics.lsv.operators import LSVOperator
+
+        grid = grid or self.default_grid
+        key = (grid.shape, grid.voxel_um, str(device))
+        cache = self._operators  # type: ignore[attr-defined]
+        if key not in cache:
+            cache.clear()
+            cache[key] = LSVOperator(self, grid, device=device)
+        return cache[key]
+
+    def forward(self, volume, grid: VolumeGrid | None = None, **options):
+        """Sensor image(s) of ``volume`` ((B,) z, y, x) on ``grid`` (see :class:`LSVOperator`)."""
+        return self.operator(grid).forward(volume, **options)
+
+    def adjoint(self, image, grid: VolumeGrid | None = None, **options):
+        """Adjoint of :meth:`forward`: volume(s) from sensor image(s) ((B,) y, x)."""
+        return self.operator(grid).adjoint(image, **options)
+
+    def forward_per_lenslet(self, volume, grid: VolumeGrid | None = None, **options):
+        """The J crosstalk-free images ((B,) J, y, x), one per lenslet."""
+        return self.operator(grid).forward(volume, per_lenslet=True, **options)
+
+    def forward_sparse(self, emitters: Emitters, **options):
+        """Sensor image of sparse emitters (balls) without a volume (:mod:`cm2optics.lsv.sparse`)."""
+        from cm2optics.lsv.sparse import render_emitters
+
+        return render_emitters(self, emitters, **options)
+
+    def point_image(self, x_mm: float, y_mm: float, z_mm: float, per_lenslet: bool = False) -> np.ndarray:
+        """Image (y, x) (or (J, y, x)) of a unit point source at (x, y, z) mm, float64 numpy."""
+        from cm2optics.lsv.sparse import point_image
+
+        return point_image(self, x_mm, y_mm, z_mm, per_lenslet=per_lenslet)
+
+    # -- files ------------------------------------------------------------------------------
+    def save(self, path: str | Path) -> Path:
+        """Write the model as one HDF5 file (atomically)."""
+        return write_atomic(Path(path), self._write)
+
+    def _write(self, path: Path) -> None:
+        with h5py.File(path, "w") as f:
+            f.attrs["format"] = FORMAT
+            f.attrs["version"] = VERSION
+            f.attrs["sensor_shape"] = np.array(self.sensor_shape)
+            f.attrs["pixel_um"] = self.pixel_um
+            f.attrs["scale"] = self.scale
+            f.attrs["default_grid"] = json.dumps(self.default_grid.to_dict())
+            f.attrs["provenance"] = json.dumps(self.provenance, ensure_ascii=False, default=_json_default)
+            f.create_dataset("basis", data=self.basis, compression="gzip", compression_opts=4, shuffle=True)
+            f.create_dataset("coefficients", data=self.coefficients)
+            grid = f.create_group("grid")
+            for name, values in zip(("x_mm", "y_mm", "z_mm"), self.axes, strict=True):
+                grid.create_dataset(name, data=values)
+            geometry = f.create_group("geometry")
+            for name, values in self.geometry.to_arrays().items():
+                geometry.create_dataset(name, data=values)
+            svd = f.create_group("svd")
+            svd.create_dataset("singular_values", data=self.singular_values)
+            svd.create_dataset("nmse", data=self.nmse)
+            svd.create_dataset("nmse_per_psf", data=self.nmse_per_psf)
+
+
+def _json_default(value: Any) -> Any:
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, Path):
+        return str(value)
+    raise TypeError(f"not JSON serialisable: {type(value).__name__}")
+
+
+def load_model(path: str | Path) -> LSVModel:
+    """Read a model file written by :meth:`LSVModel.save`; a bad file raises :class:`ModelError`."""
+    path = Path(path)
+    if not path.is_file():
+        raise ModelError(f"{path}: no such model file")
+    try:
+        with h5py.File(path, "r") as f:
+            if f.attrs.get("format") != FORMAT:
+                raise ModelError(f"{path}: not a cm2optics LSV model (format = {f.attrs.get('format')!r})")
+            if int(f.attrs.get("version", 0)) > VERSION:
+                raise ModelError(
+                    f"{path}: model version {int(f.attrs['version'])} is newer than this cm2optics reads ({VERSION})"
+                )
+            geometry = Geometry.from_arrays({k: f["geometry"][k][()] for k in f["geometry"]})
+            return LSVModel(
+                basis=f["basis"][()],
+                coefficients=f["coefficients"][()],
+                grid_x_mm=f["grid/x_mm"][()],
+                grid_y_mm=f["grid/y_mm"][()],
+                grid_z_mm=f["grid/z_mm"][()],
+                geometry=geometry,
+                sensor_shape=tuple(int(v) for v in f.attrs["sensor_shape"]),
+                pixel_um=float(f.attrs["pixel_um"]),
+                default_grid=VolumeGrid.from_dict(json.loads(f.attrs["default_grid"])),
+                scale=float(f.attrs.get("scale", 1.0)),
+                singular_values=f["svd/singular_values"][()],
+                nmse=f["svd/nmse"][()],
+                nmse_per_psf=f["svd/nmse_per_psf"][()],
+                provenance=json.loads(f.attrs.get("provenance", "{}")),
+            )
+    except ModelError:
+        raise
+    except (OSError, KeyError, ValueError) as error:
+        raise ModelError(f"{path}: not a readable LSV model ({error})") from None

@@ -1,0 +1,197 @@
+"""Images of sparse emitters straight from the model, without a volume.
+
+An emitter is a uniform ball (centre, diameter, total intensity) at a continuous position.
+For every emitter and lenslet the model's focus patch is formed at the emitter's exact position
+(coefficients interpolated along the chief ray, :mod:`cm2optics.lsv.interpolate`), shifted to
+its sub-pixel focus position with the Keys cubic kernel, added to the sensor, and blurred by the
+ball's projection (its column density ``∝ √(R² − r²)``, ``R`` = radius × the local
+magnification). Two approximations keep 5,000 emitters at full size within seconds:
+
+- sub-pixel positions are rounded to ``1/subpixel_steps`` of a pixel (default 4: ≤ 1/8 px; pass
+  ``subpixel_steps=None`` for exact shifts), so that emitters share shifted basis PSFs and one
+  matrix product forms all their patches;
+- the ball's axial extent is not integrated: its whole image uses the PSF at its centre depth
+  (a 20-µm ball spans two 10-µm planes; the PSF changes little over that), and ball diameters are
+  rounded to 0.25 px on the sensor, each size blurred once, on its own canvas, by FFT.
+
+:func:`point_image` is the exact image of one point source (validation, tests).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING
+
+import numpy as np
+import torch
+
+from cm2optics.lsv.interpolate import chief_ray_nodes
+from cm2optics.lsv.kernels import TAPS, shift_weights, split_shift
+from cm2optics.lsv.operators import fast_length
+from cm2optics.volume_io import Emitters
+
+if TYPE_CHECKING:  # pragma: no cover
+    from cm2optics.lsv.model import LSVModel
+
+__all__ = ["ball_kernel", "point_image", "render_emitters"]
+
+SIZE_STEP_PX = 0.25
+POINT_BELOW_PX = 0.5
+
+
+def _shift_patch(patch: np.ndarray, eps: tuple[float, float]) -> np.ndarray:
+    """Keys-shift (…, h, w) patches by fractions ``eps`` (row, col) ∈ [0, 1): (…, h+3, w+3),
+    whose pixel (1, 1) corresponds to the input's (0, 0) shifted by eps."""
+    wr = shift_weights(np.asarray(eps[0]))
+    wc = shift_weights(np.asarray(eps[1]))
+    h, w = patch.shape[-2:]
+    dtype = np.float32 if patch.dtype == np.float32 else np.float64
+    tmp = np.zeros(patch.shape[:-2] + (h + 3, w), dtype=dtype)
+    for t, weight in zip(TAPS, wr, strict=True):
+        tmp[..., 1 + t : 1 + t + h, :] += weight * patch
+    out = np.zeros(patch.shape[:-2] + (h + 3, w + 3), dtype=dtype)
+    for t, weight in zip(TAPS, wc, strict=True):
+        out[..., 1 + t : 1 + t + w] += weight * tmp
+    return out
+
+
+def _add(target: np.ndarray, block: np.ndarray, r: int, c: int) -> None:
+    H, W = target.shape
+    rs, re = max(r, 0), min(r + block.shape[0], H)
+    cs, ce = max(c, 0), min(c + block.shape[1], W)
+    if rs < re and cs < ce:
+        target[rs:re, cs:ce] += block[rs - r : re - r, cs - c : ce - c]
+
+
+def point_image(model: LSVModel, x_mm: float, y_mm: float, z_mm: float, per_lenslet: bool = False) -> np.ndarray:
+    """Exact image (y, x) (or (J, y, x)) of a unit point source at (x, y, z) mm, float64."""
+    H, W = model.sensor_shape
+    h, w = model.patch_shape
+    out = np.zeros((model.n_lenslets if per_lenslet else 1, H, W))
+    focus = model.geometry.focus(x_mm, y_mm, z_mm)
+    patches = model.focus_patches(x_mm, y_mm, z_mm).astype(np.float64)
+    for j in range(model.n_lenslets):
+        n, eps = split_shift(focus[j] - np.array([h // 2, w // 2]))
+        _add(out[j if per_lenslet else 0], _shift_patch(patches[j], (eps[0], eps[1])), int(n[0]) - 1, int(n[1]) - 1)
+    return out if per_lenslet else out[0]
+
+
+def ball_kernel(diameter_px: float, supersample: int = 8) -> np.ndarray:
+    """Normalised projection of a uniform ball of ``diameter_px`` onto the pixel grid (odd size,
+    centred), each pixel integrated over ``supersample²`` points."""
+    radius = diameter_px / 2.0
+    half = int(math.ceil(radius)) + 1
+    offsets = (np.arange(supersample) + 0.5) / supersample - 0.5
+    grid = np.arange(-half, half + 1)
+    rr = grid[:, None, None, None] + offsets[None, None, :, None]
+    cc = grid[None, :, None, None] + offsets[None, None, None, :]
+    density = np.sqrt(np.clip(radius**2 - rr**2 - cc**2, 0, None)).mean(axis=(2, 3))
+    total = density.sum()
+    if total <= 0:
+        density = np.zeros_like(density)
+        density[half, half] = 1.0
+        return density
+    return density / total
+
+
+def _kernel_dft(kernel: np.ndarray, shape: tuple[int, int]) -> torch.Tensor:
+    """rfft2 (shape) of a centred odd ``kernel`` placed with its centre at index (0, 0)."""
+    kh, kw = kernel.shape
+    rows = np.arange(kh) - kh // 2
+    cols = np.arange(kw) - kw // 2
+    fr = np.fft.fftfreq(shape[0])
+    fc = np.fft.rfftfreq(shape[1])
+    er = np.exp(-2j * np.pi * np.outer(fr, rows))  # (Fr, kh)
+    ec = np.exp(-2j * np.pi * np.outer(cols, fc))  # (kw, Fc)
+    return torch.as_tensor(er @ kernel @ ec, dtype=torch.complex64)
+
+
+def render_emitters(
+    model: LSVModel,
+    emitters: Emitters,
+    *,
+    per_lenslet: bool = False,
+    subpixel_steps: int | None = 4,
+    chunk: int = 2048,
+) -> np.ndarray:
+    """Sensor image (y, x) (or (J, y, x)) of ``emitters`` (see the module docstring), float32."""
+    H, W = model.sensor_shape
+    h, w = model.patch_shape
+    J, K = model.n_lenslets, model.rank
+    keep = emitters.intensity > 0
+    positions = emitters.positions_mm()[keep]
+    intensity = emitters.intensity[keep]
+    diameters_um = emitters.diameter_um[keep]
+    n_out = J if per_lenslet else 1
+    if len(positions) == 0:
+        out = np.zeros((n_out, H, W), np.float32)
+        return out if per_lenslet else out[0]
+    x, y, z = positions.T
+    A = model.geometry.A(z)
+    scale = np.sqrt(np.abs(np.linalg.det(A))) / 1000.0  # px per µm at each emitter's depth
+    diameter_px = diameters_um * scale
+    size_bin = np.where(diameter_px < POINT_BELOW_PX, 0, np.round(diameter_px / SIZE_STEP_PX).astype(np.int64))
+    margin = int(math.ceil(diameter_px.max() / 2.0)) + 2
+    bins = sorted(set(size_bin.tolist()))
+    slot_of = {b: i for i, b in enumerate(bins)}
+    canvases = torch.zeros((len(bins), n_out, H + 2 * margin, W + 2 * margin), dtype=torch.float32)
+    focus = model.geometry.focus(x, y, z)  # (N, J, 2)
+    coefficients = model.coefficients
+    for j in range(J):
+        corner = focus[:, j, :] - np.array([h // 2, w // 2])
+        visible = (corner[:, 0] > -h - 3) & (corner[:, 0] < H + 3) & (corner[:, 1] > -w - 3) & (corner[:, 1] < W + 3)
+        index = np.nonzero(visible)[0]
+        if len(index) == 0:
+            continue
+        nodes, weights = chief_ray_nodes(model.geometry, model.axes, j, x[index], y[index], z[index])
+        c = np.einsum("kne,ne->nk", coefficients[:, nodes[..., 0], nodes[..., 1], nodes[..., 2]], weights)
+        c = torch.as_tensor(c * intensity[index, None], dtype=torch.float32)
+        n, eps = split_shift(corner[index])
+        if subpixel_steps:
+            steps = np.round(eps * subpixel_steps).astype(np.int64)
+            n = n + steps // subpixel_steps
+            steps = steps % subpixel_steps
+            phases = steps[:, 0] * subpixel_steps + steps[:, 1]
+            phase_values = {
+                int(p): (p // subpixel_steps / subpixel_steps, p % subpixel_steps / subpixel_steps)
+                for p in np.unique(phases)
+            }
+        else:
+            phases = np.arange(len(index))
+            phase_values = {int(p): (eps[p, 0], eps[p, 1]) for p in phases}
+        slot = j if per_lenslet else 0
+        basis_j = np.ascontiguousarray(model.basis[:, j], dtype=np.float32)
+        targets = [canvases[slot_of[int(b)], slot] for b in size_bin[index]]
+        tops = (n[:, 0] - 1 + margin).tolist()
+        lefts = (n[:, 1] - 1 + margin).tolist()
+        for phase in np.unique(phases):
+            members = np.nonzero(phases == phase)[0]
+            shifted = torch.from_numpy(
+                _shift_patch(basis_j, phase_values[int(phase)]).astype(np.float32).reshape(K, -1)
+            )
+            for start in range(0, len(members), chunk):
+                part = members[start : start + chunk]
+                patches = (c[part] @ shifted).reshape(len(part), h + 3, w + 3)
+                for patch, m in zip(patches, part.tolist(), strict=True):
+                    _add_torch(targets[m], patch, tops[m], lefts[m])
+    shape = (fast_length(H + 2 * margin), fast_length(W + 2 * margin))
+    total = None
+    out = torch.zeros((n_out, H, W), dtype=torch.float32)
+    for b, i in slot_of.items():
+        if b == 0:
+            out += canvases[i][:, margin : margin + H, margin : margin + W]
+            continue
+        spectrum = torch.fft.rfft2(canvases[i], s=shape) * _kernel_dft(ball_kernel(b * SIZE_STEP_PX), shape)
+        total = spectrum if total is None else total + spectrum
+    if total is not None:
+        out += torch.fft.irfft2(total, s=shape)[:, margin : margin + H, margin : margin + W]
+    result = out.numpy()
+    return result if per_lenslet else result[0]
+
+
+def _add_torch(target: torch.Tensor, block: torch.Tensor, r: int, c: int) -> None:
+    H, W = target.shape
+    rs, re = max(r, 0), min(r + block.shape[0], H)
+    cs, ce = max(c, 0), min(c + block.shape[1], W)
+    if rs < re and cs < ce:
+        target[rs:re, cs:ce] += block[rs - r : re - r, cs - c : ce - c]

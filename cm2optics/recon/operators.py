@@ -1,0 +1,476 @@
+"""The operator protocol the baselines and the synthesiser work against, and a depth-wise
+shift-invariant (LSI) convolution operator.
+
+**Protocol** (:class:`VolumeOperator`): an object with ``grid`` (a
+:class:`~cm2optics.volume_io.VolumeGrid`), ``sensor_shape`` (rows, cols), ``forward(volume)``
+(torch (z, y, x) → (y, x)) and ``adjoint(image)`` ((y, x) → (z, y, x)). The 3D-LSV operator of
+:mod:`cm2optics.lsv.operators` is one; :class:`DepthwiseConvOperator` is another; so is any tiny
+analytic operator a test writes. Optional extras: ``forward(volume, per_lenslet=True)`` (the J
+crosstalk-free images) and ``chief_rays_px()`` ((J, 2) focus of each lenslet for a source at the
+centre of the focal plane) for the synthesiser; the depth-wise kernels for the exact LSI ADMM.
+
+**Depth-wise LSI** (the V1 paper's model): every depth plane is imaged by one PSF — the on-axis
+PSF at that depth — shifted, not changed, as the source moves: ``g = Σ_z PSF_z ⊛ (F O_z)``, with
+``F`` the in-focus mapping of voxels onto pixels (one voxel per sensor pixel, the image
+inverted: ``row = r_ref + s_y·iy``, ``col = c_ref + s_x·ix`` with ``s = ±1``). The magnification's
+change with depth, the field-dependent aberrations and vignetting are what it leaves out; that is
+the point of comparing it with the LSV model. PSFs are kept per lenslet as compact patches
+(J, nz, h, w) with their integer placement, so that the nine crosstalk-free views come for free.
+
+Convolutions are FFTs on a canvas that holds the plane plus the kernel's whole extent (no
+wrap-around reaches the sensor); the combined kernel spectra of all depths are precomputed
+(``nz × canvas`` complex64: check :meth:`DepthwiseConvOperator.memory_bytes`).
+
+Files: an LSV model (HDF5, ``format = "cm2optics-lsv"``) or a PSF stack written by
+:meth:`DepthwiseConvOperator.save` (HDF5, ``format = "cm2optics-psf-stack"``); see
+:func:`load_operator`.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Protocol, runtime_checkable
+
+import h5py
+import numpy as np
+import torch
+
+from cm2optics.io import write_atomic
+from cm2optics.volume_io import VolumeGrid
+
+__all__ = [
+    "DepthwiseConvOperator",
+    "PSF_STACK_FORMAT",
+    "VolumeOperator",
+    "fast_length",
+    "gaussian_cm2",
+    "load_operator",
+    "lsi_from_model",
+    "model_format",
+]
+
+PSF_STACK_FORMAT = "cm2optics-psf-stack"
+
+
+@runtime_checkable
+class VolumeOperator(Protocol):
+    """What a baseline needs from a forward model (see the module docstring)."""
+
+    grid: VolumeGrid
+    sensor_shape: tuple[int, int]
+
+    def forward(self, volume: Any) -> Any: ...
+
+    def adjoint(self, image: Any) -> Any: ...
+
+
+def fast_length(n: int) -> int:
+    """Smallest 2^a·3^b ≥ n."""
+    best = 1 << max(int(n - 1).bit_length(), 0)
+    power3 = 1
+    while power3 < 2 * n:
+        power2 = power3
+        while power2 < n:
+            power2 *= 2
+        best = min(best, power2)
+        power3 *= 3
+    return max(best, 1)
+
+
+@dataclass(frozen=True)
+class _Layout:
+    canvas: tuple[int, int]  # canvas (rows, cols)
+    plane_origin: tuple[int, int]  # sensor (row, col) of canvas pixel (0, 0)
+
+
+class DepthwiseConvOperator:
+    """Depth-wise shift-invariant operator (see the module docstring).
+
+    patches: (J, nz, h, w) PSF patch of each lenslet at each depth (a unit source: the image it
+        makes, in the model's units).
+    origins: (J, nz, 2) integer sensor (row, col) of each patch's pixel (0, 0) for a source on the
+        voxel (iy, ix) = (0, 0) of the plane after the flips (the plane's top-left once flipped).
+    grid: the volume grid. sensor_shape: (rows, cols). flip: (flip rows, flip cols) of the plane
+        before it is placed (True for an inverting system).
+    centre_rays: (J, 2) optional focus (row, col) of each lenslet for a source at the centre of
+        the focal plane (crops of the views); default: the brightest pixel of each in-focus patch.
+    """
+
+    def __init__(
+        self,
+        patches: np.ndarray,
+        origins: np.ndarray,
+        grid: VolumeGrid,
+        sensor_shape: tuple[int, int],
+        flip: tuple[bool, bool] = (True, True),
+        centre_rays: np.ndarray | None = None,
+        device: str = "cpu",
+        meta: dict[str, Any] | None = None,
+    ):
+        patches = np.ascontiguousarray(patches, dtype=np.float32)
+        origins = np.asarray(origins, dtype=np.int64)
+        if patches.ndim != 4:
+            raise ValueError(f"patches must be (J, nz, h, w), got shape {patches.shape}")
+        if patches.shape[1] != grid.shape[0]:
+            raise ValueError(f"patches have {patches.shape[1]} depths, the grid {grid.shape[0]}")
+        if origins.shape != patches.shape[:2] + (2,):
+            raise ValueError(f"origins must be (J, nz, 2) = {patches.shape[:2] + (2,)}, got {origins.shape}")
+        if not np.all(np.isfinite(patches)):
+            raise ValueError("patches contain NaN or infinite values")
+        self.grid = grid
+        self.sensor_shape = (int(sensor_shape[0]), int(sensor_shape[1]))
+        self.flip = (bool(flip[0]), bool(flip[1]))
+        self.n_lenslets = patches.shape[0]
+        self.device = torch.device(device)
+        self.patches = patches
+        self.origins = origins
+        self.meta = dict(meta or {})
+        J, nz, h, w = patches.shape
+        ny, nx = grid.shape[1:]
+        lo = origins.reshape(-1, 2).min(axis=0)
+        hi = origins.reshape(-1, 2).max(axis=0) + np.array([h, w])
+        extent = hi - lo
+        canvas = (fast_length(int(ny + extent[0])), fast_length(int(nx + extent[1])))
+        self._layout = _Layout(canvas, (int(lo[0]), int(lo[1])))
+        if centre_rays is None:
+            focus = np.argmax(patches[:, nz // 2].reshape(J, -1), axis=1)
+            centre = np.stack(np.unravel_index(focus, (h, w)), -1) + origins[:, nz // 2]
+            centre_rays = centre + np.array([(ny - 1) / 2.0, (nx - 1) / 2.0])
+        self._centre_rays = np.asarray(centre_rays, dtype=float).reshape(J, 2)
+        self._spectra: torch.Tensor | None = None
+
+    # -- geometry -----------------------------------------------------------------------------
+    @property
+    def canvas_shape(self) -> tuple[int, int]:
+        return self._layout.canvas
+
+    def chief_rays_px(self) -> np.ndarray:
+        """(J, 2) sensor (row, col) where each lenslet images the centre of the focal plane."""
+        return self._centre_rays.copy()
+
+    def memory_bytes(self) -> int:
+        """Bytes of the precomputed kernel spectra (the operator's own memory)."""
+        Hc, Wc = self.canvas_shape
+        return int(self.grid.shape[0] * Hc * (Wc // 2 + 1) * 8)
+
+    def _kernel_canvas(self, z: int, lenslets: list[int] | None = None) -> torch.Tensor:
+        Hc, Wc = self.canvas_shape
+        h, w = self.patches.shape[2:]
+        canvas = torch.zeros((Hc, Wc), dtype=torch.float32, device=self.device)
+        r0, c0 = self._layout.plane_origin
+        for j in range(self.n_lenslets) if lenslets is None else lenslets:
+            r, c = self.origins[j, z] - (r0, c0)
+            canvas[r : r + h, c : c + w] += torch.as_tensor(self.patches[j, z], device=self.device)
+        return canvas
+
+    def kernel_spectra(self) -> torch.Tensor:
+        """(nz, Hc, Wc//2+1) rfft2 of the combined kernels on the canvas (cached)."""
+        if self._spectra is None:
+            self._spectra = torch.stack([torch.fft.rfft2(self._kernel_canvas(z)) for z in range(self.grid.shape[0])])
+        return self._spectra
+
+    #: Per-lenslet kernel spectra are cached when all of them fit in this many bytes.
+    LENSLET_CACHE_BYTES = 256 * 2**20
+
+    def _lenslet_spectra(self, j: int) -> torch.Tensor:
+        """(nz, Hc, Wf) spectra of lenslet j's kernels (cached when small)."""
+        cache = self.__dict__.setdefault("_lenslet_cache", {})
+        if j in cache:
+            return cache[j]
+        spectra = torch.stack([torch.fft.rfft2(self._kernel_canvas(z, [j])) for z in range(self.grid.shape[0])])
+        if self.n_lenslets * self.memory_bytes() <= self.LENSLET_CACHE_BYTES:
+            cache[j] = spectra
+        return spectra
+
+    def _flip(self, data: torch.Tensor) -> torch.Tensor:
+        dims = [d for d, f in zip((-2, -1), self.flip, strict=True) if f]
+        return torch.flip(data, dims) if dims else data
+
+    # -- canvas ↔ sensor ----------------------------------------------------------------------
+    def canvas_to_sensor(self, canvas: torch.Tensor) -> torch.Tensor:
+        """The sensor's view of a canvas image (…, Hc, Wc) → (…, H, W), zero where unseen."""
+        H, W = self.sensor_shape
+        Hc, Wc = self.canvas_shape
+        r0, c0 = self._layout.plane_origin
+        out = torch.zeros(canvas.shape[:-2] + (H, W), dtype=canvas.dtype, device=canvas.device)
+        rs, re = max(r0, 0), min(r0 + Hc, H)
+        cs, ce = max(c0, 0), min(c0 + Wc, W)
+        if rs < re and cs < ce:
+            out[..., rs:re, cs:ce] = canvas[..., rs - r0 : re - r0, cs - c0 : ce - c0]
+        return out
+
+    def sensor_to_canvas(self, image: torch.Tensor) -> torch.Tensor:
+        """Transpose of :meth:`canvas_to_sensor`."""
+        H, W = self.sensor_shape
+        Hc, Wc = self.canvas_shape
+        r0, c0 = self._layout.plane_origin
+        out = torch.zeros(image.shape[:-2] + (Hc, Wc), dtype=image.dtype, device=image.device)
+        rs, re = max(r0, 0), min(r0 + Hc, H)
+        cs, ce = max(c0, 0), min(c0 + Wc, W)
+        if rs < re and cs < ce:
+            out[..., rs - r0 : re - r0, cs - c0 : ce - c0] = image[..., rs:re, cs:ce]
+        return out
+
+    def sensor_mask_canvas(self) -> torch.Tensor:
+        """(Hc, Wc) 1 where a canvas pixel is on the sensor."""
+        return self.sensor_to_canvas(torch.ones(self.sensor_shape, device=self.device))
+
+    def volume_to_canvas(self, volume: torch.Tensor) -> torch.Tensor:
+        """(…, nz, ny, nx) → (…, nz, Hc, Wc): flipped planes in the canvas's top-left corner."""
+        Hc, Wc = self.canvas_shape
+        ny, nx = self.grid.shape[1:]
+        out = torch.zeros(volume.shape[:-2] + (Hc, Wc), dtype=volume.dtype, device=volume.device)
+        out[..., :ny, :nx] = self._flip(volume)
+        return out
+
+    def canvas_to_volume(self, canvas: torch.Tensor) -> torch.Tensor:
+        ny, nx = self.grid.shape[1:]
+        return self._flip(canvas[..., :ny, :nx])
+
+    # -- operators ----------------------------------------------------------------------------
+    @staticmethod
+    def _as_tensor(data: Any, device: torch.device) -> tuple[torch.Tensor, bool]:
+        is_numpy = not isinstance(data, torch.Tensor)
+        return torch.as_tensor(np.asarray(data) if is_numpy else data, dtype=torch.float32, device=device), is_numpy
+
+    @torch.no_grad()
+    def forward(self, volume: Any, *, per_lenslet: bool = False, progress: Any = None) -> Any:
+        """Image (y, x) of a volume (z, y, x) (or (B, …)); ``per_lenslet``: (…, J, y, x)."""
+        tensor, is_numpy = self._as_tensor(volume, self.device)
+        if tuple(tensor.shape[-3:]) != self.grid.shape:
+            raise ValueError(f"volume shape {tuple(tensor.shape[-3:])} does not match the grid {self.grid.shape}")
+        Hc, Wc = self.canvas_shape
+        planes = torch.fft.rfft2(self.volume_to_canvas(tensor))  # (…, nz, Hc, Wf)
+        if per_lenslet:
+            images = []
+            for j in range(self.n_lenslets):
+                total = (planes * self._lenslet_spectra(j)).sum(dim=-3)
+                images.append(self.canvas_to_sensor(torch.fft.irfft2(total, s=(Hc, Wc))))
+            out = torch.stack(images, dim=-3)
+        else:
+            total = (planes * self.kernel_spectra()).sum(dim=-3)
+            out = self.canvas_to_sensor(torch.fft.irfft2(total, s=(Hc, Wc)))
+        return out.cpu().numpy() if is_numpy else out
+
+    @torch.no_grad()
+    def adjoint(self, image: Any, *, progress: Any = None) -> Any:
+        """Adjoint of :meth:`forward`: volume (z, y, x) from an image (y, x) (or batched)."""
+        tensor, is_numpy = self._as_tensor(image, self.device)
+        if tuple(tensor.shape[-2:]) != self.sensor_shape:
+            raise ValueError(f"image shape {tuple(tensor.shape[-2:])} does not match the sensor {self.sensor_shape}")
+        Hc, Wc = self.canvas_shape
+        spectrum = torch.fft.rfft2(self.sensor_to_canvas(tensor))[..., None, :, :]
+        planes = torch.fft.irfft2(spectrum * torch.conj(self.kernel_spectra()), s=(Hc, Wc))
+        out = self.canvas_to_volume(planes)
+        return out.cpu().numpy() if is_numpy else out
+
+    # -- files --------------------------------------------------------------------------------
+    def save(self, path: str | Path) -> Path:
+        """Write the PSF stack as one HDF5 file (``format = "cm2optics-psf-stack"``), atomically."""
+
+        def write(tmp: Path) -> None:
+            with h5py.File(tmp, "w") as f:
+                f.attrs["format"] = PSF_STACK_FORMAT
+                f.attrs["version"] = 1
+                f.attrs["grid"] = json.dumps(self.grid.to_dict())
+                f.attrs["sensor_shape"] = np.array(self.sensor_shape)
+                f.attrs["flip"] = np.array(self.flip)
+                f.attrs["meta"] = json.dumps(self.meta)
+                f.create_dataset("patches", data=self.patches, compression="gzip", shuffle=True, track_times=False)
+                f.create_dataset("origins", data=self.origins, track_times=False)
+                f.create_dataset("centre_rays", data=self._centre_rays, track_times=False)
+
+        return write_atomic(Path(path), write)
+
+    @classmethod
+    def load(cls, path: str | Path, device: str = "cpu") -> DepthwiseConvOperator:
+        path = Path(path)
+        try:
+            with h5py.File(path, "r") as f:
+                if f.attrs.get("format") != PSF_STACK_FORMAT:
+                    raise ValueError(f"{path}: not a cm2optics PSF stack (format = {f.attrs.get('format')!r})")
+                return cls(
+                    f["patches"][()],
+                    f["origins"][()],
+                    VolumeGrid.from_dict(json.loads(f.attrs["grid"])),
+                    tuple(int(v) for v in f.attrs["sensor_shape"]),
+                    tuple(bool(v) for v in f.attrs["flip"]),
+                    f["centre_rays"][()],
+                    device=device,
+                    meta=json.loads(f.attrs.get("meta", "{}")),
+                )
+        except (OSError, KeyError) as error:
+            raise ValueError(f"{path}: not a readable PSF stack ({error})") from None
+
+
+# ----------------------------------------------------------------------------- analytic toy
+
+
+def gaussian_cm2(
+    grid: VolumeGrid,
+    sensor_shape: tuple[int, int],
+    *,
+    rows: int = 3,
+    cols: int = 3,
+    pitch_px: float | None = None,
+    sigma0_px: float = 0.8,
+    defocus_px_per_um: float = 0.012,
+    shear_per_um: float = 2.5e-4,
+    patch_px: int | None = None,
+) -> DepthwiseConvOperator:
+    """A small CM²-like depth-wise LSI operator with Gaussian foci, for tests and demos.
+
+    rows × cols lenslets at ``pitch_px`` on the sensor (default: a third of the smaller sensor
+    side); a focus widens with defocus (σ² = σ0² + (defocus·z)², px) and lenslet j's focus moves
+    radially by ``shear_per_um·z`` × its offset (the axial shear that encodes depth); each focus
+    carries 1/J of the light. The image is inverted (a source moved +x lands −x).
+    """
+    H, W = sensor_shape
+    nz, ny, nx = grid.shape
+    pitch = float(pitch_px) if pitch_px is not None else min(H, W) / 3.0
+    z_um = grid.axis_um(0)
+    sigma = np.sqrt(sigma0_px**2 + (defocus_px_per_um * z_um) ** 2)
+    half = int(math.ceil(4 * sigma.max())) + 1
+    size = patch_px if patch_px is not None else 2 * half + 1
+    J = rows * cols
+    offsets = np.array(
+        [((r - (rows - 1) / 2) * pitch, (c - (cols - 1) / 2) * pitch) for r in range(rows) for c in range(cols)]
+    )
+    centre = np.array([(H - 1) / 2.0, (W - 1) / 2.0])
+    patches = np.zeros((J, nz, size, size), np.float32)
+    origins = np.zeros((J, nz, 2), np.int64)
+    rays = centre + offsets
+    plane_half = np.array([(ny - 1) / 2.0, (nx - 1) / 2.0])
+    grid_px = np.arange(size)
+    for j in range(J):
+        for z in range(nz):
+            focus = centre + offsets[j] * (1.0 + shear_per_um * z_um[z])  # source at the plane centre
+            top_left_focus = focus - plane_half  # where the flipped plane's voxel (0, 0) focuses
+            origin = np.floor(top_left_focus).astype(np.int64) - size // 2
+            frac = top_left_focus - origin
+            g_r = np.exp(-0.5 * ((grid_px - frac[0]) / sigma[z]) ** 2)
+            g_c = np.exp(-0.5 * ((grid_px - frac[1]) / sigma[z]) ** 2)
+            patch = np.outer(g_r, g_c)
+            patches[j, z] = patch / patch.sum() / J
+            origins[j, z] = origin
+    meta = {
+        "kind": "gaussian-cm2",
+        "rows": rows,
+        "cols": cols,
+        "pitch_px": pitch,
+        "sigma0_px": sigma0_px,
+        "defocus_px_per_um": defocus_px_per_um,
+        "shear_per_um": shear_per_um,
+    }
+    return DepthwiseConvOperator(patches, origins, grid, sensor_shape, (True, True), rays, meta=meta)
+
+
+# ----------------------------------------------------------------------------- LSV model → LSI
+
+
+def lsi_from_model(model: Any, grid: VolumeGrid | None = None, *, device: str = "cpu") -> DepthwiseConvOperator:
+    """The V1 paper's depth-wise LSI model of an LSV model: at each depth of ``grid`` the exact
+    image (per lenslet) of a point source on the voxel nearest the optical axis, shifted one
+    sensor pixel per voxel with the in-focus inversion — exact for that voxel column, shift
+    invariant elsewhere. Needs a grid with one voxel per sensor pixel at the focal plane (the
+    model's default grid is one)."""
+    grid = grid or model.default_grid
+    geometry = model.geometry
+    A0 = np.asarray(geometry.A(0.0), float)  # rows (row, col), columns (x, y), px/mm
+    dy, dx = grid.voxel_um[1] / 1000.0, grid.voxel_um[2] / 1000.0
+    row_per_iy, col_per_ix = A0[0, 1] * dy, A0[1, 0] * dx
+    cross = abs(A0[0, 0] * dx) + abs(A0[1, 1] * dy)
+    if cross > 0.02 or abs(abs(row_per_iy) - 1) > 0.02 or abs(abs(col_per_ix) - 1) > 0.02:
+        raise ValueError(
+            f"the depth-wise LSI model needs one voxel per sensor pixel at the focal plane, without rotation: this grid "
+            f"maps a voxel to ({row_per_iy:.3f}, {col_per_ix:.3f}) px (cross terms {cross:.3f}); use the model's default grid"
+        )
+    flip = (row_per_iy < 0, col_per_ix < 0)
+    nz, ny, nx = grid.shape
+    z_mm = grid.axis_mm(0)
+    J = model.n_lenslets
+    iy0, ix0 = ny // 2, nx // 2  # the voxel nearest the axis (exactly on it for odd sizes)
+    x0_mm, y0_mm = float(grid.axis_mm(2)[ix0]), float(grid.axis_mm(1)[iy0])
+    a0 = (ny - 1 - iy0) if flip[0] else iy0  # its index in the flipped plane
+    b0 = (nx - 1 - ix0) if flip[1] else ix0
+    stacks = []
+    boxes = []
+    for z in z_mm:
+        image = model.point_image(x0_mm, y0_mm, float(z), per_lenslet=True)  # (J, H, W)
+        stacks.append(image)
+        for j in range(J):
+            rows, cols = np.nonzero(image[j] > 1e-6 * max(float(image[j].max()), 1e-30))
+            if len(rows):
+                boxes.append((rows.min(), rows.max(), cols.min(), cols.max()))
+    if not boxes:
+        raise ValueError("the model's on-axis PSF is empty")
+    h = max(b[1] - b[0] + 1 for b in boxes)
+    w = max(b[3] - b[2] + 1 for b in boxes)
+    h, w = h + (h % 2 == 0), w + (w % 2 == 0)
+    patches = np.zeros((J, nz, h, w), np.float32)
+    origins = np.zeros((J, nz, 2), np.int64)
+    H, W = model.sensor_shape
+    centre_focus = np.asarray(geometry.focus(0.0, 0.0, 0.0), float).reshape(J, 2)
+    for z in range(nz):
+        for j in range(J):
+            image = stacks[z][j]
+            if not np.any(image):
+                origins[j, z] = (0, 0)
+                continue
+            peak = np.unravel_index(np.argmax(image), image.shape)
+            r0, c0 = int(peak[0]) - h // 2, int(peak[1]) - w // 2
+            rs, re, cs, ce = max(r0, 0), min(r0 + h, H), max(c0, 0), min(c0 + w, W)
+            patches[j, z, rs - r0 : re - r0, cs - c0 : ce - c0] = image[rs:re, cs:ce]
+            # the source sits on flipped voxel (a0, b0): voxel (0, 0) of the flipped plane lands a0, b0 pixels before
+            origins[j, z] = (r0 - a0, c0 - b0)
+    meta = {
+        "kind": "lsi-from-lsv",
+        "model_provenance": getattr(model, "provenance", {}).get("scan", {}).get("fingerprint"),
+    }
+    return DepthwiseConvOperator(patches, origins, grid, (H, W), flip, centre_focus, device=device, meta=meta)
+
+
+# ----------------------------------------------------------------------------- files
+
+
+def model_format(path: str | Path) -> str:
+    """The ``format`` attribute of a model file (HDF5), or a ValueError saying what is wrong."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such model file")
+    try:
+        with h5py.File(path, "r") as f:
+            return str(f.attrs.get("format", ""))
+    except OSError:
+        raise ValueError(
+            f"{path}: not an HDF5 model file (an LSV model from `cm2 lsv build`, or a PSF stack)"
+        ) from None
+
+
+def load_operator(
+    path: str | Path, grid: VolumeGrid | None = None, *, forward: str = "lsv", device: str = "cpu"
+) -> Any:
+    """The operator of a model file on ``grid`` (default: the model's own grid).
+
+    forward: ``"lsv"`` (the 3D-LSV operator) or ``"lsi"`` (the depth-wise LSI model derived
+    from it). A PSF-stack file is depth-wise LSI already and serves both.
+    """
+    if forward not in ("lsv", "lsi"):
+        raise ValueError(f"forward = {forward!r}: must be 'lsv' or 'lsi'")
+    kind = model_format(path)
+    if kind == PSF_STACK_FORMAT:
+        operator = DepthwiseConvOperator.load(path, device=device)
+        if grid is not None and (grid.shape != operator.grid.shape or grid.voxel_um != operator.grid.voxel_um):
+            raise ValueError(f"{path}: a PSF stack is defined on its own grid {operator.grid.shape}; got {grid.shape}")
+        return operator
+    if kind == "cm2optics-lsv":
+        from cm2optics.lsv.model import load_model
+
+        model = load_model(path)
+        if forward == "lsi":
+            return lsi_from_model(model, grid, device=device)
+        return model.operator(grid or model.default_grid, device=device)
+    raise ValueError(f"{path}: unknown model format {kind!r} (expected cm2optics-lsv or {PSF_STACK_FORMAT})")

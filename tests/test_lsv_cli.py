@@ -1,0 +1,182 @@
+"""`cm2 lsv build`, `cm2 lsv validate` and `cm2 simulate`: JSON keys, files, one-line errors."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import tifffile
+import typer
+import yaml
+from typer.testing import CliRunner
+
+from cm2optics.lsv.analytic import AnalyticCM2, write_analytic_scan
+from cm2optics.lsv.cli import lsv_app, simulate_command
+from cm2optics.lsv.report import FIGURES
+from cm2optics.volume_io import Emitters, write_emitters, write_volume
+
+app = typer.Typer()
+app.add_typer(lsv_app, name="lsv")
+app.command("simulate")(simulate_command)
+runner = CliRunner()
+
+
+@app.callback()
+def _root() -> None:
+    """Test root: a group, so that `lsv` and `simulate` are subcommands as under `cm2`."""
+
+
+@pytest.fixture(scope="module")
+def scan(v2, tmp_path_factory) -> Path:
+    analytic = AnalyticCM2.from_design(v2, binning=8, sigma0_um=19.2)
+    axis = np.linspace(-3, 3, 5)
+    return write_analytic_scan(
+        tmp_path_factory.mktemp("cli") / "scan", analytic, axis, axis, np.linspace(-0.3, 0.3, 5), binning=8
+    )
+
+
+@pytest.fixture(scope="module")
+def model(scan) -> tuple[Path, dict]:
+    out = scan.parent / "model.h5"
+    result = runner.invoke(app, ["lsv", "build", str(scan), "--rank", "16", "--out", str(out), "--json"])
+    assert result.exit_code == 0, result.output
+    return out, json.loads(result.stdout)
+
+
+def test_build_json_model_and_report(model):
+    path, summary = model
+    assert path.is_file()
+    assert summary["rank"] == 16
+    assert 0 <= summary["nmse_calibration"] < 0.05
+    assert set(summary["nmse_vs_rank"]) >= {"1", "4", "8", "16"}
+    report = Path(summary["report"])
+    assert report.name == "report.html" and report.is_file()
+    for name in FIGURES:
+        assert (report.parent / name).stat().st_size > 1000
+
+
+def test_validate_json_on_the_calibration_scan(model, scan):
+    path, _ = model
+    result = runner.invoke(
+        app, ["lsv", "validate", str(path), str(scan), "--json", "--heldout", "6", "--ranks", "4,16"]
+    )
+    assert result.exit_code == 0, result.output
+    data = json.loads(result.stdout)
+    assert data["method"] == "leave-one-out" and data["n_heldout"] == 6
+    assert 0 < data["nmse_heldout"] < 0.5
+    assert set(data["nmse_heldout_vs_rank"]) == {"4", "16"}
+    assert set(data["nmse_subsampled"]) == {"lateral_2x", "axial_2x"}
+
+
+def test_validate_on_a_second_offset_scan(model, v2, tmp_path):
+    path, _ = model
+    analytic = AnalyticCM2.from_design(v2, binning=8, sigma0_um=19.2)
+    offset = write_analytic_scan(
+        tmp_path / "offset",
+        analytic,
+        np.array([-0.75, 0.75]),
+        np.array([-0.75, 0.75]),
+        np.array([-0.15, 0.15]),
+        binning=8,
+        seed=3,
+    )
+    result = runner.invoke(app, ["lsv", "validate", str(path), str(offset), "--json", "--no-subsample"])
+    assert result.exit_code == 0, result.output
+    data = json.loads(result.stdout)
+    assert data["method"] == "second scan" and data["n_heldout"] == 8
+    assert 0 < data["nmse_heldout"] < 0.2
+    assert data["brightness_ratio"] == pytest.approx(1.0, abs=0.15)
+
+
+def test_simulate_emitters_with_noise(model, tmp_path):
+    path, _ = model
+    csv = write_emitters(
+        tmp_path / "e.csv",
+        Emitters(
+            np.array([0.0, 800.0]),
+            np.array([0.0, -400.0]),
+            np.array([0.0, 100.0]),
+            np.array([10.0, 15.0]),
+            np.array([1.0, 2.0]),
+        ),
+    )
+    out = tmp_path / "meas.tif"
+    result = runner.invoke(
+        app,
+        [
+            "simulate",
+            "--model",
+            str(path),
+            "--emitters",
+            str(csv),
+            "--noise",
+            "--seed",
+            "1",
+            "--out",
+            str(out),
+            "--json",
+        ],
+    )
+    assert result.exit_code == 0, result.output
+    counts = tifffile.imread(out)
+    assert counts.dtype == np.uint16 and counts.shape == (259, 386)
+    sidecar = yaml.safe_load(out.with_suffix(".yaml").read_text())
+    assert sidecar["noise"]["poisson_peak_photons"] == 500 and sidecar["bit_depth"] == 12
+    assert 0.03 * 4095 < np.median(counts) < 0.07 * 4095  # the dark offset
+    again = tmp_path / "again.tif"
+    runner.invoke(
+        app, ["simulate", "--model", str(path), "--emitters", str(csv), "--noise", "--seed", "1", "--out", str(again)]
+    )
+    np.testing.assert_array_equal(tifffile.imread(again), counts)
+
+
+def test_simulate_volume_per_lenslet_and_lsi(model, tmp_path):
+    path, summary = model
+    voxel = summary["default_grid"]["voxel_um"]
+    volume = np.zeros((5, 30, 30), np.float32)
+    volume[2, 15, 15] = 1.0
+    write_volume(tmp_path / "v.tif", volume, tuple(voxel))
+    out = tmp_path / "views.tif"
+    result = runner.invoke(
+        app, ["simulate", "--model", str(path), "--volume", str(tmp_path / "v.tif"), "--per-lenslet", "--out", str(out)]
+    )
+    assert result.exit_code == 0, result.output
+    assert tifffile.imread(out).shape == (9, 259, 386)
+    np.save(tmp_path / "v.npy", volume)
+    result = runner.invoke(
+        app,
+        [
+            "simulate",
+            "--model",
+            str(path),
+            "--volume",
+            str(tmp_path / "v.npy"),
+            "--lsi",
+            "--out",
+            str(tmp_path / "lsi.tif"),
+        ],
+    )
+    assert result.exit_code == 0, result.output
+
+
+@pytest.mark.parametrize(
+    ("arguments", "message"),
+    [
+        (["lsv", "build", "/no/such/scan"], "no such scan folder"),
+        (["lsv", "build", "{scan}", "--rank", "0"], "--rank = 0"),
+        (["lsv", "validate", "/no/model.h5", "{scan}"], "no such model file"),
+        (["lsv", "validate", "{model}", "{scan}", "--ranks", "a,b"], "--ranks"),
+        (["simulate", "--model", "{model}", "--out", "x.tif"], "exactly one of --volume and --emitters"),
+        (["simulate", "--model", "{model}", "--emitters", "/no/e.csv", "--out", "x.tif"], "no such emitter file"),
+        (["simulate", "--model", "{model}", "--volume", "{scan}/scan.yaml", "--out", "x.tif"], "unknown volume format"),
+    ],
+)
+def test_user_errors_are_one_line(model, scan, arguments, message):
+    path, _ = model
+    arguments = [a.format(scan=scan, model=path) for a in arguments]
+    result = runner.invoke(app, arguments)
+    assert result.exit_code == 2, result.output
+    assert message in result.output
+    assert "Traceback" not in result.output
