@@ -16,11 +16,11 @@ from pathlib import Path
 from rich.console import Console
 
 from cm2optics.design import SystemDesign
-from cm2optics.report import Report
 from cm2optics.emission.report import add_psf_section
 from cm2optics.illumination.report import add_illumination_section
 from cm2optics.lsv.report import add_lsv_section
 from cm2optics.recon.report import add_baseline_section
+from cm2optics.report import Report
 from cm2optics.spectra.report import add_spectra_section
 
 #: Where the original device's reference data sits in a developer checkout (absent for users).

@@ -28,6 +28,7 @@ from dataclasses import dataclass
 
 from cm2optics.design import Side, SystemDesign
 from cm2optics.layout import mla_housing_envelope
+from cm2optics.lenslets import lens_cells
 from cm2optics.materials import Material
 
 __all__ = ["Bore", "EmissionOptics", "Lenslet", "Plate", "emission_optics", "lenslets"]
@@ -120,53 +121,28 @@ class EmissionOptics:
 
 def lenslets(design: SystemDesign) -> tuple[Lenslet, ...]:
     """Every lenslet of the array (full cells row by row, then with the partial cells that
-    :func:`cm2optics.cad.mla.lens_cells` adds on ``partial_sides``), in the device frame.
+    :func:`cm2optics.lenslets.lens_cells` adds on ``partial_sides``), in the device frame.
 
     A lenslet's clear aperture is its cell intersected with the square of side
     ``mla.aperture_mm`` around its vertex.
     """
-    mla = design.mla
-    p, b, half = mla.pitch_mm, mla.partial_border_mm, mla.aperture_mm / 2
-    cols = list(range(mla.cols))
-    rows = list(range(mla.rows))
-    if b > 0 and Side.MINUS_X in mla.partial_sides:
-        cols.insert(0, -1)
-    if b > 0 and Side.PLUS_X in mla.partial_sides:
-        cols.append(mla.cols)
-    if b > 0 and Side.MINUS_Y in mla.partial_sides:
-        rows.insert(0, -1)
-    if b > 0 and Side.PLUS_Y in mla.partial_sides:
-        rows.append(mla.rows)
-
-    def span(i: int, n: int) -> tuple[float, float, float]:
-        centre = (i - (n - 1) / 2) * p
-        low, high = centre - p / 2, centre + p / 2
-        if i < 0:
-            low = high - b
-        elif i >= n:
-            high = low + b
-        return low, high, centre
-
-    out = []
-    for j in rows:
-        y0, y1, yc = span(j, mla.rows)
-        for i in cols:
-            x0, x1, xc = span(i, mla.cols)
-            out.append(
-                Lenslet(
-                    index=len(out),
-                    row=j,
-                    col=i,
-                    vertex_x_mm=xc,
-                    vertex_y_mm=yc,
-                    x0_mm=max(x0, xc - half),
-                    x1_mm=min(x1, xc + half),
-                    y0_mm=max(y0, yc - half),
-                    y1_mm=min(y1, yc + half),
-                    partial=not (0 <= i < mla.cols and 0 <= j < mla.rows),
-                )
-            )
-    return tuple(out)
+    half = design.mla.aperture_mm / 2
+    rows, cols = design.mla.rows, design.mla.cols
+    return tuple(
+        Lenslet(
+            index=index,
+            row=round(cell.vertex_y / design.mla.pitch_mm + (rows - 1) / 2),
+            col=round(cell.vertex_x / design.mla.pitch_mm + (cols - 1) / 2),
+            vertex_x_mm=cell.vertex_x,
+            vertex_y_mm=cell.vertex_y,
+            x0_mm=max(cell.x_min, cell.vertex_x - half),
+            x1_mm=min(cell.x_max, cell.vertex_x + half),
+            y0_mm=max(cell.y_min, cell.vertex_y - half),
+            y1_mm=min(cell.y_max, cell.vertex_y + half),
+            partial=cell.partial,
+        )
+        for index, cell in enumerate(lens_cells(design.mla))
+    )
 
 
 def housing_bores(design: SystemDesign) -> tuple[Bore, ...]:
