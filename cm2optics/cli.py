@@ -20,12 +20,12 @@ from rich.table import Table
 import cm2optics
 from cm2optics.design import DesignError, SystemDesign, available_presets, load_preset
 from cm2optics.emission.cli import psf_app
+from cm2optics.illumination.cli import illum_app
 from cm2optics.lsv.cli import lsv_app, simulate_command
 from cm2optics.metrics.cli import evaluate_command
 from cm2optics.recon.cli import reconstruct_command
-from cm2optics.synth.cli import synth_command
-from cm2optics.illumination.cli import illum_app
 from cm2optics.spectra.cli import spectra_app
+from cm2optics.synth.cli import synth_command
 
 app = typer.Typer(
     help="cm2optics: design, simulate and reconstruct computational miniature mesoscopes (CM²).\n\n"
