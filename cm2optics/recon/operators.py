@@ -236,6 +236,19 @@ class DepthwiseConvOperator:
         is_numpy = not isinstance(data, torch.Tensor)
         return torch.as_tensor(np.asarray(data) if is_numpy else data, dtype=torch.float32, device=device), is_numpy
 
+    #: Bytes of transient canvas arrays per chunk of depth planes (forward/adjoint stream over z).
+    CHUNK_BYTES = 256 * 2**20
+
+    def _chunk(self) -> int:
+        Hc, Wc = self.canvas_shape
+        per_plane = Hc * Wc * 4 + 2 * Hc * (Wc // 2 + 1) * 8  # canvas + spectrum + product
+        return max(1, min(self.grid.shape[0], self.CHUNK_BYTES // per_plane))
+
+    def transient_bytes(self) -> int:
+        """Bytes of the canvas-sized temporaries of one forward or adjoint."""
+        Hc, Wc = self.canvas_shape
+        return int(self._chunk() * (Hc * Wc * 4 + 2 * Hc * (Wc // 2 + 1) * 8) + 3 * Hc * Wc * 4)
+
     @torch.no_grad()
     def forward(self, volume: Any, *, per_lenslet: bool = False, progress: Any = None) -> Any:
         """Image (y, x) of a volume (z, y, x) (or (B, …)); ``per_lenslet``: (…, J, y, x)."""
@@ -243,16 +256,19 @@ class DepthwiseConvOperator:
         if tuple(tensor.shape[-3:]) != self.grid.shape:
             raise ValueError(f"volume shape {tuple(tensor.shape[-3:])} does not match the grid {self.grid.shape}")
         Hc, Wc = self.canvas_shape
-        planes = torch.fft.rfft2(self.volume_to_canvas(tensor))  # (…, nz, Hc, Wf)
-        if per_lenslet:
-            images = []
-            for j in range(self.n_lenslets):
-                total = (planes * self._lenslet_spectra(j)).sum(dim=-3)
-                images.append(self.canvas_to_sensor(torch.fft.irfft2(total, s=(Hc, Wc))))
-            out = torch.stack(images, dim=-3)
-        else:
-            total = (planes * self.kernel_spectra()).sum(dim=-3)
-            out = self.canvas_to_sensor(torch.fft.irfft2(total, s=(Hc, Wc)))
+        nz, step = self.grid.shape[0], self._chunk()
+        kernels = [self._lenslet_spectra(j) for j in range(self.n_lenslets)] if per_lenslet else [self.kernel_spectra()]
+        totals = [
+            torch.zeros(tensor.shape[:-3] + (Hc, Wc // 2 + 1), dtype=torch.complex64, device=self.device)
+            for _ in kernels
+        ]
+        for z0 in range(0, nz, step):
+            planes = torch.fft.rfft2(self.volume_to_canvas(tensor[..., z0 : z0 + step, :, :]))  # (…, k, Hc, Wf)
+            for total, spectra in zip(totals, kernels, strict=True):
+                total += (planes * spectra[z0 : z0 + step]).sum(dim=-3)
+            del planes
+        images = [self.canvas_to_sensor(torch.fft.irfft2(total, s=(Hc, Wc))) for total in totals]
+        out = torch.stack(images, dim=-3) if per_lenslet else images[0]
         return out.cpu().numpy() if is_numpy else out
 
     @torch.no_grad()
@@ -262,9 +278,15 @@ class DepthwiseConvOperator:
         if tuple(tensor.shape[-2:]) != self.sensor_shape:
             raise ValueError(f"image shape {tuple(tensor.shape[-2:])} does not match the sensor {self.sensor_shape}")
         Hc, Wc = self.canvas_shape
+        nz, ny, nx = self.grid.shape
+        step = self._chunk()
         spectrum = torch.fft.rfft2(self.sensor_to_canvas(tensor))[..., None, :, :]
-        planes = torch.fft.irfft2(spectrum * torch.conj(self.kernel_spectra()), s=(Hc, Wc))
-        out = self.canvas_to_volume(planes)
+        kernels = self.kernel_spectra()
+        out = torch.empty(tensor.shape[:-2] + (nz, ny, nx), dtype=torch.float32, device=self.device)
+        for z0 in range(0, nz, step):
+            planes = torch.fft.irfft2(spectrum * torch.conj(kernels[z0 : z0 + step]), s=(Hc, Wc))
+            out[..., z0 : z0 + step, :, :] = self.canvas_to_volume(planes)
+            del planes
         return out.cpu().numpy() if is_numpy else out
 
     # -- files --------------------------------------------------------------------------------
@@ -396,36 +418,39 @@ def lsi_from_model(model: Any, grid: VolumeGrid | None = None, *, device: str = 
     x0_mm, y0_mm = float(grid.axis_mm(2)[ix0]), float(grid.axis_mm(1)[iy0])
     a0 = (ny - 1 - iy0) if flip[0] else iy0  # its index in the flipped plane
     b0 = (nx - 1 - ix0) if flip[1] else ix0
-    stacks = []
-    boxes = []
-    for z in z_mm:
-        image = model.point_image(x0_mm, y0_mm, float(z), per_lenslet=True)  # (J, H, W)
-        stacks.append(image)
+    # one pass over depths, keeping only each focus's bounding box (full frames would not fit at full size)
+    crops: dict[tuple[int, int], tuple[np.ndarray, int, int, int, int]] = {}  # (j, z) → crop, top, left, peak row, col
+    half_h = half_w = 0
+    for z, depth in enumerate(z_mm):
+        image = model.point_image(x0_mm, y0_mm, float(depth), per_lenslet=True)  # (J, H, W)
         for j in range(J):
             rows, cols = np.nonzero(image[j] > 1e-6 * max(float(image[j].max()), 1e-30))
-            if len(rows):
-                boxes.append((rows.min(), rows.max(), cols.min(), cols.max()))
-    if not boxes:
+            if not len(rows):
+                continue
+            peak = np.unravel_index(np.argmax(image[j]), image[j].shape)
+            r_lo, r_hi, c_lo, c_hi = rows.min(), rows.max(), cols.min(), cols.max()
+            crops[j, z] = (
+                image[j, r_lo : r_hi + 1, c_lo : c_hi + 1].astype(np.float32),
+                r_lo,
+                c_lo,
+                int(peak[0]),
+                int(peak[1]),
+            )
+            half_h = max(half_h, peak[0] - r_lo, r_hi - peak[0])
+            half_w = max(half_w, peak[1] - c_lo, c_hi - peak[1])
+        del image
+    if not crops:
         raise ValueError("the model's on-axis PSF is empty")
-    h = max(b[1] - b[0] + 1 for b in boxes)
-    w = max(b[3] - b[2] + 1 for b in boxes)
-    h, w = h + (h % 2 == 0), w + (w % 2 == 0)
+    h, w = 2 * int(half_h) + 1, 2 * int(half_w) + 1
     patches = np.zeros((J, nz, h, w), np.float32)
     origins = np.zeros((J, nz, 2), np.int64)
     H, W = model.sensor_shape
     centre_focus = np.asarray(geometry.focus(0.0, 0.0, 0.0), float).reshape(J, 2)
-    for z in range(nz):
-        for j in range(J):
-            image = stacks[z][j]
-            if not np.any(image):
-                origins[j, z] = (0, 0)
-                continue
-            peak = np.unravel_index(np.argmax(image), image.shape)
-            r0, c0 = int(peak[0]) - h // 2, int(peak[1]) - w // 2
-            rs, re, cs, ce = max(r0, 0), min(r0 + h, H), max(c0, 0), min(c0 + w, W)
-            patches[j, z, rs - r0 : re - r0, cs - c0 : ce - c0] = image[rs:re, cs:ce]
-            # the source sits on flipped voxel (a0, b0): voxel (0, 0) of the flipped plane lands a0, b0 pixels before
-            origins[j, z] = (r0 - a0, c0 - b0)
+    for (j, z), (crop, top, left, peak_r, peak_c) in crops.items():
+        r0, c0 = peak_r - h // 2, peak_c - w // 2  # the patch, centred on the peak, holds the whole box
+        patches[j, z, top - r0 : top - r0 + crop.shape[0], left - c0 : left - c0 + crop.shape[1]] = crop
+        # the source sits on flipped voxel (a0, b0): voxel (0, 0) of the flipped plane lands a0, b0 pixels before
+        origins[j, z] = (r0 - a0, c0 - b0)
     meta = {
         "kind": "lsi-from-lsv",
         "model_provenance": getattr(model, "provenance", {}).get("scan", {}).get("fingerprint"),

@@ -31,7 +31,7 @@ __all__ = ["METHODS", "ReconOptions", "memory_estimate", "reconstruct"]
 
 METHODS = ("fista", "admm", "rl")
 #: Volume-sized float32 arrays each method keeps (without TV, extra with TV).
-_COPIES = {"fista": (5, 8), "admm": (9, 10), "rl": (5, 5)}
+_COPIES = {"fista": (6, 8), "admm": (9, 10), "rl": (5, 5)}
 _LSI_COPIES = (14, 10)  # canvas-sized (z-padded) arrays of the closed-form LSI ADMM, complex counted twice
 
 
@@ -80,7 +80,7 @@ class ReconOptions:
 
 def _operator_bytes(operator: Any) -> int:
     if hasattr(operator, "memory_bytes"):
-        return int(operator.memory_bytes())
+        return int(operator.memory_bytes()) + int(getattr(operator, "transient_bytes", lambda: 0)())
     if hasattr(operator, "canvas_shape") and hasattr(operator, "depth_nodes") and hasattr(operator, "n_lenslets"):
         Hc, Wc = operator.canvas_shape  # the LSV operator's per-lenslet, per-depth-node spectra
         return int(operator.n_lenslets * len(operator.depth_nodes) * Hc * (Wc // 2 + 1) * 8)
