@@ -118,7 +118,7 @@ def evaluate_command(
     from rich.table import Table
 
     from cm2optics.metrics.evaluate import evaluate_files
-    from cm2optics.metrics.scores import MatchOptions
+    from cm2optics.metrics.scores import REPORTED_KEYS, MatchOptions
 
     options = MatchOptions(gate_factor=gate_factor, min_gate_um=min_gate_um, connectivity=connectivity)
     with Progress(disable=as_json, transient=True, console=Console(stderr=True)) as bar:
@@ -148,19 +148,7 @@ def evaluate_command(
     )
     table.add_column("metric")
     table.add_column("value", justify="right")
-    for key in (
-        "recall",
-        "precision",
-        "f1",
-        "jaccard",
-        "rmse_lateral_um",
-        "rmse_axial_um",
-        "n_true",
-        "n_detected",
-        "n_tp",
-        "n_fp",
-        "n_fn",
-    ):
+    for key in REPORTED_KEYS:
         value = result[key]
         table.add_row(key, "—" if value is None else (f"{value:.4f}" if isinstance(value, float) else str(value)))
     console.print(table)

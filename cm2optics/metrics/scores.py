@@ -32,6 +32,8 @@ from cm2optics.volume_io import Emitters, VolumeGrid
 __all__ = ["Evaluation", "MatchOptions", "evaluate_volume", "f1_optimal_threshold", "pooled_scores", "scores"]
 
 SCORE_KEYS = ("recall", "precision", "f1", "jaccard", "rmse_lateral_um", "rmse_axial_um", "n_true", "n_detected")
+#: What a report shows: the scores and the match counts behind them.
+REPORTED_KEYS = (*SCORE_KEYS, "n_tp", "n_fp", "n_fn")
 
 
 def scores(n_tp: int, n_fp: int, n_fn: int, offsets_um: np.ndarray | None = None) -> dict[str, float | int | None]:

@@ -156,6 +156,7 @@ def compare_baselines(
     )
     from cm2optics.metrics.breakdown import BREAKDOWNS, breakdown, detection_maps
     from cm2optics.metrics.plots import plot_breakdowns, plot_maps, plot_overlay
+    from cm2optics.metrics.scores import REPORTED_KEYS
     from cm2optics.synth.dataset import make_dataset, read_sample
 
     say = log or (lambda _: None)
@@ -246,19 +247,7 @@ def compare_baselines(
             "threshold": threshold,
             **{
                 k: pooled[k]
-                for k in (
-                    "recall",
-                    "precision",
-                    "f1",
-                    "jaccard",
-                    "rmse_lateral_um",
-                    "rmse_axial_um",
-                    "n_true",
-                    "n_detected",
-                    "n_tp",
-                    "n_fp",
-                    "n_fn",
-                )
+                for k in REPORTED_KEYS
             },
             "per_volume_mean": {
                 k: _mean([m[k] for m in per_volume])
