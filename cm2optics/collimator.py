@@ -66,6 +66,7 @@ from cm2optics.materials import refractive_index
 __all__ = [
     "CollimatorProfile",
     "MeridionalTrace",
+    "enclosed_profile",
     "Surface",
     "collimator_profile",
     "profile_from_parameters",
@@ -293,24 +294,53 @@ def profile_from_parameters(collimator: Collimator, wavelength_nm: float, sample
     incidence = math.pi / 2 - np.arccos(u[:, 1]) / 2
     margin = np.degrees(incidence - math.asin(1.0 / n))
 
+    return enclosed_profile(
+        collimator, n, wavelength_nm, (lens_r, lens_z), (tir[:, 0], tir[:, 1]), tir_theta, theta_max, margin
+    )
+
+
+def enclosed_profile(
+    collimator: Collimator,
+    n: float,
+    wavelength_nm: float,
+    lens: tuple[np.ndarray, np.ndarray],
+    tir: tuple[np.ndarray, np.ndarray],
+    tir_theta: np.ndarray,
+    theta_max: float,
+    margin_deg: np.ndarray,
+) -> CollimatorProfile:
+    """Close the two designed surfaces into the collimator's section, checking the envelope.
+
+    n: index at ``wavelength_nm`` (nm). lens: (r, z) of the lens, vertex first, edge on the
+    cavity wall (mm). tir: (r, z) of the TIR wall from the entry plane upwards (mm).
+    tir_theta: LED angle of each TIR point (rad). theta_max: steepest ray entering the cavity
+    (rad). margin_deg: each TIR point's incidence beyond the critical angle (deg).
+    Raises :class:`DesignError` when the TIR wall runs into the flange, past the footprint, or
+    bulges (a revolved part could not be printed).
+    """
+    a, g = collimator.cavity_radius_mm, collimator.led_gap_mm
+    lens_r, lens_z = lens
+    tir_r, tir_z = tir
+    vertex, lens_edge = float(lens_z[0]), float(lens_z[-1])
     exit_z = g + collimator.height_mm
     flange_bottom = exit_z - collimator.flange_mm
-    r_end, z_end = tir[-1]
+    r_end, z_end = float(tir_r[-1]), float(tir_z[-1])
     if z_end > flange_bottom + 1e-9:
-        needed = z_end + collimator.flange_mm - g
         raise DesignError(
             "collimator.height_mm",
             collimator.height_mm,
-            f"the TIR surface ends at z = {z_end:.3f} mm, above the flange's underside: needs ≥ {needed:.3f} mm",
+            f"the TIR surface ends at z = {z_end:.3f} mm, above the flange's underside: needs ≥ {z_end + collimator.flange_mm - g:.3f} mm",
         )
-    if r_end >= collimator.footprint_mm / 2:
+    if np.max(tir_r) >= collimator.footprint_mm / 2:
         raise DesignError(
             "collimator.footprint_mm",
             collimator.footprint_mm,
-            f"the TIR surface reaches r = {r_end:.3f} mm: the footprint must exceed {2 * r_end:.3f} mm",
+            f"the TIR surface reaches r = {np.max(tir_r):.3f} mm: the footprint must exceed {2 * np.max(tir_r):.3f} mm",
         )
-    entry_radius = a + collimator.entry_wall_mm
-    min_wall = min(collimator.entry_wall_mm, exit_z - vertex, collimator.flange_mm)
+    if np.max(tir_r) > r_end + 1e-9:
+        raise DesignError(
+            "collimator", "TIR wall", "the TIR wall bulges beyond its end radius (not printable as revolved)"
+        )
     return CollimatorProfile(
         refractive_index=n,
         wavelength_nm=float(wavelength_nm),
@@ -323,18 +353,18 @@ def profile_from_parameters(collimator: Collimator, wavelength_nm: float, sample
         lens_z_mm=lens_z,
         cavity_r_mm=np.array([a, a]),
         cavity_z_mm=np.array([lens_edge, g]),
-        tir_r_mm=tir[:, 0],
-        tir_z_mm=tir[:, 1],
+        tir_r_mm=tir_r,
+        tir_z_mm=tir_z,
         tir_angle_deg=np.degrees(tir_theta),
         exit_r_mm=np.array([0.0, collimator.footprint_mm / 2]),
         lens_vertex_z_mm=vertex,
         lens_edge_z_mm=lens_edge,
-        outer_radius_entry_mm=entry_radius,
-        outer_radius_exit_mm=float(r_end),
+        outer_radius_entry_mm=a + collimator.entry_wall_mm,
+        outer_radius_exit_mm=r_end,
         lens_half_angle_deg=collimator.lens_half_angle_deg,
         max_angle_deg=math.degrees(theta_max),
-        min_tir_margin_deg=float(margin.min()),
-        min_wall_mm=min_wall,
+        min_tir_margin_deg=float(margin_deg.min()),
+        min_wall_mm=min(collimator.entry_wall_mm, exit_z - vertex, collimator.flange_mm),
     )
 
 

@@ -39,7 +39,7 @@ import math
 import numpy as np
 from scipy.integrate import solve_ivp
 
-from cm2optics.collimator import CollimatorProfile
+from cm2optics.collimator import CollimatorProfile, enclosed_profile
 from cm2optics.design import Collimator, DesignError
 from cm2optics.materials import refractive_index
 
@@ -156,45 +156,6 @@ def shaped_profile(collimator: Collimator, wavelength_nm: float, samples: int = 
     if np.any(s <= 0) or np.any(np.diff(tir_z) <= 0):
         raise DesignError("collimator", "TIR wall", "the TIR wall folds back on itself for this spread")
 
-    exit_z = g + collimator.height_mm
-    flange_bottom = exit_z - collimator.flange_mm
-    r_end, z_end = float(tir_r[-1]), float(tir_z[-1])
-    if z_end > flange_bottom + 1e-9:
-        raise DesignError(
-            "collimator.height_mm",
-            collimator.height_mm,
-            f"the TIR surface ends at z = {z_end:.3f} mm, above the flange's underside: needs ≥ {z_end + collimator.flange_mm - g:.3f} mm",
-        )
-    if r_end >= collimator.footprint_mm / 2 or np.max(tir_r) >= collimator.footprint_mm / 2:
-        raise DesignError(
-            "collimator.footprint_mm", collimator.footprint_mm, f"the TIR surface reaches r = {np.max(tir_r):.3f} mm"
-        )
-    if np.max(tir_r) > r_end + 1e-9:
-        raise DesignError(
-            "collimator", "TIR wall", "the TIR wall bulges beyond its end radius (not printable as revolved)"
-        )
-    return CollimatorProfile(
-        refractive_index=n,
-        wavelength_nm=float(wavelength_nm),
-        entry_z_mm=g,
-        exit_z_mm=exit_z,
-        flange_bottom_z_mm=flange_bottom,
-        footprint_mm=collimator.footprint_mm,
-        cavity_radius_mm=a,
-        lens_r_mm=lens_r,
-        lens_z_mm=lens_z,
-        cavity_r_mm=np.array([a, a]),
-        cavity_z_mm=np.array([lens_edge, g]),
-        tir_r_mm=tir_r,
-        tir_z_mm=tir_z,
-        tir_angle_deg=np.degrees(tir_theta),
-        exit_r_mm=np.array([0.0, collimator.footprint_mm / 2]),
-        lens_vertex_z_mm=vertex,
-        lens_edge_z_mm=lens_edge,
-        outer_radius_entry_mm=a + collimator.entry_wall_mm,
-        outer_radius_exit_mm=r_end,
-        lens_half_angle_deg=collimator.lens_half_angle_deg,
-        max_angle_deg=math.degrees(theta_max),
-        min_tir_margin_deg=float(margin.min()),
-        min_wall_mm=min(collimator.entry_wall_mm, exit_z - vertex, collimator.flange_mm),
+    return enclosed_profile(
+        collimator, n, wavelength_nm, (lens_r, lens_z), (tir_r, tir_z), tir_theta, theta_max, margin
     )
