@@ -12,7 +12,7 @@ from typer.testing import CliRunner
 from cm2optics.collimator import collimator_profile
 from cm2optics.collimator_shaping import shaped_profile
 from cm2optics.design import DesignError, load_design
-from cm2optics.illumination.optimize import etendue_bound
+from cm2optics.illumination.bounds import etendue_bound, uniform_beam_bound
 from cm2optics.illumination.revolve import revolve_profile
 
 
@@ -90,6 +90,28 @@ def test_etendue_bound(v2):
     assert bound["geometric_bound"] == 1.0
     assert 0.7 < bound["spectral_ceiling"] < 0.9
     assert bound["delivered_bound"] == pytest.approx(bound["spectral_ceiling"])
+
+
+def test_uniform_beam_bound_is_reached_by_a_unit_looking_straight_down(v2):
+    """One unit on the axis, facing the sample: a radial profile lights the circle exactly
+    evenly (up to the bins straddling its rim), so nearly all of its output can be delivered."""
+    overhead = v2.with_changes({"led_array.tilt_deg": 0.0, "led_array.offset_mm": 1e-3, "led_array.count": 1})
+    bound = uniform_beam_bound(overhead, max_cv=0.05)
+    assert bound["output_bound"] > 0.95
+    assert bound["cv"] <= 0.05
+
+
+def test_uniform_beam_bound_of_the_oblique_array(v2):
+    """Four units at 45°: a symmetric beam overfills the far side of the circle, so uniformity
+    costs output; the bound rises as the constraint loosens and never exceeds the spectral ceiling."""
+    strict, loose = uniform_beam_bound(v2, max_cv=0.10), uniform_beam_bound(v2, max_cv=0.5)
+    assert 0.6 < strict["output_bound"] < 0.85
+    assert strict["cv"] <= 0.10
+    assert loose["output_bound"] >= strict["output_bound"]
+    assert strict["delivered_bound"] == pytest.approx(strict["output_bound"] * strict["spectral_ceiling"], abs=1e-3)
+    assert sum(strict["profile"]) == pytest.approx(1.0, abs=1e-4)
+    with pytest.raises(ValueError, match="max_cv"):
+        uniform_beam_bound(v2, max_cv=0.0)
 
 
 def test_optimize_writes_a_printable_design(tmp_path):

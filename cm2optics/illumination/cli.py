@@ -287,7 +287,8 @@ def optimize(
     (`collimator.stl`, checked for printing: watertight, walls ≥ mechanics.min_wall_mm) and every
     candidate (`sweep.json`). Swept: lens angle, cavity radius, LED gap, entry wall, height,
     and the two sub-beams' output spreads and mapping exponents (collimator.lens_spread_deg …;
-    zero spreads = the collimating cm2-v2 architecture). Reports the étendue bound beside it.
+    zero spreads = the collimating cm2-v2 architecture). Reports beside it the étendue bound and the most
+    any rotationally symmetric beam can deliver at that CV (`uniform_beam_bound`).
     """
     from cm2optics.design import load_preset
     from cm2optics.illumination.optimize import optimize_collimator
@@ -320,5 +321,6 @@ def optimize(
     out.print(
         f"best: delivered {summary['delivered_fraction']:.1%} ± {summary['delivered_fraction_stderr']:.2%}, "
         f"CV {summary['uniformity_cv']:.1%} ({verdict} CV ≤ {max_cv:.0%}); étendue/filter bound "
-        f"{summary['etendue_bound']['delivered_bound']:.1%}; printable: {summary['printability']['printable']}"
+        f"{summary['etendue_bound']['delivered_bound']:.1%}; best symmetric beam at this CV "
+        f"{summary['uniform_beam_bound']['delivered_bound']:.1%}; printable: {summary['printability']['printable']}"
     )

@@ -29,7 +29,7 @@ design; ``collimator.stl`` is the CAD part built from it (:mod:`cm2optics.cad.co
 checked for printing with :func:`cm2optics.cad.mesh_checks.check_mesh` (watertight,
 consistently wound, thinnest wall ≥ ``mechanics.min_wall_mm``).
 
-The étendue bound (:func:`etendue_bound`) is reported beside the result.
+The étendue bound and the uniform-beam bound (:mod:`.bounds`) are reported beside the result.
 """
 
 from __future__ import annotations
@@ -42,8 +42,9 @@ from typing import Any
 import numpy as np
 
 from cm2optics.design import DesignError, SystemDesign, design_from_dict
+from cm2optics.illumination.bounds import etendue_bound, uniform_beam_bound
 
-__all__ = ["PARAMETERS", "etendue_bound", "evaluate_candidate", "optimize_collimator"]
+__all__ = ["PARAMETERS", "evaluate_candidate", "optimize_collimator"]
 
 #: The swept parameters and their ranges (mm, degrees).
 PARAMETERS: dict[str, tuple[float, float]] = {
@@ -140,67 +141,12 @@ def evaluate_candidate(
     return entry
 
 
-def etendue_bound(
-    design: SystemDesign, transmission: Any = None, samples: int = 400_000, seed: int = 0
-) -> dict[str, float]:
-    """Upper bounds on the delivered fraction set by étendue and by the filter.
-
-    G_source = π A_emitter (a Lambertian emitter into air, mm² sr). G_target = ∬ cosθ₁ cosθ₂ /
-    r² dA₁ dA₂ between one unit's clear aperture (the housing lip's opening) and the field
-    circle on the sample plane (Monte Carlo, ``samples`` pairs), mm² sr. No passive optic
-    puts more than G_target / G_source of a Lambertian emitter's power through the aperture
-    onto the circle. The filter passes at most ``spectral_ceiling`` = ∫ S(λ) T(λ, 0) dλ / ∫ S
-    of the LED's spectrum (every ray at normal incidence, S the LED spectrum), so
-    ``delivered_bound`` = min(1, G_target / G_source) × spectral_ceiling.
-    """
-    from cm2optics.illumination.excitation import design_filter_transmission
-    from cm2optics.illumination.source import led_source
-    from cm2optics.layout import led_poses
-
-    rng = np.random.default_rng(seed)
-    pose = led_poses(design)[0].matrix
-    f, c = design.excitation_filter, design.mechanics.clearance_mm
-    ax, ay = f.width_mm / 2 - design.led_housing.lip_mm, f.length_mm / 2 - design.led_housing.lip_mm
-    aperture_z = design.led_array.excitation_gap_mm + f.thickness_mm + c + design.mechanics.min_wall_mm
-    local = np.column_stack(
-        [rng.uniform(-ax, ax, samples), rng.uniform(-ay, ay, samples), np.full(samples, aperture_z)]
-    )
-    p1 = local @ pose[:3, :3].T + pose[:3, 3]
-    n1 = pose[:3, 2]
-    radius = design.volume.field_mm / 2
-    rho, phi = radius * np.sqrt(rng.random(samples)), 2 * np.pi * rng.random(samples)
-    p2 = np.column_stack([rho * np.cos(phi), rho * np.sin(phi), np.full(samples, design.object_plane_z_mm)])
-    n2 = np.array([0.0, 0.0, -1.0])
-    v = p2 - p1
-    r2 = np.einsum("ij,ij->i", v, v)
-    cos1 = np.clip(v @ n1, 0, None) / np.sqrt(r2)
-    cos2 = np.clip(-(v @ n2), 0, None) / np.sqrt(r2)
-    area1, area2 = 4 * ax * ay, math.pi * radius**2
-    kernel = cos1 * cos2 / r2
-    g_target = float(area1 * area2 * kernel.mean())
-    g_target_se = float(area1 * area2 * kernel.std() / math.sqrt(samples))
-    g_source = math.pi * design.led.emitter_mm**2
-    source = led_source(design)
-    transmission = transmission or design_filter_transmission(design)
-    wl = source.spectrum.wavelength_nm
-    power = source.spectrum.relative_power
-    spectral = float(np.trapezoid(power * transmission(wl, np.zeros_like(wl)), wl) / np.trapezoid(power, wl))
-    geometric = min(1.0, g_target / g_source)
-    return {
-        "g_source_mm2sr": round(g_source, 4),
-        "g_target_mm2sr": round(g_target, 4),
-        "g_target_stderr_mm2sr": round(g_target_se, 4),
-        "geometric_bound": round(geometric, 4),
-        "spectral_ceiling": round(spectral, 4),
-        "delivered_bound": round(geometric * spectral, 4),
-    }
-
-
 def _sobol(box: dict[str, tuple[float, float]], count: int, seed: int) -> list[dict[str, float]]:
     from scipy.stats import qmc
 
     names = list(box)
-    unit = qmc.Sobol(len(names), scramble=True, seed=seed).random(count)
+    # A power-of-two draw keeps Sobol's balance; the first ``count`` points are used.
+    unit = qmc.Sobol(len(names), scramble=True, seed=seed).random_base2(max(0, math.ceil(math.log2(count))))[:count]
     lows = np.array([box[n][0] for n in names])
     highs = np.array([box[n][1] for n in names])
     return [dict(zip(names, lows + u * (highs - lows), strict=True)) for u in unit]
@@ -296,6 +242,7 @@ def optimize_collimator(
     stl_path, checks = _export(improved, out_dir)
     improved.save(out_dir / "design.yaml")
     bound = etendue_bound(improved)
+    uniform = uniform_beam_bound(improved, max_cv)
     result = {
         "design": str(out_dir / "design.yaml"),
         "stl": str(stl_path),
@@ -311,6 +258,7 @@ def optimize_collimator(
         "rays": 4 * rays,
         "printability": checks,
         "etendue_bound": bound,
+        "uniform_beam_bound": {k: v for k, v in uniform.items() if k not in ("profile", "ring_edges_deg")},
         "candidates_traced": len(candidates),
         "candidates_feasible": len(feasible),
         "candidates_meeting_uniformity": len(meeting),

@@ -30,9 +30,9 @@ def add_illumination_section(
     Returns the figures as JSON-able data (``illumination/illumination.json`` too).
     """
     from cm2optics.illumination.backend import mitsuba, variant
+    from cm2optics.illumination.bounds import etendue_bound, uniform_beam_bound
     from cm2optics.illumination.compare import compare_designs, configurations, setup_from_options, stl_collimator
     from cm2optics.illumination.metrics import DEFINITIONS, write_maps_png
-    from cm2optics.illumination.optimize import etendue_bound
     from cm2optics.io import write_json_atomic
 
     folder = Path(out_dir) / "illumination"
@@ -87,12 +87,20 @@ def add_illumination_section(
         f"onto the circle; the filter passes at most {100 * bound['spectral_ceiling']:.1f} % of the LED's spectrum (all rays at "
         f"normal incidence): the delivered fraction cannot exceed {100 * bound['delivered_bound']:.1f} %."
     )
+    uniform = uniform_beam_bound(design)
+    report.paragraph(
+        f"Uniformity: the best rotationally symmetric beam aimed along each unit's axis (any revolved collimator, ideal "
+        f"point-like source) puts at most {100 * uniform['output_bound']:.1f} % of a unit's output inside the circle with "
+        f"the array's CV ≤ {100 * uniform['max_cv']:.0f} %, i.e. ≤ {100 * uniform['delivered_bound']:.1f} % of the LED's power "
+        "after the filter (linear programme over the beam's radial profile, `cm2optics.illumination.bounds`)."
+    )
     report.paragraph("Definitions: " + " ".join(f"{k}: {v}." for k, v in DEFINITIONS.items()))
     data = {
         "rays": rays,
         "backend": variant().variant,
         "designs": {r.label: r.summary() for r in results},
         "etendue_bound": bound,
+        "uniform_beam_bound": uniform,
     }
     for r in results:
         name = "".join(c if c.isalnum() else "_" for c in r.label).strip("_").lower()
