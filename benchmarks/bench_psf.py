@@ -9,7 +9,10 @@ for a point source in the nominal focal plane, after a warm-up call:
 * Optiland: ``FFTPSF(num_rays=128, grid_size=256)`` (its optic built once, outside the timing).
 
 Printed: the best of ``--repeat`` timings of each, their ratio (Optiland / ours: > 1 means we are
-faster), and for scale the time of one full source position (nine lenslets, all bands). Needs
+faster), and for scale the time of one full source position (nine lenslets, all bands), then the
+per-position times of a scan: ``--positions`` positions drawn (seeded) from the 9×9×11 calibration
+grid at 2× binning, wall and CPU seconds (CPU: this process, all threads; what the scan's workers
+spend, less sensitive to other jobs on the machine), with the 1-minute load average. Needs
 ``pip install optiland`` (a test dependency).
 
     .venv/bin/python benchmarks/bench_psf.py
@@ -44,6 +47,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeat", type=int, default=20, help="timed runs of each (the best is kept)")
     parser.add_argument("--field-mm", type=float, default=0.0, help="source height in the focal plane, mm")
+    parser.add_argument("--positions", type=int, default=40, help="scan positions timed at 2x binning (0: none)")
     args = parser.parse_args()
 
     from optiland.psf import FFTPSF
@@ -80,6 +84,36 @@ def main() -> None:
     print(f"ratio Optiland / ours: {t_theirs / t_ours:.2f}  (> 1: ours is faster)")
     print(
         f"one full source position (9 lenslets x {len(model.bands)} bands, 2.4-um pixels): {t_position * 1000:.0f} ms"
+    )
+    if args.positions > 0:
+        scan_positions(design, args.positions)
+
+
+def scan_positions(design, count: int, seed: int = 0) -> None:
+    """Wall and CPU time per position of the 9×9×11 calibration grid at 2× binning."""
+    import numpy as np
+
+    from cm2optics.emission.scan import ScanSettings, calibration_grid_mm
+
+    settings = ScanSettings(psf=PSFSettings(binning=2))
+    model = EmissionModel(design, settings.source, settings=settings.psf)
+    grid = calibration_grid_mm(design, (9, 9, 11))
+    model.foci(grid[0])  # warm-up
+    pick = np.random.default_rng(seed).choice(len(grid), min(count, len(grid)), replace=False)
+    wall, cpu = [], []
+    for i in pick:
+        w0, c0 = time.perf_counter(), time.process_time()
+        model.foci(grid[i])
+        wall.append(time.perf_counter() - w0)
+        cpu.append(time.process_time() - c0)
+    wall, cpu = np.array(wall), np.array(cpu)
+    print(
+        f"scan positions (9x9x11 grid, 2x binning, {len(pick)} drawn): wall mean {wall.mean():.3f} s, median "
+        f"{np.median(wall):.3f} s, max {wall.max():.3f} s; CPU mean {cpu.mean():.3f} s, max {cpu.max():.3f} s; "
+        f"load {os.getloadavg()[0]:.1f}"
+    )
+    print(
+        f"  -> a 891-position scan on {os.cpu_count()} workers: about {891 * cpu.mean() / (os.cpu_count() or 1):.0f} s of computing on free cores"
     )
 
 

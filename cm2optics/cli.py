@@ -95,7 +95,7 @@ def main(
 
 
 def design_summary(design: SystemDesign) -> dict[str, float | str]:
-    """Derived first-order numbers of a design (mm, µm as named)."""
+    """Derived optics of a design (mm, µm as named): at the focal plane (best focus) and paraxial."""
     return {
         "name": design.name,
         "lenslet_focal_length_mm": round(design.lenslet_focal_length_mm, 4),
@@ -103,6 +103,9 @@ def design_summary(design: SystemDesign) -> dict[str, float | str]:
         "object_pixel_um": round(design.object_pixel_um, 4),
         "working_distance_mm": round(design.working_distance_mm, 4),
         "object_plane_z_mm": round(design.object_plane_z_mm, 4),
+        "paraxial_magnification": round(design.paraxial_magnification, 4),
+        "paraxial_object_plane_z_mm": round(design.paraxial_object_plane_z_mm, 4),
+        "focus_shift_mm": round(design.focus_shift_mm, 4),
         "object_na": round(design.object_na, 4),
         "mla_flat_z_mm": design.imaging.mla_to_sensor_mm,
         "mla_vertex_z_mm": round(design.mla_vertex_z_mm, 4),
@@ -121,7 +124,8 @@ def design_show(
 ) -> None:
     """Show a design's derived optics: focal length, magnification, object pixel, heights.
 
-    Heights are in the device frame: z = 0 on the sensor surface, +z towards the sample.
+    The focal plane (object_plane_z_mm) is the plane of best focus (least RMS wavefront error);
+    its paraxial conjugate lies focus_shift_mm farther out. Heights are in the device frame: z = 0 on the sensor surface, +z towards the sample.
     """
     design = load_preset(preset)
     if yaml_out:
@@ -131,7 +135,10 @@ def design_show(
     if as_json:
         print(json.dumps(summary, indent=2))
         return
-    table = Table(title=f"{design.name}: first-order optics (paraxial, {design.imaging.design_wavelength_nm:g} nm)")
+    table = Table(
+        title=f"{design.name}: optics at {design.imaging.design_wavelength_nm:g} nm "
+        "(focal plane = best focus; paraxial values marked)"
+    )
     table.add_column("quantity")
     table.add_column("value", justify="right")
     for key, value in summary.items():

@@ -601,6 +601,30 @@ class SystemDesign:
                 film_top < lay.mla_to_sensor_mm,
                 f"the film (top at {film_top:.3f} mm) must lie below the MLA's flat face at {lay.mla_to_sensor_mm} mm",
             )
+        if self.absorption_filter is not None:
+            film = self.absorption_filter
+            spacer = min(film.width_mm - mla.width_mm, film.length_mm - mla.length_mm) - 2 * self.mla_housing.lip_mm
+            _check(
+                "absorption_filter.width_mm",
+                film.width_mm,
+                spacer >= 2 * mech.clearance_mm - 1e-9,
+                "the MLA goes into the housing from the sensor side, through the film's ledge: the film must "
+                f"exceed the MLA by 2 × (mla_housing.lip_mm + mechanics.clearance_mm) = "
+                f"{2 * (self.mla_housing.lip_mm + mech.clearance_mm):.2f} mm along x and y",
+            )
+        # The corner tabs that hold the MLA from above reach lip_mm over its corners: they span the
+        # mask gap plus the depth below the vertices of the lens under the tab's inner edge, at its
+        # point nearest a (full) corner lenslet's vertex, or of the land outside the aperture.
+        offset = max(mla.pitch_mm / 2 - self.mla_housing.lip_mm / 2, 0.0)
+        depth = float(mla.sag_mm(offset * math.sqrt(2.0))) if offset <= mla.aperture_mm / 2 else mla.corner_sag_mm
+        tab = lay.mask_gap_mm + depth
+        _check(
+            "imaging.mask_gap_mm",
+            lay.mask_gap_mm,
+            tab >= mech.min_wall_mm - 1e-9,
+            f"the corner tabs that hold the MLA from above would be {tab:.3f} mm thick "
+            f"(< mechanics.min_wall_mm = {mech.min_wall_mm}: not printable); widen the mask gap",
+        )
         _check(
             "aperture_mask.opening_mm",
             self.aperture_mask.opening_mm,
@@ -662,7 +686,7 @@ class SystemDesign:
         _check(
             "imaging.mla_to_sensor_mm",
             lay.mla_to_sensor_mm,
-            self.magnification > 0.05,
+            self.paraxial_magnification > 0.05,
             "the sensor must lie beyond the lenslets' back focus (no real image of the sample otherwise)",
         )
 
@@ -681,10 +705,32 @@ class SystemDesign:
         """Lower face of the emission filter."""
         return self.mask_z_mm + self.aperture_mask.thickness_mm + self.imaging.filter_gap_mm
 
-    @property
+    @cached_property
     def object_plane_z_mm(self) -> float:
-        """Height of the nominal focal plane (paraxial conjugate of the sensor), mm."""
-        return self.emission_filter_z_mm + self.emission_filter.thickness_mm + self._object_distance_mm
+        """Height of the nominal focal plane, mm: the plane of best focus.
+
+        The height of an on-axis point source whose image through a lenslet has the least RMS
+        wavefront error on the sensor (over the lenslet's square aperture, at the design
+        wavelength; exact ray trace, :func:`cm2optics.focus.best_focus_height_mm`). The lenslets' spherical
+        aberration puts it :attr:`focus_shift_mm` nearer the device than the paraxial conjugate
+        of the sensor (:attr:`paraxial_object_plane_z_mm`). It is where the PSFs are sharpest,
+        where a lab centres its calibration scan and puts its sample: object-space ``z`` of scans
+        and volumes (DESIGN.md) is measured from this plane.
+        """
+        from cm2optics.focus import best_focus_height_mm
+
+        return best_focus_height_mm(self)
+
+    @property
+    def paraxial_object_plane_z_mm(self) -> float:
+        """Height of the paraxial conjugate of the sensor (first-order optics), mm."""
+        return float(self.emission_filter_z_mm + self.emission_filter.thickness_mm + self._object_distance_mm)
+
+    @property
+    def focus_shift_mm(self) -> float:
+        """Paraxial conjugate minus the plane of best focus, mm (> 0: best focus nearer the device,
+        as for under-corrected spherical aberration)."""
+        return self.paraxial_object_plane_z_mm - self.object_plane_z_mm
 
     @property
     def working_distance_mm(self) -> float:
@@ -733,9 +779,18 @@ class SystemDesign:
         return paraxial.conjugate_object_distance_mm(self._lenslet_system)
 
     @property
+    def paraxial_magnification(self) -> float:
+        """Lateral magnification |m| of each lenslet between the sensor and its paraxial conjugate."""
+        return float(abs(paraxial.lateral_magnification(self._lenslet_system, self._object_distance_mm)))
+
+    @property
     def magnification(self) -> float:
-        """Lateral magnification |m| of each lenslet at the nominal focal plane."""
-        return abs(paraxial.lateral_magnification(self._lenslet_system, self._object_distance_mm))
+        """Lateral magnification |m| of each lenslet at the nominal focal plane (best focus): where
+        the chief ray (through the lenslet's vertex, its stop) from a source in that plane lands
+        on the sensor, per mm of source height. What a calibration scan measures there."""
+        from cm2optics.focus import chief_ray_magnification
+
+        return chief_ray_magnification(self, self.object_plane_z_mm)
 
     @property
     def object_pixel_um(self) -> float:

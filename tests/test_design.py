@@ -17,6 +17,7 @@ from cm2optics.design import (
     load_design,
     load_preset,
 )
+from cm2optics.focus import chief_ray_magnification, on_axis_wavefront_rms_waves
 from cm2optics.materials import Material, refractive_index
 
 
@@ -53,8 +54,9 @@ def test_v2_matches_the_paper(v2: SystemDesign):
     assert (v2.volume.field_mm, v2.volume.depth_mm) == (8.0, 0.8)
 
 
-def _thick_lens_conjugates(design: SystemDesign) -> tuple[float, float]:
-    """Object-plane height and |m| from the thick plano-convex lens formulas, independently."""
+def _thick_lens(design: SystemDesign) -> tuple[float, float, float]:
+    """Image distance s_i from the rear principal plane, the reduced object-side offset of the
+    filter plate, and the focal length, from the thick plano-convex lens formulas (independently)."""
     lam = design.imaging.design_wavelength_nm
     n = refractive_index(design.mla.material, lam)
     f = design.mla.radius_mm / (n - 1)
@@ -63,25 +65,57 @@ def _thick_lens_conjugates(design: SystemDesign) -> tuple[float, float]:
     if film is not None:
         back -= film.thickness_mm * (1 - 1 / refractive_index(film.material, lam))
     s_i = back + design.mla.thickness_mm / n  # from the rear principal plane (t/n inside the flat face)
-    s_o = 1 / (1 / f - 1 / s_i)  # from the front principal plane, at the vertex
     filt = design.emission_filter
-    height = design.mla_vertex_z_mm + s_o + filt.thickness_mm * (1 - 1 / refractive_index(filt.material, lam))
-    return height, s_i / s_o
+    plate = filt.thickness_mm * (1 - 1 / refractive_index(filt.material, lam))
+    return s_i, plate, f
 
 
 @pytest.mark.parametrize("preset", ["cm2-v1", "cm2-v2"])
 def test_paraxial_conjugates_match_thick_lens_formulas(preset):
     design = load_preset(preset)
-    height, m = _thick_lens_conjugates(design)
-    assert design.object_plane_z_mm == pytest.approx(height, rel=1e-9)
-    assert design.magnification == pytest.approx(m, rel=1e-9)
+    s_i, plate, f = _thick_lens(design)
+    s_o = 1 / (1 / f - 1 / s_i)  # from the front principal plane, at the vertex
+    assert design.paraxial_object_plane_z_mm == pytest.approx(design.mla_vertex_z_mm + s_o + plate, rel=1e-9)
+    assert design.paraxial_magnification == pytest.approx(s_i / s_o, rel=1e-9)
+
+
+@pytest.mark.parametrize("preset", ["cm2-v1", "cm2-v2"])
+def test_chief_ray_magnification_matches_the_thick_lens(preset):
+    # The stop (the lenslet's vertex) is the front principal plane, so the exit pupil is the
+    # rear one: a source plane at reduced distance s_o images its chief rays with |m| = s_i / s_o.
+    design = load_preset(preset)
+    s_i, plate, _ = _thick_lens(design)
+    for height in (design.object_plane_z_mm, design.paraxial_object_plane_z_mm, design.object_plane_z_mm + 0.5):
+        s_o = height - design.mla_vertex_z_mm - plate
+        assert chief_ray_magnification(design, height) == pytest.approx(s_i / s_o, rel=1e-9)
+    assert design.magnification == pytest.approx(s_i / (design.working_distance_mm - plate), rel=1e-9)
+    assert chief_ray_magnification(design, design.paraxial_object_plane_z_mm) == pytest.approx(
+        design.paraxial_magnification, rel=1e-9
+    )
+
+
+@pytest.mark.parametrize("preset", ["cm2-v1", "cm2-v2"])
+def test_focal_plane_is_the_best_focus(preset):
+    # Under-corrected spherical aberration (≈ 1 wave RMS at the paraxial image of a 1-mm
+    # plano-convex lenslet at NA' ≈ 0.1): the least RMS wavefront error lies ≈ 0.8 mm nearer the
+    # device, where it is about a third of the paraxial plane's.
+    design = load_preset(preset)
+    best = design.object_plane_z_mm
+    assert 0.6 < design.focus_shift_mm < 1.0
+    rms = {dz: on_axis_wavefront_rms_waves(design, best + dz) for dz in (-0.05, 0.0, 0.05)}
+    assert rms[0.0] < rms[-0.05] and rms[0.0] < rms[0.05]
+    paraxial = on_axis_wavefront_rms_waves(design, design.paraxial_object_plane_z_mm)
+    assert 0.8 < paraxial < 1.3 and rms[0.0] < paraxial / 2.5
+    assert design.object_z_to_height_mm(0.0) == best
 
 
 def test_authors_zemax_spacing_puts_the_focal_plane_where_their_file_does(v2: SystemDesign):
-    # Their Zemax file: MLA flat face 2.94 mm from the sensor, object plane ≈ 16.2 mm, m ≈ 0.53–0.57.
-    authors = v2.with_changes({"imaging.mla_to_sensor_mm": 2.94})
-    assert authors.object_plane_z_mm == pytest.approx(16.2, abs=0.1)
-    assert 0.52 <= authors.magnification <= 0.57
+    # Their Zemax file: MLA flat face 2.94 mm from the sensor, object plane ≈ 16.2 mm, m ≈ 0.53–0.57
+    # (paraxial); the preset uses their spacing, whose best focus has the paper's object pixel.
+    assert v2.imaging.mla_to_sensor_mm == 2.94
+    assert v2.paraxial_object_plane_z_mm == pytest.approx(16.2, abs=0.1)
+    assert 0.52 <= v2.paraxial_magnification <= 0.57
+    assert v2.object_pixel_um == pytest.approx(4.15, rel=0.01)
 
 
 def test_yaml_round_trip_and_hash(v2: SystemDesign, tmp_path):

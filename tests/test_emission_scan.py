@@ -13,7 +13,7 @@ from typer.testing import CliRunner
 import cm2optics.emission.scan as scan_module
 from cm2optics.emission.cli import psf_app
 from cm2optics.emission.image import Emitters, read_emitters_csv
-from cm2optics.emission.psf import EmissionModel, PSFSettings
+from cm2optics.emission.psf import EmissionModel, PSFSettings, SensorGrid
 from cm2optics.emission.scan import ScanSettings, calibration_grid_mm, parse_grid, read_positions_csv, simulate_scan
 from cm2optics.emission.source import fluorescent_bead
 from cm2optics.psf_scan import read_scan
@@ -30,6 +30,22 @@ def test_the_papers_calibration_grid(v2):
     assert np.allclose(zs, np.arange(-0.5, 0.51, 0.1))
     assert np.allclose(positions[:9, 0], xs)  # x runs fastest, z slowest
     assert np.allclose(calibration_grid_mm(v2, (1, 1, 1)), 0.0)
+    # z = 0 is the best focus; the paraxial conjugate lies beyond the calibrated depth.
+    assert v2.object_z_to_height_mm(0.0) == v2.object_plane_z_mm
+    assert -v2.focus_shift_mm < zs.min()
+
+
+def test_scan_metadata_names_the_focal_plane(v2):
+    meta = scan_module._extra_meta(v2, FAST, SensorGrid.of(v2, 8))
+    assert "best focus" in meta["position_units"] and "best focus" in meta["focal_plane"]
+    assert meta["focal_plane_height_mm"] == pytest.approx(v2.object_plane_z_mm, abs=1e-6)
+    assert meta["paraxial_focal_plane_z_mm"] == pytest.approx(-v2.focus_shift_mm, abs=1e-6)
+    assert meta["object_pixel_um"] == pytest.approx(4.15, rel=0.01)
+
+
+def test_bad_chunk_sizes_are_refused(v2, tmp_path):
+    with pytest.raises(ValueError, match="chunk_size"):
+        simulate_scan(v2, np.zeros((1, 3)), tmp_path / "s", FAST, chunk_size=0, progress=False)
 
 
 @pytest.mark.parametrize("text", ["9x9", "0x9x11", "axbxc", "9x9x200"])
@@ -72,11 +88,11 @@ def test_scan_writes_the_measured_format_and_resumes(v2, tmp_path, monkeypatch):
     original = scan_module._simulate_chunk
     calls = []
 
-    def failing(design, settings, key, items):
+    def failing(design, settings, key, items, threads=None):
         calls.extend(i for i, _ in items)
         if any(i == 4 for i, _ in items):
             raise RuntimeError("power cut")
-        return original(design, settings, key, items)
+        return original(design, settings, key, items, threads)
 
     monkeypatch.setattr(scan_module, "_simulate_chunk", failing)
     with pytest.raises(RuntimeError, match="power cut"):

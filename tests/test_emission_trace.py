@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -89,9 +90,32 @@ def test_drjit_and_numpy_engines_agree_and_the_housing_scene_matches_the_bores(o
     assert (a.passed != b.passed).mean() < 1e-3
 
 
+@pytest.mark.skipif(not is_jit(), reason="needs a JIT variant of Mitsuba (LLVM ≥ 17 or CUDA)")
+def test_the_octagonal_tabs_block_the_same_rays_in_both_engines(optics):
+    # Rays aimed at the outer corner of a corner lenslet, where the MLA's corner tabs sit: some
+    # are shaded by a tab's 45° face, the rest pass, and both engines agree ray by ray.
+    tabs = next(b for b in optics.bores if b.name == "MLA tabs")
+    assert math.isfinite(tabs.diagonal_mm) and len(tabs.polygon_mm()) == 8
+    rng = np.random.default_rng(2)
+    n = 20000
+    source = np.array([1.5, 1.5, optics.object_plane_z_mm])  # beyond the corner: its beam leaves the flat face
+    corner = next(c for c in optics.lenslets if c.vertex_x_mm > 0 and c.vertex_y_mm > 0)
+    reach = source[2] - optics.vertex_z_mm
+    u = (rng.uniform(corner.x1_mm - 0.4, corner.x1_mm, n) - source[0]) / reach
+    v = (rng.uniform(corner.y1_mm - 0.4, corner.y1_mm, n) - source[1]) / reach
+    batch = _batch(optics, source, u, v, lenslet=corner.index)
+    a = trace_rays(optics, batch, "numpy")
+    b = trace_rays(optics, batch, "drjit")
+    others = [bo for bo in optics.bores if bo.name != "MLA tabs"]
+    c = trace_rays(dataclasses.replace(optics, bores=tuple(others)), batch, "numpy")
+    shaded = (c.passed & ~a.passed).mean()
+    assert 0.2 < shaded < 0.45  # a tab covers a triangle of legs lip_mm (0.3 mm): 28 % of this 0.4-mm square
+    assert (a.passed != b.passed).mean() < 2e-3
+
+
 def test_bores_follow_the_printed_housing(v2):
     pytest.importorskip("cadquery")
-    from cm2optics.cad.mla_housing import bore_steps
+    from cm2optics.cad.mla_housing import bore_steps, mla_tab_geometry
 
     ours = {b.name: b for b in housing_bores(v2)}
     for step in bore_steps(v2):
@@ -101,6 +125,10 @@ def test_bores_follow_the_printed_housing(v2):
         assert bore.half_x_mm == pytest.approx(step.width_mm / 2)
         assert bore.half_y_mm == pytest.approx(step.length_mm / 2)
         assert (bore.z0_mm, bore.z1_mm) == pytest.approx((step.z0_mm, step.z1_mm))
+        assert not math.isfinite(bore.diagonal_mm)
+    tabs, cad = ours["MLA tabs"], mla_tab_geometry(v2)
+    assert (tabs.z0_mm, tabs.z1_mm, tabs.diagonal_mm) == pytest.approx((cad.z0_mm, cad.z1_mm, cad.diagonal_mm))
+    assert (tabs.half_x_mm, tabs.half_y_mm) == pytest.approx((ours["MLA seat"].half_x_mm, ours["MLA seat"].half_y_mm))
 
 
 def test_lenslets_match_the_cad_cells(v2):

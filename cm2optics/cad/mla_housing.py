@@ -10,14 +10,23 @@ a square tower rises from it around a stepped bore:
 =====================  ===========================================================
 sensor cone            lofted from the sensor's active area to the film seat
 film seat              absorption film, pressed in from the sensor side (glue dots)
-spacer                 between film and MLA; corner pads carry the MLA's corners
-MLA seat               the diced MLA, dropped in from the top, flat face down
-mask seat              the aperture mask on the ledge above the MLA seat
+spacer                 between film and MLA, ``lip_mm`` narrower than the film (its ledge):
+                       wide enough for every ray of the 8-mm field (the film is sized for it)
+MLA seat               the diced MLA, pushed in from the sensor side, flat face down, up against
+                       four corner tabs that reach ``lip_mm`` over its corners; a drop of black
+                       glue in the seat's corners holds it (and darkens its diced sides)
+mask seat              the aperture mask on the ledge above the MLA seat (and the tabs)
 filter seat            the emission filter, flush with the top of the tower
 =====================  ===========================================================
 
 Every seat is its part plus ``mechanics.clearance_mm`` per side; the tower's top outer
 edges are chamfered at 45° to clear the tilted LED units.
+
+Nothing lies under the array's flat face: there each lenslet's beam converges to a fraction of
+its aperture and a support would shade much of it (corner pads under the array cost the corner
+lenslets 30 % of their light on axis and whole foci off axis), whereas above the lenses each beam
+fills its aperture and the tabs shade ≤ 5 % of a corner lenslet (:mod:`cm2optics.emission.optics`
+models the same bore).
 """
 
 from __future__ import annotations
@@ -25,10 +34,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import cadquery as cq
+import numpy as np
 
 from cm2optics.cad.fits import Fit
 from cm2optics.design import SystemDesign
 from cm2optics.layout import mla_housing_envelope
+from cm2optics.lenslets import lens_cells
 
 
 @dataclass(frozen=True)
@@ -55,8 +66,8 @@ def bore_steps(design: SystemDesign) -> list[BoreStep]:
         )
         spacer_w, spacer_l = film.width_mm - 2 * lip, film.length_mm - 2 * lip
         spacer_z0 = z_film + film.thickness_mm
-    else:
-        spacer_w, spacer_l = mla.width_mm + 2 * c - 2 * lip, mla.length_mm + 2 * c - 2 * lip
+    else:  # no film: a short spacer, wider than the MLA, then the sensor cone
+        spacer_w, spacer_l = mla.width_mm + 2 * c + 4 * lip, mla.length_mm + 2 * c + 4 * lip
         spacer_z0 = z_mla - 2 * lip
     steps += [
         BoreStep("spacer", spacer_w, spacer_l, spacer_z0, z_mla),
@@ -79,27 +90,66 @@ def _box(width: float, length: float, z0: float, z1: float) -> cq.Workplane:
     return cq.Workplane().box(width, length, z1 - z0, centered=(True, True, False)).translate((0, 0, z0))
 
 
-def _mla_pads(design: SystemDesign, spacer: BoreStep) -> cq.Workplane | None:
-    """Triangular corner pads under the MLA when the spacer opening is wider than its ledge."""
-    lip = design.mla_housing.lip_mm
-    half_w, half_l = spacer.width_mm / 2, spacer.length_mm / 2
-    leg = 2 * (max(half_w - design.mla.width_mm / 2, half_l - design.mla.length_mm / 2) + lip)
-    if half_w <= design.mla.width_mm / 2 - lip and half_l <= design.mla.length_mm / 2 - lip:
-        return None
-    pads = None
+@dataclass(frozen=True)
+class TabGeometry:
+    """The corner tabs that hold the MLA from above: triangles in the MLA seat's corners, from the
+    highest point of the lens surface under them (where the array touches them) at ``z0_mm`` up
+    to the mask at ``z1_mm``, bounded by the 45° line |x| + |y| = ``diagonal_mm`` (mm)."""
+
+    z0_mm: float
+    z1_mm: float
+    diagonal_mm: float
+
+
+def mla_tab_geometry(design: SystemDesign) -> TabGeometry:
+    """The MLA's corner tabs: each reaches ``lip_mm`` over the array's corner along both edges
+    (the array may sit ``clearance_mm`` off centre and still meet all four)."""
+    mla, lip = design.mla, design.mla_housing.lip_mm
+    return TabGeometry(lens_top_under_tabs_mm(design, lip), design.mask_z_mm, (mla.width_mm + mla.length_mm) / 2 - lip)
+
+
+def lens_top_under_tabs_mm(design: SystemDesign, lip_mm: float, samples: int = 101) -> float:
+    """Highest point (device frame, mm) of the array's lens surface under the corner tabs: the
+    triangles of legs ``lip_mm`` (mm) in the corners of the array's footprint, sampled on a
+    ``samples``-point grid per leg, plus 1 µm (the sampling's bound), so that the tabs touch the
+    lenses without cutting into them."""
+    mla = design.mla
+    cells = lens_cells(mla)
+    half_w, half_l, half = mla.width_mm / 2, mla.length_mm / 2, mla.aperture_mm / 2
+    t = np.linspace(0.0, 1.0, samples)
+    a, b = (g.ravel() for g in np.meshgrid(t, t))
+    a, b = a[a + b <= 1.0], b[a + b <= 1.0]
+    land = mla.thickness_mm - mla.corner_sag_mm
+    top = land
     for sx in (-1, 1):
         for sy in (-1, 1):
-            corner = (sx * half_w, sy * half_l)
-            tri = [corner, (corner[0] - sx * leg, corner[1]), (corner[0], corner[1] - sy * leg)]
-            pad = (
+            x, y = sx * (half_w - lip_mm * a), sy * (half_l - lip_mm * b)
+            for cell in cells:
+                inside = (x >= cell.x_min) & (x <= cell.x_max) & (y >= cell.y_min) & (y <= cell.y_max)
+                lens = inside & (np.abs(x - cell.vertex_x) <= half) & (np.abs(y - cell.vertex_y) <= half)
+                if lens.any():
+                    rho2 = (x[lens] - cell.vertex_x) ** 2 + (y[lens] - cell.vertex_y) ** 2
+                    top = max(top, float(np.max(mla.thickness_mm - mla.sag_mm(np.sqrt(rho2)))))
+    return design.imaging.mla_to_sensor_mm + top + 1e-3
+
+
+def _mla_tabs(design: SystemDesign, seat: BoreStep) -> cq.Workplane:
+    """The corner tabs (:func:`mla_tab_geometry`) as triangular prisms in the corners of ``seat``."""
+    geometry = mla_tab_geometry(design)
+    hx, hy, d = seat.width_mm / 2, seat.length_mm / 2, geometry.diagonal_mm
+    tabs = None
+    for sx in (-1, 1):
+        for sy in (-1, 1):
+            tri = [(sx * hx, sy * hy), (sx * (d - hy), sy * hy), (sx * hx, sy * (d - hx))]
+            tab = (
                 cq.Workplane()
                 .polyline(tri)
                 .close()
-                .extrude(spacer.z1_mm - spacer.z0_mm)
-                .translate((0, 0, spacer.z0_mm))
+                .extrude(geometry.z1_mm - geometry.z0_mm)
+                .translate((0, 0, geometry.z0_mm))
             )
-            pads = pad if pads is None else pads.union(pad)
-    return pads
+            tabs = tab if tabs is None else tabs.union(tab)
+    return tabs
 
 
 def build_mla_housing(design: SystemDesign) -> cq.Workplane:
@@ -153,10 +203,7 @@ def build_mla_housing(design: SystemDesign) -> cq.Workplane:
     body = body.cut(cone)
     for step in steps:
         body = body.cut(_box(step.width_mm, step.length_mm, step.z0_mm, step.z1_mm))
-    spacer = next(s for s in steps if s.name == "spacer")
-    pads = _mla_pads(design, spacer)
-    if pads is not None:
-        body = body.union(pads)
+    body = body.union(_mla_tabs(design, next(s for s in steps if s.name == "MLA seat")))
     solids = body.solids().vals()
     if len(solids) != 1 or not solids[0].isValid():
         raise RuntimeError(f"the MLA housing did not build as one valid solid ({len(solids)} solids)")

@@ -5,9 +5,11 @@
   depth (the axial shear of the light field), simulated and from first-order optics;
 * :func:`on_axis_focus`: FWHM and Strehl ratio of the central lenslet's PSF against the same
   aperture without aberrations (the diffraction limit for its NA);
-* :func:`best_focus_z_mm`: the source depth where the central lenslet's wavefront error is least;
+* :func:`best_focus_z_mm`: the source depth where the central lenslet's wavefront error is least
+  (≈ 0: the design's focal plane is its plane of best focus);
 * :func:`foci_on_sensor` and :func:`vignetting_radius_mm`: which foci reach the sensor, and how far
-  off axis a source can go before side foci fall off the sensor or are vignetted;
+  off axis a source can go before side foci fall off the sensor or are vignetted (by the array's
+  diced sides; the housing shades a few per cent at most);
 * :func:`relative_energy`: energy of one focus relative to the on-axis source.
 
 Lengths in mm unless named (``_um``); positions in object space (see :mod:`.psf`).
@@ -227,7 +229,8 @@ def vignetting_radius_mm(
     """Largest off-axis distance (mm, along ``direction_deg`` from +x; searched from ``start_mm`` in
     ``step_mm`` steps up to ``max_mm``) up to which all visible lenslets still put a focus on the
     sensor (each with ≥ ``fraction`` of its on-axis energy): beyond it, side foci fall off the
-    sensor or are vignetted by the mask and housing."""
+    sensor or are vignetted (for cm2-v2 by the array's diced sides: rays of the outer lenslets that
+    would leave through them are lost)."""
     full = len(model._visible)
     reference = {f.lenslet: f.energy for f in model.foci((0.0, 0.0, z_mm))}
     c, s = math.cos(math.radians(direction_deg)), math.sin(math.radians(direction_deg))

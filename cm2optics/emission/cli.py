@@ -63,8 +63,8 @@ def simulate(
         typer.Option(
             "--grid",
             help="NXxNYxNZ positions over the design's calibration volume (the square around the imaged field, "
-            "1.25 × its depth: 9x9x11 gives the paper's −4…4 mm in 1-mm and −0.5…0.5 mm in 100-µm steps). "
-            "Default when --positions is not given: 9x9x11.",
+            "1.25 × its depth, centred on the plane of best focus: 9x9x11 gives the paper's −4…4 mm in 1-mm and "
+            "−0.5…0.5 mm in 100-µm steps). Default when --positions is not given: 9x9x11.",
         ),
     ] = None,
     positions: Annotated[
@@ -100,7 +100,7 @@ def simulate(
     montage.png and manifest.json in --out.
 
     Positions are in object space: x_mm, y_mm from the central lenslet's axis, z_mm from the nominal
-    focal plane, +z towards the device. Images: the sensor frame (column along +x, row along +y),
+    focal plane (the plane of best focus), +z towards the device. Images: the sensor frame (column along +x, row along +y),
     binned; scan.yaml's pixel_um is the saved pitch. The positions run on Dask with a progress bar;
     an interrupted run resumes where it stopped when run again with the same options.
     """

@@ -15,9 +15,18 @@ returns their Strehl ratios and normalised cross-correlation (centroids aligned)
 
 The two differ by the pupil aberration: this lenslet has ≈ 5 waves of spherical aberration at
 its corners, so its rays' directions are not a linear function of where they cross the lens and
-the energy per solid angle is not uniform. At the nominal focal plane (Strehl ≈ 0.04) that moves
-the Strehl ratio by ≈ 15 %; ``"classical"`` reproduces Optiland's within a few per cent, which
-checks the trace and the wavefront themselves against the independent code.
+the energy per solid angle is not uniform. ``"classical"`` reproduces Optiland's Strehl ratio to
+≈ 0.1 %, which checks the trace and the wavefront themselves against the independent code.
+
+The scale of Optiland's image grid: its FFT maps the pupil linearly onto directions, so its
+samples are λ / (grid · ΔL) apart with ΔL the direction step between pupil samples of that linear
+map. Optiland *reports* the pitch from a working F-number of four marginal rays at the edge of
+the circumscribed entrance pupil (outside the square lenslet), whose spherical aberration bends
+them ≈ 10 % more than the linear map does; at the broad paraxial focus that hardly shows, at the
+compact best focus it costs ≈ 0.1 in cross-correlation. The comparison therefore puts Optiland's
+image on the pitch of the linear map (the affine fit of the rays' directions over the pupil that
+``"classical"`` also uses), per axis; :attr:`Comparison.pitch_um` is that pitch and
+:attr:`Comparison.optiland_pitch_um` Optiland's own figure.
 
 Optiland is a test dependency (``pip install optiland``): it is imported only when these
 functions run. Our side uses an isotropic source and no filters, as the Optiland model has
@@ -111,7 +120,8 @@ class Comparison:
 
     strehl_ours, strehl_optiland: peak over the aberration-free peak (same aperture).
     ncc: normalised cross-correlation of the two PSFs on Optiland's grid (centroids aligned).
-    pitch_um: the grid's pitch on the sensor, µm. field_mm, wavelength_nm: the case.
+    pitch_um: the grid's pitch on the sensor along x, µm (the linear pupil map's; see the module
+    docstring). field_mm, wavelength_nm: the case. optiland_pitch_um: the pitch Optiland reports, µm.
     """
 
     strehl_ours: float
@@ -120,6 +130,7 @@ class Comparison:
     pitch_um: float
     field_mm: float
     wavelength_nm: float
+    optiland_pitch_um: float = float("nan")
 
     @property
     def strehl_ratio(self) -> float:
@@ -154,27 +165,37 @@ def compare_with_optiland(
     else:
         pupil = classical_pupil(model, (0.0, field_mm, z_mm), k, band)
     lam = pupil.wavelength_mm * 1e6
-    reference, pitch = optiland_psf(optiland_lenslet(design, lam, field_mm, z_mm), field_mm, lam, num_rays, grid_size)
+    reference, reported = optiland_psf(
+        optiland_lenslet(design, lam, field_mm, z_mm), field_mm, lam, num_rays, grid_size
+    )
+    # Optiland's grid on the scale of its linear pupil map: the direction step between its
+    # num_rays samples across the circumscribed pupil, from the affine fit over our rays.
+    linear = pupil if method == "classical" else classical_pupil(model, (0.0, field_mm, z_mm), k, band)
+    step_l = abs(linear.l_axis[-1] - linear.l_axis[0]) / (num_rays - 1)  # the lenslet inverts: L falls along x
+    step_m = abs(linear.m_axis[-1] - linear.m_axis[0]) / (num_rays - 1)
+    pitch_x, pitch_y = linear.wavelength_mm / (grid_size * step_l), linear.wavelength_mm / (grid_size * step_m)
     # Our PSF on Optiland's grid, its origin moved until the intensity centroids coincide.
     n = reference.shape[0]
-    axis = (np.arange(n) - n // 2) * pitch
+    index = np.arange(n) - n // 2
     ox, oy = pupil.x_ref_mm, pupil.y_ref_mm
     target = _centroid(reference)
     for _ in range(3):
-        ours = pupil.intensity(ox + axis, oy + axis)
+        ours = pupil.intensity(ox + index * pitch_x, oy + index * pitch_y)
         here = _centroid(ours)
-        ox += (here[1] - target[1]) * pitch
-        oy += (here[0] - target[0]) * pitch
-    ours = pupil.intensity(ox + axis, oy + axis)
+        ox += (here[1] - target[1]) * pitch_x
+        oy += (here[0] - target[0]) * pitch_y
+    ours = pupil.intensity(ox + index * pitch_x, oy + index * pitch_y)
     a = ours - ours.mean()
     b = reference - reference.mean()
     ncc = float((a * b).sum() / math.sqrt((a * a).sum() * (b * b).sum()))
     peak_r, peak_c = np.unravel_index(np.argmax(ours), ours.shape)
-    fine = (np.arange(81) - 40) * (pitch / 8)
-    px, py = ox + axis[peak_c], oy + axis[peak_r]
+    fine = (np.arange(81) - 40) * (min(pitch_x, pitch_y) / 8)
+    px, py = ox + index[peak_c] * pitch_x, oy + index[peak_r] * pitch_y
     peak = pupil.intensity(px + fine, py + fine).max()
     ideal = pupil.intensity(pupil.x_ref_mm + fine, pupil.y_ref_mm + fine, aberration_free=True).max()
-    return Comparison(float(peak / ideal), float(reference.max() / 100.0), ncc, pitch * 1000.0, field_mm, lam)
+    return Comparison(
+        float(peak / ideal), float(reference.max() / 100.0), ncc, pitch_x * 1000.0, field_mm, lam, reported * 1000.0
+    )
 
 
 def classical_pupil(

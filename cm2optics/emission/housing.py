@@ -1,10 +1,10 @@
 """The opaque parts around the emission path as a Mitsuba scene: mask and housing bore.
 
-Each opening of :attr:`EmissionOptics.bores` (the mask's opening, the seats and the spacer of
-the printed MLA housing) becomes a square tube of four wall quads plus a floor and a ceiling:
-square annuli from the opening out to :data:`OUTER_MM`, so that a ray outside the opening at
-either end is stopped too. The tracer (:mod:`.trace`) casts each straight air segment of a ray
-against this scene with ``scene.ray_test`` (Embree on the CPU, OptiX on CUDA): any hit blocks
+Each opening of :attr:`EmissionOptics.bores` (the mask's opening, the seats, the spacer and the
+MLA's corner tabs of the printed MLA housing) becomes a tube of wall quads, one per edge of its
+rectangle or octagon, plus a floor and a ceiling: annuli from the opening out to
+:data:`OUTER_MM`, so that a ray outside the opening at either end is stopped too. The tracer
+(:mod:`.trace`) casts each straight air segment of a ray against this scene with ``scene.ray_test`` (Embree on the CPU, OptiX on CUDA): any hit blocks
 the ray. Mitsuba finds surfaces; the optics (refraction, optical path) stays in float64 in
 the tracer. The scene is built in memory from a dict, one ``mi.Mesh`` per opening.
 """
@@ -25,28 +25,19 @@ __all__ = ["OUTER_MM", "bore_mesh", "housing_scene", "segment_test"]
 OUTER_MM = 20.0
 
 
-def _rect(x0: float, x1: float, y0: float, y1: float, z: float) -> np.ndarray:
-    return np.array([[x0, y0, z], [x1, y0, z], [x1, y1, z], [x0, y1, z]])
-
-
 def bore_mesh(bore: Bore, outer_mm: float = OUTER_MM) -> tuple[np.ndarray, np.ndarray]:
-    """Vertices (mm) and triangles of one opening: four walls, and an annulus at each end."""
-    hx, hy, z0, z1 = bore.half_x_mm, bore.half_y_mm, bore.z0_mm, bore.z1_mm
-    o = outer_mm
-    quads = [
-        np.array([[-hx, -hy, z0], [hx, -hy, z0], [hx, -hy, z1], [-hx, -hy, z1]]),
-        np.array([[-hx, hy, z0], [hx, hy, z0], [hx, hy, z1], [-hx, hy, z1]]),
-        np.array([[hx, -hy, z0], [hx, hy, z0], [hx, hy, z1], [hx, -hy, z1]]),
-        np.array([[-hx, -hy, z0], [-hx, hy, z0], [-hx, hy, z1], [-hx, -hy, z1]]),
-    ]
-    for z in (z0, z1):
-        quads += [
-            _rect(-o, o, hy, o, z),
-            _rect(-o, o, -o, -hy, z),
-            _rect(hx, o, -hy, hy, z),
-            _rect(-o, -hx, -hy, hy, z),
-        ]
-    vertices = np.concatenate(quads).reshape(-1, 3)
+    """Vertices (mm) and triangles of one opening: a wall quad per edge of its polygon
+    (:meth:`Bore.polygon_mm`), and at each end an annulus from the polygon out to the same polygon
+    scaled to reach at least ``outer_mm`` (mm) from the axis."""
+    poly = bore.polygon_mm()
+    scale = outer_mm / min(bore.half_x_mm, bore.half_y_mm)
+    quads = []
+    for i in range(len(poly)):
+        a, b = poly[i], poly[(i + 1) % len(poly)]
+        quads.append([[*a, bore.z0_mm], [*b, bore.z0_mm], [*b, bore.z1_mm], [*a, bore.z1_mm]])
+        for z in (bore.z0_mm, bore.z1_mm):
+            quads.append([[*a, z], [*b, z], [*(scale * b), z], [*(scale * a), z]])
+    vertices = np.asarray(quads, dtype=float).reshape(-1, 3)
     base = 4 * np.arange(len(quads))[:, None]
     faces = np.concatenate([base + [0, 1, 2], base + [0, 2, 3]])
     return vertices, faces

@@ -10,15 +10,33 @@ mask                  opaque plate with a square opening (``aperture_mask``)
 MLA seat              the bore around the array, from its flat face up to the mask
 lenslets              spheres of ``mla.radius_mm``, one per cell, clipped to the cell and to
                       the lenslet's square aperture (exact surfaces, not the CAD mesh)
-MLA flat face         plane at ``imaging.mla_to_sensor_mm``; rays must leave through it
-spacer                the bore between the MLA and the film (narrower than the film)
+MLA tabs              small corner tabs over the array's corners that hold it from above
+MLA flat face         plane at ``imaging.mla_to_sensor_mm``; rays must leave through it (a ray
+                      that meets the diced side of the array is lost: in the device it is
+                      reflected or scattered there, away from its focus)
+spacer                the bore between the MLA and the film (the film's ledge: ``lip_mm``
+                      narrower than the film)
 absorption film       gelatin plate (``absorption_filter``), optional; its seat is opaque
 sensor                the active area at z = 0
 ====================  ======================================================================
 
-The bore follows the printed MLA housing step by step (:func:`cm2optics.cad.mla_housing.bore_steps`,
-rebuilt here without CadQuery and checked against it by the tests). Below the film the housing
-opens as a cone onto the active area, which cannot clip a ray that lands on the sensor.
+The bore follows the printed MLA housing step by step (:func:`cm2optics.cad.mla_housing.bore_steps`
+and its corner tabs, rebuilt here without CadQuery and checked against it by the tests). Below
+the film the housing opens as a cone onto the active area, which cannot clip a ray that lands
+on the sensor.
+
+Nothing of the housing lies under the array's flat face, where each lenslet's converging beam
+is narrow and a small support would shade much of it (corner pads there would cost the corner
+lenslets 30 % on axis and whole foci off axis); the tabs above shade ≤ 5 % of a corner lenslet,
+where its beam fills its aperture. The spacer is as wide as the rays need (the preset's film is
+sized for it: rays reach ≤ 1.92 mm from the axis at the film for any source of the 8-mm field),
+so the side foci fade out because of the array itself and the sensor: rays of the outer lenslets
+that would leave through the array's diced sides, and foci that land beyond the sensor's edge.
+For cm2-v2 every focus keeps ≥ 10 % of its on-axis energy up to ≈ 1.5 mm off axis along y (the
+sensor's short side) and ≈ 1.9 mm along x: the "> 1.7 mm" of the paper. The price of the tabs is
+the mask's height: it sits ``imaging.mask_gap_mm`` = 0.35 mm over the lenses (a printable tab is
+0.4 mm thick), where its edge shades the outer lenslets of off-axis sources a little more than a
+mask right on the lenses would: ≈ 5 % less light at the edge of the 8-mm field, 10 % at its corner.
 """
 
 from __future__ import annotations
@@ -26,12 +44,14 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
+
 from cm2optics.design import Side, SystemDesign
 from cm2optics.layout import mla_housing_envelope
 from cm2optics.lenslets import lens_cells
 from cm2optics.materials import Material
 
-__all__ = ["Bore", "EmissionOptics", "Lenslet", "Plate", "emission_optics", "lenslets"]
+__all__ = ["Bore", "EmissionOptics", "Lenslet", "Plate", "emission_optics", "housing_bores", "lenslets", "mla_tabs"]
 
 
 @dataclass(frozen=True)
@@ -52,14 +72,34 @@ class Plate:
 
 @dataclass(frozen=True)
 class Bore:
-    """A centred rectangular opening a ray must stay inside from ``z0_mm`` to ``z1_mm`` (mm);
-    half-widths along x and y (mm). Walls of the housing, or the opening of the mask."""
+    """A centred opening a ray must stay inside from ``z0_mm`` to ``z1_mm`` (mm): the rectangle
+    |x| ≤ ``half_x_mm``, |y| ≤ ``half_y_mm`` (mm), its corners cut by 45° faces at
+    |x| + |y| = ``diagonal_mm`` (mm; ``inf``: none) — a convex octagon. Walls of the housing,
+    the opening of the mask, the MLA seat with its corner tabs."""
 
     name: str
     half_x_mm: float
     half_y_mm: float
     z0_mm: float
     z1_mm: float
+    diagonal_mm: float = math.inf
+
+    def __post_init__(self) -> None:
+        if not (self.half_x_mm > 0 and self.half_y_mm > 0 and self.z1_mm > self.z0_mm):
+            raise ValueError(f"bore {self.name!r}: needs half-widths > 0 and z1_mm > z0_mm (got {self})")
+        if not self.diagonal_mm > max(self.half_x_mm, self.half_y_mm):
+            raise ValueError(
+                f"bore {self.name!r}: diagonal_mm = {self.diagonal_mm} must exceed both half-widths "
+                f"({self.half_x_mm}, {self.half_y_mm}) mm, or the corner faces would close the opening"
+            )
+
+    def polygon_mm(self) -> np.ndarray:
+        """Vertices (k, 2) of the opening, counter-clockwise, mm (4 for a rectangle, 8 for an octagon)."""
+        hx, hy, d = self.half_x_mm, self.half_y_mm, self.diagonal_mm
+        if d >= hx + hy:
+            return np.array([[hx, -hy], [hx, hy], [-hx, hy], [-hx, -hy]])
+        a, b = d - hx, d - hy  # where the corner faces meet the sides
+        return np.array([[hx, -a], [hx, a], [b, hy], [-b, hy], [-hx, a], [-hx, -a], [-b, -hy], [b, -hy]])
 
 
 @dataclass(frozen=True)
@@ -92,7 +132,8 @@ class EmissionOptics:
     radius_mm: lenslet radius; lens_material: array material; flat_z_mm: the MLA's flat face;
     mla_x_mm, mla_y_mm: (low, high) extent of the diced array, partial cells included. film: the absorption film or None.
     bores: openings of the housing and mask. sensor_half_x_mm, sensor_half_y_mm: half the
-    active area. object_plane_z_mm: the nominal focal plane.
+    active area. object_plane_z_mm: the nominal focal plane (the plane of best focus,
+    :attr:`SystemDesign.object_plane_z_mm`), where object-space z = 0.
     """
 
     filter: Plate
@@ -145,9 +186,52 @@ def lenslets(design: SystemDesign) -> tuple[Lenslet, ...]:
     )
 
 
+def mla_tabs(design: SystemDesign) -> Bore:
+    """The corner tabs that hold the MLA from above, as an opening: the MLA seat with its corners
+    cut at |x| + |y| = (MLA width + length)/2 − ``lip_mm`` (each tab reaches ``lip_mm`` over the
+    array's corner along both edges), from the array's corners (the lowest points of its lens
+    surface under them, where the array touches them) up to the mask (as
+    :func:`cm2optics.cad.mla_housing.mla_tab_geometry`)."""
+    c, lip, mla = design.mechanics.clearance_mm, design.mla_housing.lip_mm, design.mla
+    return Bore(
+        "MLA tabs",
+        mla.width_mm / 2 + c,
+        mla.length_mm / 2 + c,
+        lens_top_under_tabs_mm(design, lip),
+        design.mask_z_mm,
+        (mla.width_mm + mla.length_mm) / 2 - lip,
+    )
+
+
+def lens_top_under_tabs_mm(design: SystemDesign, lip_mm: float, samples: int = 101) -> float:
+    """Highest point (device frame, mm) of the array's lens surface under the corner tabs: the
+    triangles of legs ``lip_mm`` (mm) in the corners of the array's footprint, sampled on a
+    ``samples``-point grid per leg, plus 1 µm (the sampling's bound), so that the tabs touch the
+    lenses without cutting into them."""
+    mla = design.mla
+    cells = lens_cells(mla)
+    half_w, half_l, half = mla.width_mm / 2, mla.length_mm / 2, mla.aperture_mm / 2
+    t = np.linspace(0.0, 1.0, samples)
+    a, b = (g.ravel() for g in np.meshgrid(t, t))
+    a, b = a[a + b <= 1.0], b[a + b <= 1.0]
+    land = mla.thickness_mm - mla.corner_sag_mm
+    top = land
+    for sx in (-1, 1):
+        for sy in (-1, 1):
+            x, y = sx * (half_w - lip_mm * a), sy * (half_l - lip_mm * b)
+            for cell in cells:
+                inside = (x >= cell.x_min) & (x <= cell.x_max) & (y >= cell.y_min) & (y <= cell.y_max)
+                lens = inside & (np.abs(x - cell.vertex_x) <= half) & (np.abs(y - cell.vertex_y) <= half)
+                if lens.any():
+                    rho2 = (x[lens] - cell.vertex_x) ** 2 + (y[lens] - cell.vertex_y) ** 2
+                    top = max(top, float(np.max(mla.thickness_mm - mla.sag_mm(np.sqrt(rho2)))))
+    return design.imaging.mla_to_sensor_mm + top + 1e-3
+
+
 def housing_bores(design: SystemDesign) -> tuple[Bore, ...]:
-    """The bore of the printed MLA housing, bottom to top (as ``bore_steps`` of the CAD), plus the
-    mask's opening. The film seat is left out: the film's own clear aperture stands for it."""
+    """The bore of the printed MLA housing, bottom to top (as ``bore_steps`` of the CAD, with its
+    corner tabs), plus the mask's opening. The film seat is left out: the film's own clear
+    aperture stands for it."""
     c, lip = design.mechanics.clearance_mm, design.mla_housing.lip_mm
     mla, film, mask, filt = design.mla, design.absorption_filter, design.aperture_mask, design.emission_filter
     z_mla = design.imaging.mla_to_sensor_mm
@@ -160,11 +244,12 @@ def housing_bores(design: SystemDesign) -> tuple[Bore, ...]:
             z_mla,
         )
     else:
-        spacer = Bore("spacer", mla.width_mm / 2 + c - lip, mla.length_mm / 2 + c - lip, z_mla - 2 * lip, z_mla)
+        spacer = Bore("spacer", mla.width_mm / 2 + c + 2 * lip, mla.length_mm / 2 + c + 2 * lip, z_mla - 2 * lip, z_mla)
     top = mla_housing_envelope(design).tower_top_z_mm
     return (
         spacer,
         Bore("MLA seat", mla.width_mm / 2 + c, mla.length_mm / 2 + c, z_mla, design.mask_z_mm),
+        mla_tabs(design),
         Bore(
             "mask opening",
             mask.opening_mm / 2,

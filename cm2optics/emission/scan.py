@@ -117,6 +117,13 @@ def calibration_grid_mm(
     9 positions: −4 … 4 mm in 1-mm steps for cm2-v2), axially :data:`CALIBRATION_DEPTH_FACTOR`
     × ``volume.depth_mm`` centred on the nominal focal plane (11 positions: −0.5 … 0.5 mm in
     100-µm steps), as the paper's 9×9×11 scan. ``field_mm``/``depth_mm`` (mm) override the extents.
+
+    The nominal focal plane (z = 0) is the design's plane of best focus
+    (:attr:`~cm2optics.design.SystemDesign.object_plane_z_mm`), where the PSFs are sharpest and
+    where a lab centres its calibration, not the paraxial conjugate of the sensor, which lies
+    :attr:`~cm2optics.design.SystemDesign.focus_shift_mm` (≈ 0.85 mm for cm2-v2) farther from the
+    device, outside the scanned depth: so the scan spans the usable depth symmetrically, and its
+    centre has the design's magnification (0.58) and object pixel (4.1 µm).
     """
     nx, ny, nz = counts
     field_mm = design.volume.field_mm if field_mm is None else field_mm
@@ -199,9 +206,17 @@ def simulate_position(model: EmissionModel, position_mm: np.ndarray) -> list[Foc
 
 
 def _simulate_chunk(
-    design: SystemDesign, settings: ScanSettings, key: str, items: list[tuple[int, np.ndarray]]
+    design: SystemDesign,
+    settings: ScanSettings,
+    key: str,
+    items: list[tuple[int, np.ndarray]],
+    threads: int | None = None,
 ) -> list[tuple[int, dict[str, np.ndarray], float]]:
-    """Worker task: (index, packed foci, seconds) of each position of a chunk."""
+    """Worker task: (index, packed foci, seconds) of each position of a chunk. ``threads``: Dr.Jit
+    threads of this worker (1 on a local cluster of one worker per core, so that the workers'
+    kernels do not fight over the cores; None: Dr.Jit's default)."""
+    if threads is not None:
+        _set_jit_threads(threads)
     model = _model(design, settings, key)
     out = []
     for index, position in items:
@@ -209,6 +224,17 @@ def _simulate_chunk(
         foci = simulate_position(model, np.asarray(position, dtype=float))
         out.append((index, _pack(foci), time.perf_counter() - start))
     return out
+
+
+def _set_jit_threads(threads: int) -> None:
+    """Dr.Jit's thread pool size in this process (a no-op without a JIT variant)."""
+    from cm2optics.emission.backend import is_jit
+
+    if is_jit():
+        import drjit as dr
+
+        if dr.thread_count() != threads:
+            dr.set_thread_count(threads)
 
 
 def _pack(foci: list[Focus]) -> dict[str, np.ndarray]:
@@ -291,15 +317,22 @@ def _client(dask_address: str | None, workers: int | None, processes: bool):
 
     if dask_address:
         return Client(dask_address), None
+    import dask
+
     n = workers or max(1, os.cpu_count() or 1)
     env = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
-    cluster = LocalCluster(
-        n_workers=n,
-        threads_per_worker=1,
-        processes=processes,
-        dashboard_address=":0",
-        **({"env": env} if processes else {}),
-    )
+    # Dask's nanny starts workers with MALLOC_TRIM_THRESHOLD_=65536, which also freezes glibc's
+    # mmap threshold: every large temporary array is then mapped and unmapped afresh, and each
+    # position spent ≈ 0.25 s of system time on page faults (more than its computing). Workers
+    # here keep glibc's adaptive defaults (a user's own setting of the variable still wins).
+    with dask.config.set({"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None}):
+        cluster = LocalCluster(
+            n_workers=n,
+            threads_per_worker=1,
+            processes=processes,
+            dashboard_address=":0",
+            **({"env": env} if processes else {}),
+        )
     return Client(cluster), cluster
 
 
@@ -312,7 +345,7 @@ def simulate_scan(
     dask_address: str | None = None,
     workers: int | None = None,
     processes: bool = True,
-    chunk_size: int = 2,
+    chunk_size: int = 4,
     progress: bool = True,
     on_position: Callable[[int, int], None] | None = None,
 ) -> dict[str, Any]:
@@ -321,9 +354,12 @@ def simulate_scan(
 
     dask_address: an existing Dask scheduler (``tcp://host:8786``); None starts a local cluster
     of ``workers`` (default: one per core) processes (``processes=False``: threads of this
-    process). chunk_size: positions per Dask task. on_position(done, total): called as
-    positions finish (after the progress bar).
+    process), each running Dr.Jit on one thread. chunk_size: positions per Dask task (1–64; a
+    finished task's positions are saved at once, so an interrupted run loses at most one chunk
+    per worker). on_position(done, total): called as positions finish (after the progress bar).
     """
+    if not (isinstance(chunk_size, int) and 1 <= chunk_size <= 64):
+        raise ValueError(f"chunk_size = {chunk_size!r}: must be an integer within 1–64")
     settings = settings or ScanSettings()
     positions = check_positions(positions_mm)
     out_dir = Path(out_dir)
@@ -363,9 +399,16 @@ def simulate_scan(
 
             design_future = client.scatter(design, broadcast=True)
             chunks = [todo[i : i + chunk_size] for i in range(0, len(todo), chunk_size)]
+            threads = 1 if dask_address is None and processes else None
             futures = [
                 client.submit(
-                    _simulate_chunk, design_future, settings, key, [(i, positions[i]) for i in chunk], pure=False
+                    _simulate_chunk,
+                    design_future,
+                    settings,
+                    key,
+                    [(i, positions[i]) for i in chunk],
+                    threads,
+                    pure=False,
                 )
                 for chunk in chunks
             ]
@@ -473,7 +516,13 @@ def _extra_meta(design: SystemDesign, settings: ScanSettings, grid: SensorGrid) 
             "central lenslet at the frame centre (col (W-1)/2, row (H-1)/2 in sensor pixels); each lenslet "
             "inverts, so a source moved +x moves every focus towards -x"
         ),
-        "position_units": "mm, object space: x, y from the central lenslet's axis, z from the nominal focal plane, +z towards the device",
+        "position_units": (
+            "mm, object space: x, y from the central lenslet's axis, z from the nominal focal plane (the plane "
+            "of best focus), +z towards the device"
+        ),
+        "focal_plane": "best focus: least RMS wavefront error of the on-axis image (design wavelength)",
+        "focal_plane_height_mm": round(float(design.object_plane_z_mm), 6),
+        "paraxial_focal_plane_z_mm": round(float(-design.focus_shift_mm), 6),
         "magnification": round(design.magnification, 6),
         "object_pixel_um": round(design.object_pixel_um, 6),
         "source_diameter_um": source.diameter_um,

@@ -62,39 +62,33 @@ class SpectralBands:
     def __len__(self) -> int:
         return len(self.wavelength_nm)
 
+    def _bilinear(self, flat: np.ndarray, base: np.ndarray | int, aoi_filter_rad, aoi_film_rad) -> np.ndarray:
+        """Bilinear read of the tables flattened to ``flat`` at angle rows starting at ``base``."""
+        step = self.angles_rad[1] - self.angles_rad[0]
+        count = len(self.angles_rad)
+        f = np.clip(np.asarray(aoi_filter_rad, dtype=float) / step, 0, count - 1 - 1e-9)
+        m = np.clip(np.asarray(aoi_film_rad, dtype=float) / step, 0, count - 1 - 1e-9)
+        i, j = f.astype(np.intp), m.astype(np.intp)
+        a, b = f - i, m - j
+        k = base + i * count + j
+        return (1 - a) * ((1 - b) * flat[k] + b * flat[k + 1]) + a * (
+            (1 - b) * flat[k + count] + b * flat[k + count + 1]
+        )
+
     def weight(self, band: np.ndarray | int, aoi_filter_rad: np.ndarray, aoi_film_rad: np.ndarray) -> np.ndarray:
         """Detection weight (photons detected per photon emitted along the ray, this band only) of
         rays in ``band`` (index, scalar or per ray) at the given angles (rad); bilinear in angle."""
-        step = self.angles_rad[1] - self.angles_rad[0]
-        last = len(self.angles_rad) - 1
-        f = np.clip(np.asarray(aoi_filter_rad, dtype=float) / step, 0, last - 1e-9)
-        m = np.clip(np.asarray(aoi_film_rad, dtype=float) / step, 0, last - 1e-9)
-        i, j = f.astype(int), m.astype(int)
-        a, b = f - i, m - j
-        t = self.table[band] if np.ndim(band) == 0 else None
-        if t is not None:
-            return (1 - a) * ((1 - b) * t[i, j] + b * t[i, j + 1]) + a * ((1 - b) * t[i + 1, j] + b * t[i + 1, j + 1])
-        k = np.asarray(band)
-        tab = self.table
-        return (1 - a) * ((1 - b) * tab[k, i, j] + b * tab[k, i, j + 1]) + a * (
-            (1 - b) * tab[k, i + 1, j] + b * tab[k, i + 1, j + 1]
-        )
+        count = len(self.angles_rad)
+        base = np.asarray(band, dtype=np.intp) * (count * count)
+        return self._bilinear(self.table.reshape(-1), base, aoi_filter_rad, aoi_film_rad)
 
     def total_weight(self, aoi_filter_rad: np.ndarray, aoi_film_rad: np.ndarray) -> np.ndarray:
         """Detection weight summed over all bands, per ray (bilinear in angle)."""
         total = self.__dict__.get("_total")
         if total is None:
-            total = self.table.sum(axis=0)
+            total = self.table.sum(axis=0).reshape(-1)
             object.__setattr__(self, "_total", total)
-        step = self.angles_rad[1] - self.angles_rad[0]
-        last = len(self.angles_rad) - 1
-        f = np.clip(np.asarray(aoi_filter_rad, dtype=float) / step, 0, last - 1e-9)
-        m = np.clip(np.asarray(aoi_film_rad, dtype=float) / step, 0, last - 1e-9)
-        i, j = f.astype(int), m.astype(int)
-        a, b = f - i, m - j
-        return (1 - a) * ((1 - b) * total[i, j] + b * total[i, j + 1]) + a * (
-            (1 - b) * total[i + 1, j] + b * total[i + 1, j + 1]
-        )
+        return self._bilinear(total, 0, aoi_filter_rad, aoi_film_rad)
 
     def detected_fraction(self, aoi_filter_rad: float = 0.0, aoi_film_rad: float = 0.0) -> float:
         """Photons detected per photon emitted, summed over bands, at the given angles (rad)."""

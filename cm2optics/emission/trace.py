@@ -7,12 +7,12 @@ the same surfaces, in closed form (plane and sphere intersections, Snell's law i
 
 1. the emission filter, a plane-parallel plate of the design's glass (rays outside the plate
    hit the housing);
-2. air, through the mask's opening and the housing bore;
+2. air, through the mask's opening and the housing bore (the MLA's corner tabs included);
 3. the lenslet's sphere (centre ``radius_mm`` below the vertex); the hit must lie inside the
    lenslet's clear aperture (its cell, as on a 100 %-fill-factor array);
 4. the PMMA down to the flat face, which the ray must leave through (not the array's sides;
    no total internal reflection);
-5. air, through the spacer between the array and the film;
+5. air, through the spacer between the array and the film (nothing else lies under the array);
 6. the film (gelatin plate), if the design has one; rays outside it meet its opaque seat;
 7. air to the sensor plane z = 0; the ray must land on the active area.
 
@@ -50,13 +50,16 @@ ENGINES = ("drjit", "numpy")
 
 @dataclass(frozen=True, eq=False)
 class RayBatch:
-    """Rays to trace, one value per ray (1-D arrays of one length).
+    """Rays to trace: launch tangents per ray, and what rays share (source, lenslet, wavelength)
+    per ray or per group of rays.
 
-    source_mm: (n, 3) source point in the device frame, mm.
-    u, v: direction tangents d_x/|d_z|, d_y/|d_z| of the ray leaving the source.
-    lenslet: index into :attr:`EmissionOptics.lenslets` of the lenslet the ray is aimed at.
-    n_filter, n_lens, n_film: refractive indices of the filter glass, the lens and the film at
-        the ray's wavelength.
+    source_mm: (g, 3) source point in the device frame, mm.
+    u, v: (n,) direction tangents d_x/|d_z|, d_y/|d_z| of the ray leaving the source.
+    lenslet: (g,) index into :attr:`EmissionOptics.lenslets` of the lenslet the ray is aimed at.
+    n_filter, n_lens, n_film: (g,) refractive indices of the filter glass, the lens and the film
+        at the ray's wavelength.
+    group: (n,) row of the (g,) arrays that each ray takes (None: one row per ray, g = n). Groups
+        keep the per-ray data small: the Dr.Jit kernel gathers a ray's row itself.
     """
 
     source_mm: np.ndarray
@@ -66,6 +69,7 @@ class RayBatch:
     n_filter: np.ndarray
     n_lens: np.ndarray
     n_film: np.ndarray
+    group: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.u)
@@ -166,13 +170,15 @@ def _inside(ops: Any, x: Any, y: Any, x0: Any, x1: Any, y0: Any, y1: Any) -> Any
     return (x >= x0) & (x <= x1) & (y >= y0) & (y <= y1)
 
 
-def _bores_between(optics: EmissionOptics, z_low: float, z_high: float) -> list[tuple[float, float, float, float]]:
-    """(half_x, half_y, z_a, z_b) of the bores overlapping the height range [z_low, z_high]."""
+def _bores_between(
+    optics: EmissionOptics, z_low: float, z_high: float
+) -> list[tuple[float, float, float, float, float]]:
+    """(half_x, half_y, diagonal, z_a, z_b) of the bores overlapping the height range [z_low, z_high]."""
     out = []
     for bore in optics.bores:
         a, b = max(z_low, bore.z0_mm), min(z_high, bore.z1_mm)
         if b > a:
-            out.append((bore.half_x_mm, bore.half_y_mm, a, b))
+            out.append((bore.half_x_mm, bore.half_y_mm, bore.diagonal_mm, a, b))
     return out
 
 
@@ -271,50 +277,97 @@ def _trace(ops: Any, optics: EmissionOptics, r: dict[str, Any], test_segment: An
     }
 
 
-def _per_ray(optics: EmissionOptics, rays: RayBatch) -> dict[str, np.ndarray]:
-    index = np.asarray(rays.lenslet, dtype=np.int64)
+#: Columns of a ray group's row: source (3), lenslet vertex (2), clear aperture (4), indices (3).
+_GROUP_COLUMNS = ("sx", "sy", "sz", "cx", "cy", "ax0", "ax1", "ay0", "ay1", "n_filter", "n_lens", "n_film")
+
+
+def _groups(optics: EmissionOptics, rays: RayBatch) -> tuple[np.ndarray, np.ndarray]:
+    """The (g, 12) table of the rays' groups (:data:`_GROUP_COLUMNS`) and each ray's row (n,)."""
+    lenslet = np.asarray(rays.lenslet, dtype=np.int64).reshape(-1)
     table = np.array(
         [[c.vertex_x_mm, c.vertex_y_mm, c.x0_mm, c.x1_mm, c.y0_mm, c.y1_mm] for c in optics.lenslets], dtype=float
     )
-    if index.size and (index.min() < 0 or index.max() >= len(table)):
+    if lenslet.size and (lenslet.min() < 0 or lenslet.max() >= len(table)):
         raise ValueError(f"lenslet indices must lie within 0–{len(table) - 1}")
-    per = table[index]
+    g = len(lenslet)
     source = np.asarray(rays.source_mm, dtype=float)
-    if source.shape != (len(index), 3):
-        raise ValueError(f"source_mm has shape {source.shape}: must be ({len(index)}, 3)")
-    return {
-        "sx": source[:, 0],
-        "sy": source[:, 1],
-        "sz": source[:, 2],
-        "u": np.asarray(rays.u, dtype=float),
-        "v": np.asarray(rays.v, dtype=float),
-        "cx": per[:, 0],
-        "cy": per[:, 1],
-        "ax0": per[:, 2],
-        "ax1": per[:, 3],
-        "ay0": per[:, 4],
-        "ay1": per[:, 5],
-        "n_filter": np.asarray(rays.n_filter, dtype=float),
-        "n_lens": np.asarray(rays.n_lens, dtype=float),
-        "n_film": np.asarray(rays.n_film, dtype=float),
-    }
+    if source.shape != (g, 3):
+        raise ValueError(f"source_mm has shape {source.shape}: must be ({g}, 3), one row per lenslet entry")
+    indices = [np.asarray(a, dtype=float).reshape(-1) for a in (rays.n_filter, rays.n_lens, rays.n_film)]
+    if any(len(a) != g for a in indices):
+        raise ValueError(f"n_filter, n_lens and n_film must have {g} entries, as lenslet")
+    n = len(rays.u)
+    if len(rays.v) != n:
+        raise ValueError(f"u and v must have the same length (got {n} and {len(rays.v)})")
+    if rays.group is None:
+        if g != n:
+            raise ValueError(f"without groups every per-ray array needs {n} entries (lenslet has {g})")
+        group = np.arange(n)
+    else:
+        group = np.asarray(rays.group, dtype=np.int64).reshape(-1)
+        if len(group) != n or (n and (group.min() < 0 or group.max() >= g)):
+            raise ValueError(f"group must hold {n} row indices within 0–{g - 1}")
+    rows = np.column_stack([source, table[lenslet], *indices]) if g else np.zeros((0, len(_GROUP_COLUMNS)))
+    return rows, group
+
+
+def _per_ray(optics: EmissionOptics, rays: RayBatch) -> dict[str, np.ndarray]:
+    """One array per ray and quantity (the NumPy engine)."""
+    rows, group = _groups(optics, rays)
+    per = rows[group]
+    out = {name: per[:, k] for k, name in enumerate(_GROUP_COLUMNS)}
+    out["u"], out["v"] = np.asarray(rays.u, dtype=float), np.asarray(rays.v, dtype=float)
+    return out
 
 
 def _analytic_segment_test(ops: Any, optics: EmissionOptics):
-    """Closed-form housing test: a straight segment stays inside a (convex) rectangular bore
-    over a height range exactly when it is inside at both ends of that range."""
+    """Closed-form housing test: a straight segment stays inside a (convex) bore over a height
+    range exactly when it is inside at both ends of that range."""
 
     def test(px, py, pz, dx, dy, dz, length, z_low, z_high):
         ok = None
-        for half_x, half_y, a, b in _bores_between(optics, z_low, z_high):
+        for half_x, half_y, diagonal, a, b in _bores_between(optics, z_low, z_high):
             for z in (a, b):
                 t = (z - pz) / dz
                 x, y = px + t * dx, py + t * dy
                 inside = _inside(ops, x, y, -half_x, half_x, -half_y, half_y)
+                if math.isfinite(diagonal):
+                    inside = inside & (ops.abs(x) + ops.abs(y) <= diagonal)
                 ok = inside if ok is None else ok & inside
         return ok if ok is not None else (px == px)
 
     return test
+
+
+#: Alignment (bytes) of the arrays handed to Dr.Jit: one vector of 16 float64.
+_ALIGN = 128
+
+
+def _aligned(arrays: list[np.ndarray], dtype: type = np.float64) -> list[np.ndarray]:
+    """Copies of 1-D ``arrays`` (any lengths) as ``dtype``, each starting on a :data:`_ALIGN`-byte
+    boundary.
+
+    Dr.Jit reads NumPy memory in place and compiles its loads as aligned or not from the
+    address it gets: arrays from ``malloc`` land on either, so a kernel's hash (and an LLVM
+    compile of 30–50 ms) would change from one call to the next. Aligned inputs give one kernel
+    per shape of the trace, compiled once per process (and cached on disk across processes)."""
+    size = np.dtype(dtype).itemsize
+    per = _ALIGN // size
+    strides = [-(-len(a) // per) * per for a in arrays]
+    buffer = np.empty(sum(strides) + per, dtype=dtype)
+    start = (-buffer.ctypes.data % _ALIGN) // size
+    out = []
+    for values, stride in zip(arrays, strides, strict=True):
+        view = buffer[start : start + len(values)]
+        view[:] = values
+        out.append(view)
+        start += stride
+    return out
+
+
+def _aligned_uint32(values: np.ndarray) -> np.ndarray:
+    """An aligned uint32 copy of ``values`` (see :func:`_aligned`)."""
+    return _aligned([np.asarray(values)], np.uint32)[0]
 
 
 def _numpy(value: Any) -> np.ndarray:
@@ -342,8 +395,8 @@ def trace_rays(optics: EmissionOptics, rays: RayBatch, engine: str | None = None
     engine = engine or default_engine()
     if engine not in ENGINES:
         raise ValueError(f"engine = {engine!r}: must be one of {', '.join(ENGINES)}")
-    per = _per_ray(optics, rays)
     if len(rays) == 0:
+        _groups(optics, rays)
         empty = np.zeros(0)
         return TracedRays(
             empty.astype(bool), empty.astype(bool), empty, empty, np.zeros((0, 3)), empty, empty, empty, empty
@@ -351,13 +404,20 @@ def trace_rays(optics: EmissionOptics, rays: RayBatch, engine: str | None = None
     if engine == "numpy" or not is_jit():
         if engine == "drjit":
             raise ValueError("engine = 'drjit' needs a JIT variant of Mitsuba (LLVM ≥ 17 or CUDA)")
+        per = _per_ray(optics, rays)
         ops = _NumpyOps()
         with np.errstate(invalid="ignore", divide="ignore"):
             return _result(_trace(ops, optics, per, _analytic_segment_test(ops, optics)))
     from cm2optics.emission.housing import housing_scene, segment_test
 
+    rows, group = _groups(optics, rays)
     ops = _DrJitOps()
-    r = {k: ops.Float64(v) for k, v in per.items()}
+    dr, mi = ops.dr, mitsuba()
+    u, v, table = _aligned([np.asarray(rays.u, float), np.asarray(rays.v, float), rows.ravel()])
+    index = mi.UInt32(_aligned_uint32(group)) * len(_GROUP_COLUMNS)
+    table = ops.Float64(table)
+    r = {name: dr.gather(ops.Float64, table, index + k) for k, name in enumerate(_GROUP_COLUMNS)}
+    r["u"], r["v"] = ops.Float64(u), ops.Float64(v)
     out = _trace(ops, optics, r, segment_test(housing_scene(optics)))
     ops.dr.eval(*out.values())
     return _result(out)
