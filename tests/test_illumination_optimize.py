@@ -144,4 +144,6 @@ def test_optimize_writes_a_printable_design(tmp_path):
         data["parameters"]["collimator.lens_half_angle_deg"], rel=1e-4
     )
     assert (tmp_path / "collimator.stl").is_file() and (tmp_path / "sweep.json").is_file()
-    assert design.collimator.lens_spread_deg == pytest.approx(data["parameters"]["collimator.lens_spread_deg"], rel=1e-4)
+    assert design.collimator.lens_spread_deg == pytest.approx(
+        data["parameters"]["collimator.lens_spread_deg"], rel=1e-4
+    )

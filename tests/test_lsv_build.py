@@ -80,16 +80,20 @@ def test_model_matches_the_traced_truth_far_better_than_the_lsi_baseline(built, 
 
 
 def test_orientation_matches_the_scan(built, analytic):
-    """A source moved +x moves the model's image as it moves the scan's."""
+    """A source moved +x moves the model's foci as it moves the scan's, lenslet by lenslet (the
+    centroid of the whole image would also weigh the ±1 % flux differences between the foci,
+    which move it by ~1 px across the 80-px lattice)."""
     model = built.model
 
     def com(img):
         return (np.indices(img.shape) * np.clip(img, 0, None)).reshape(2, -1).sum(1) / np.clip(img, 0, None).sum()
 
-    model_shift = com(model.point_image(0.5, 0, 0)) - com(model.point_image(0, 0, 0))
-    truth_shift = com(analytic.image(0.5, 0, 0)) - com(analytic.image(0, 0, 0))
-    np.testing.assert_allclose(model_shift, truth_shift, atol=0.1)
-    assert truth_shift[1] < -5 and abs(truth_shift[0]) < 0.5  # +x → towards lower columns (inverted image)
+    before, after = model.point_image(0, 0, 0, per_lenslet=True), model.point_image(0.5, 0, 0, per_lenslet=True)
+    for j in range(model.n_lenslets):
+        model_shift = com(after[j]) - com(before[j])
+        truth_shift = com(analytic.image(0.5, 0, 0, lenslets=[j])) - com(analytic.image(0, 0, 0, lenslets=[j]))
+        np.testing.assert_allclose(model_shift, truth_shift, atol=0.1)
+        assert truth_shift[1] < -5 and abs(truth_shift[0]) < 0.5  # +x → towards lower columns (inverted image)
 
 
 def test_a_shift_invariant_system_gives_rank_one_and_plain_convolution(tmp_path):
@@ -171,3 +175,21 @@ def test_bad_options(small_scan, v2):
         build_model(small_scan, rank=0, design=v2)
     with pytest.raises(ValueError, match="patch_px = 2"):
         build_model(small_scan, rank=4, patch_px=2, design=v2)
+
+
+@pytest.mark.parametrize("nodes", [5, 3])
+def test_a_coarse_lateral_grid_gives_the_right_magnification_or_a_clear_error(analytic, v2, tmp_path, nodes):
+    """With 2- or 4-mm lateral steps the foci move by more than half the lenslet lattice between
+    neighbouring positions: the comb search must not settle on a lattice alias (which gave a
+    magnification of +21.7 px/mm for −60 at 5 nodes). With the design to break ties the
+    magnification is right; without it, a clear error names the lateral grid step."""
+    axis = np.linspace(-4, 4, nodes)
+    folder = write_analytic_scan(tmp_path / "scan", analytic, axis, axis, np.array([-0.25, 0.0, 0.25]), binning=BINNING)
+    model = build_model(folder, rank=4, design=v2).model
+    m0 = float(analytic.magnification_at(0.0))
+    assert model.provenance["geometry"]["magnification_at_focus"] == pytest.approx(m0, rel=1e-2)
+    A = model.geometry.A(0.0)
+    px_per_mm = m0 * 1000.0 / analytic.pixel_um
+    np.testing.assert_allclose(A, [[0.0, -px_per_mm], [-px_per_mm, 0.0]], atol=0.02 * px_per_mm)
+    with pytest.raises(ScanError, match="lateral grid step is too coarse"):
+        build_model(folder, rank=4, design=None)

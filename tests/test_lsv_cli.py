@@ -132,6 +132,26 @@ def test_simulate_emitters_with_noise(model, tmp_path):
     np.testing.assert_array_equal(tifffile.imread(again), counts)
 
 
+def test_simulate_emitters_placed_exactly(model, tmp_path):
+    """--subpixel-steps 0 places every emitter at its exact sub-pixel position: the written image
+    is the model's exact sparse image (to the 12-bit counts)."""
+    from cm2optics.lsv.model import load_model
+
+    path, _ = model
+    emitters = Emitters(np.array([730.0]), np.array([-410.0]), np.array([37.0]), np.array([2.0]), np.array([1.0]))
+    csv = write_emitters(tmp_path / "e.csv", emitters)
+    out = tmp_path / "exact.tif"
+    result = runner.invoke(
+        app, ["simulate", "--model", str(path), "--emitters", str(csv), "--subpixel-steps", "0", "--out", str(out)]
+    )
+    assert result.exit_code == 0, result.output
+    sidecar = yaml.safe_load(out.with_suffix(".yaml").read_text())
+    assert sidecar["source"]["subpixel_steps"] == "exact"
+    exact = load_model(path).forward_sparse(emitters, subpixel_steps=None).astype(np.float64)
+    written = tifffile.imread(out) / sidecar["counts_per_unit"]
+    assert np.abs(written - np.clip(exact, 0, None)).max() <= 0.51 / sidecar["counts_per_unit"]
+
+
 def test_simulate_volume_per_lenslet_and_lsi(model, tmp_path):
     path, summary = model
     voxel = summary["default_grid"]["voxel_um"]
@@ -171,6 +191,20 @@ def test_simulate_volume_per_lenslet_and_lsi(model, tmp_path):
         (["simulate", "--model", "{model}", "--out", "x.tif"], "exactly one of --volume and --emitters"),
         (["simulate", "--model", "{model}", "--emitters", "/no/e.csv", "--out", "x.tif"], "no such emitter file"),
         (["simulate", "--model", "{model}", "--volume", "{scan}/scan.yaml", "--out", "x.tif"], "unknown volume format"),
+        (
+            [
+                "simulate",
+                "--model",
+                "{model}",
+                "--emitters",
+                "{scan}/e.csv",
+                "--subpixel-steps",
+                "99",
+                "--out",
+                "x.tif",
+            ],
+            "--subpixel-steps = 99",
+        ),
     ],
 )
 def test_user_errors_are_one_line(model, scan, arguments, message):

@@ -157,7 +157,9 @@ def _export_into(
             progress.update(task, description="rendering pictures")
             start = time.perf_counter()
             for spec in specs:
-                render_part(meshes[spec.name], spec.material, folder / f"{spec.name}.png", f"{spec.name} — {spec.description}")
+                render_part(
+                    meshes[spec.name], spec.material, folder / f"{spec.name}.png", f"{spec.name} — {spec.description}"
+                )
             render_meshes(assembly_meshes, folder / "assembly.png", title=f"{design.name} assembly")
             render_meshes(
                 assembly_meshes,

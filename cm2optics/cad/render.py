@@ -64,7 +64,9 @@ def render_meshes(
     return Path(path)
 
 
-def render_part(mesh: trimesh.Trimesh, material: str, path: Path, title: str, size: tuple[int, int] = (1400, 700)) -> Path:
+def render_part(
+    mesh: trimesh.Trimesh, material: str, path: Path, title: str, size: tuple[int, int] = (1400, 700)
+) -> Path:
     """Two panels: the part seen from above at an angle, and its section through the centre
     of its bounding box (plane y = const, seen along −y)."""
     poly = _to_pyvista(mesh)

@@ -25,7 +25,12 @@ factorises exactly:
 
 That is J·nz plane products and J·n_nodes tile FFTs instead of K·nz·J full-size convolutions.
 The adjoint runs the same stages transposed; ⟨Ax, y⟩ = ⟨x, Aᵀy⟩ holds to float32 precision.
-Peak memory ≈ the volume + J·(depth nodes)·canvas complex64 accumulators + a few tiles.
+Peak memory ≈ the volume + J·(depth nodes)·canvas complex64 accumulators + a few tiles
+(:meth:`LSVOperator.memory_bytes`, :meth:`LSVOperator.transient_bytes`). Where the stage's axes
+are coupled with the sensor's (a fitted ``A`` with off-diagonal terms, however small: the
+'general' path) neither the splat nor the lateral tents separate into rows and columns; both are
+then evaluated on the fly (the splat in chunks of voxels, the tents per tile) instead of being
+stored per plane and per node, which at full size (1920 × 1920 × 80 voxels) took > 22 GB.
 """
 
 from __future__ import annotations
@@ -86,12 +91,14 @@ class _Axis:
 @dataclass
 class _Splat:
     """How plane z is splatted: ``kind`` 'diag' (row ← iy, col ← ix), 'anti' (row ← ix, col ← iy)
-    or 'general' (a sparse (Hp·Wp × ny·nx) matrix and its transpose)."""
+    or 'general' (bilinear weights of the affine map ``affine`` (2, 3): plane (row, col) =
+    ``affine[:, :2] @ (iy − cy, ix − cx) + affine[:, 2]``, px, evaluated on the fly, chunk by
+    chunk, so that no per-plane matrix is stored)."""
 
     kind: str
     rows: _Axis | None = None
     cols: _Axis | None = None
-    general: tuple[torch.Tensor, torch.Tensor] | None = None
+    affine: np.ndarray | None = None
 
 
 def _csr(
@@ -107,6 +114,114 @@ def _csr(
     return matrix, transpose
 
 
+class _TentMap:
+    """The lateral weights of node (gy, gx) on a canvas box when the plane's rows and columns
+    are not aligned with the calibration grid's x and y ('general'): ``tent(v − gy)·tent(u − gx)``
+    with (u, v) the continuous node indices of the object point ``inverse·(p + base)`` (mm) of
+    canvas pixel p = (row, col). Evaluated when used, so that the operator keeps two 2×2 numbers
+    per node instead of a weight image (which, at full size, would take gigabytes): on a uniform
+    calibration axis the node index is affine in (row, col) and the weights take a dozen float32
+    passes over the box; an irregular axis goes through a (slower) float64 search."""
+
+    def __init__(self, inverse, base, gy: int, gx: int, box: tuple[int, int, int, int], axes) -> None:
+        self.inverse = np.asarray(inverse, dtype=np.float64)
+        self.base = np.asarray(base, dtype=np.float64)
+        self.gy, self.gx = gy, gx
+        self.box = box
+        self.axes = axes  # (grid_x_mm, grid_y_mm) float64 tensors
+        self.spacing = tuple(_uniform(a.cpu().numpy()) for a in axes)
+
+    def tensor(self) -> torch.Tensor:
+        """(r1 − r0, c1 − c0) float32 weights on the box."""
+        r0, r1, c0, c1 = self.box
+        device = self.axes[0].device
+        rows = np.arange(r0, r1, dtype=np.float64) + self.base[0]
+        cols = np.arange(c0, c1, dtype=np.float64) + self.base[1]
+        weight = None
+        for k, (axis, g, (first, step)) in enumerate(zip(self.axes, (self.gx, self.gy), self.spacing, strict=True)):
+            n = axis.numel()
+            if n == 1:  # one node: its weight is 1 everywhere
+                continue
+            along_rows = self.inverse[k, 0] * rows  # mm
+            along_cols = self.inverse[k, 1] * cols
+            if step:  # the node index is affine in (row, col)
+                ur = torch.as_tensor((along_rows - first) / step, dtype=torch.float32, device=device)
+                uc = torch.as_tensor(along_cols / step, dtype=torch.float32, device=device)
+                u = ur[:, None] + uc[None, :]
+                u.clamp_(0.0, float(n - 1))
+            else:
+                x = (
+                    torch.as_tensor(along_rows, device=device)[:, None]
+                    + torch.as_tensor(along_cols, device=device)[None, :]
+                )
+                u = _node_coordinate(x, axis).to(torch.float32)
+            u.sub_(float(g)).abs_().neg_().add_(1.0).clamp_(min=0.0)
+            weight = u if weight is None else weight.mul_(u)
+        if weight is None:
+            weight = torch.ones((r1 - r0, c1 - c0), dtype=torch.float32, device=device)
+        return weight
+
+
+def _uniform(axis: np.ndarray) -> tuple[float, float]:
+    """(first node, step) of a grid axis (mm) whose nodes are evenly spaced; step 0 otherwise."""
+    axis = np.asarray(axis, dtype=np.float64)
+    if len(axis) < 2:
+        return float(axis[0]), 0.0
+    step = (axis[-1] - axis[0]) / (len(axis) - 1)
+    even = bool(np.all(np.abs(np.diff(axis) - step) <= 1e-9 * abs(axis[-1] - axis[0])))
+    return float(axis[0]), float(step) if even else 0.0
+
+
+def _node_coordinate(values: torch.Tensor, axis: torch.Tensor) -> torch.Tensor:
+    """Torch twin of :func:`~cm2optics.lsv.interpolate.axis_coordinate`: the continuous node
+    index of ``values`` along the sorted grid ``axis``, clamped to [0, n − 1]."""
+    n = axis.numel()
+    if n == 1:
+        return torch.zeros_like(values)
+    upper = torch.clamp(torch.searchsorted(axis, values.contiguous(), right=True), 1, n - 1)
+    lower = upper - 1
+    a0, a1 = axis[lower], axis[upper]
+    return torch.clamp(lower + (values - a0) / (a1 - a0), 0.0, float(n - 1))
+
+
+def _tent_support(
+    inverse: np.ndarray,
+    base: np.ndarray,
+    axes: tuple[torch.Tensor, torch.Tensor],
+    gy: int,
+    gx: int,
+    canvas: tuple[int, int],
+) -> tuple[int, int, int, int] | None:
+    """Canvas box (r0, r1, c0, c1) holding every pixel where node (gy, gx)'s 'general' tent is
+    non-zero: the image of the node's cell (x, y) ∈ (x_{gx−1}, x_{gx+1}) × (y_{gy−1}, y_{gy+1})
+    (unbounded beyond the outermost nodes, where the weights are clamped) through the affine
+    map, bounded by the canvas; None if it misses the canvas."""
+    xs, ys = (a.cpu().numpy() for a in axes)
+    forward = np.linalg.inv(inverse)
+    Hc, Wc = canvas
+    corners = np.array([[0, 0], [0, Wc - 1], [Hc - 1, 0], [Hc - 1, Wc - 1]], dtype=np.float64) + base
+    reach = corners @ inverse.T  # (x, y) of the canvas corners, mm
+    lo_xy, hi_xy = reach.min(axis=0), reach.max(axis=0)
+
+    def cell(axis: np.ndarray, g: int, lo: float, hi: float) -> tuple[float, float]:
+        left = axis[g - 1] if g >= 1 else -np.inf
+        right = axis[g + 1] if g + 1 < len(axis) else np.inf
+        return max(left, lo), min(right, hi)
+
+    x0, x1 = cell(xs, gx, lo_xy[0], hi_xy[0])
+    y0, y1 = cell(ys, gy, lo_xy[1], hi_xy[1])
+    if x0 >= x1 or y0 >= y1:
+        return None
+    points = np.array([[x0, y0], [x0, y1], [x1, y0], [x1, y1]]) @ forward.T - base  # canvas (row, col)
+    r0 = max(int(np.floor(points[:, 0].min())), 0)
+    r1 = min(int(np.ceil(points[:, 0].max())) + 1, Hc)
+    c0 = max(int(np.floor(points[:, 1].min())), 0)
+    c1 = min(int(np.ceil(points[:, 1].max())) + 1, Wc)
+    if r0 >= r1 or c0 >= c1:
+        return None
+    return r0, r1, c0, c1
+
+
 @dataclass
 class _Tile:
     """Lateral node (gy, gx) of lenslet j: its box on the canvas, FFT shape, depth nodes, and
@@ -117,7 +232,7 @@ class _Tile:
     box: tuple[int, int, int, int]  # r0, r1, c0, c1 on the canvas
     fft: tuple[int, int]
     depth_nodes: list[int]
-    weights: list[tuple[torch.Tensor, torch.Tensor] | torch.Tensor]
+    weights: list[tuple[torch.Tensor, torch.Tensor] | _TentMap]
     out: tuple[int, int]  # sensor (row, col) of the tile output's pixel (0, 0)
 
 
@@ -171,6 +286,8 @@ class LSVOperator:
         kx = shift_kernel_dft(self.shifts[..., 1], Wc, real=True)  # (nz, J, Wc//2+1)
         self._ky = torch.as_tensor(ky, dtype=torch.complex64, device=self.device)
         self._kx = torch.as_tensor(kx, dtype=torch.complex64, device=self.device)
+        self._ky_conj = torch.conj(self._ky).resolve_conj()
+        self._kx_conj = torch.conj(self._kx).resolve_conj()
         # depth tents
         zs = model.grid_z_mm
         lo, hi, t = tent_pairs(axis_coordinate(self.z_mm, zs), len(zs))
@@ -191,6 +308,10 @@ class LSVOperator:
             int(np.ceil(self.shifts[..., 0].max())) + self.plane_shape[0] + 3,
             int(np.floor(self.shifts[..., 1].min())) - 1,
             int(np.ceil(self.shifts[..., 1].max())) + self.plane_shape[1] + 3,
+        )
+        self._grid_xy = (
+            torch.as_tensor(model.grid_x_mm, dtype=torch.float64, device=self.device),
+            torch.as_tensor(model.grid_y_mm, dtype=torch.float64, device=self.device),
         )
         self.tiles = [self._make_tiles(j) for j in range(self.n_lenslets)]
 
@@ -235,19 +356,19 @@ class LSVOperator:
                 self._axis(M[0, 1], self.plane_centre[0], nx, Hp),
                 self._axis(M[1, 0], self.plane_centre[1], ny, Wp),
             )
-        iy, ix = np.meshgrid(np.arange(ny) - half[0], np.arange(nx) - half[1], indexing="ij")
-        rows = self.plane_centre[0] + M[0, 0] * iy + M[0, 1] * ix
-        cols = self.plane_centre[1] + M[1, 0] * iy + M[1, 1] * ix
-        r0, c0 = np.floor(rows).astype(np.int64), np.floor(cols).astype(np.int64)
-        tr, tc = rows - r0, cols - c0
-        target = np.stack([r0 * Wp + c0, r0 * Wp + c0 + 1, (r0 + 1) * Wp + c0, (r0 + 1) * Wp + c0 + 1]).reshape(-1)
-        weight = np.stack([(1 - tr) * (1 - tc), (1 - tr) * tc, tr * (1 - tc), tr * tc]).reshape(-1)
-        source = np.tile(np.arange(ny * nx), 4)
-        return _Splat("general", general=_csr(target, source, weight, (Hp * Wp, ny * nx), self.device))
+        affine = np.array(
+            [[M[0, 0], M[0, 1], self.plane_centre[0]], [M[1, 0], M[1, 1], self.plane_centre[1]]], dtype=np.float64
+        )
+        corners = np.array([[-half[0], -half[1]], [-half[0], half[1]], [half[0], -half[1]], [half[0], half[1]]])
+        reach = corners @ affine[:, :2].T + affine[:, 2]
+        if reach.min() < 0 or reach[:, 0].max() + 1 >= Hp or reach[:, 1].max() + 1 >= Wp:
+            raise AssertionError("plane grid too small")  # guarded by the plane margins
+        return _Splat("general", affine=affine)
 
     def _lateral_tents(self, j: int, gz: int) -> tuple[str, np.ndarray, np.ndarray]:
-        """Lattice coordinates (continuous node indices) of every canvas row/col (separable) or
-        pixel (general) for lenslet j's chief rays at depth node gz."""
+        """Lattice coordinates (continuous node indices) of every canvas row/col for lenslet j's
+        chief rays at depth node gz (separable: 'diag', 'anti'); for 'general', the inverse of
+        ``A(z_g)`` (mm/px) and the sensor − reference offset (px) of canvas pixel (0, 0)."""
         model = self.model
         geometry = model.geometry
         zg = model.grid_z_mm[gz]
@@ -261,11 +382,7 @@ class LSVOperator:
             return "diag", axis_coordinate(rows / A[0, 1], ys), axis_coordinate(cols / A[1, 0], xs)
         if abs(A[0, 1]) < 1e-12 and abs(A[1, 0]) < 1e-12:  # row ← x, col ← y
             return "anti", axis_coordinate(rows / A[0, 0], xs), axis_coordinate(cols / A[1, 1], ys)
-        inverse = np.linalg.inv(A)
-        rr, cc = np.meshgrid(rows, cols, indexing="ij")
-        x = inverse[0, 0] * rr + inverse[0, 1] * cc
-        y = inverse[1, 0] * rr + inverse[1, 1] * cc
-        return "general", axis_coordinate(x, xs), axis_coordinate(y, ys)
+        return "general", np.linalg.inv(A), np.asarray(base, dtype=np.float64)
 
     def _make_tiles(self, j: int) -> list[_Tile]:
         model = self.model
@@ -294,18 +411,16 @@ class LSVOperator:
                         )
                         weights: object = (wy, wx)
                     else:
-                        weight2d = _tent(v, gy) * _tent(u, gx)
-                        rows = np.nonzero(weight2d.max(axis=1) > 0)[0]
-                        cols = np.nonzero(weight2d.max(axis=0) > 0)[0]
-                        if len(rows) == 0:
+                        support = _tent_support(u, v, self._grid_xy, gy, gx, self.canvas_shape)
+                        if support is None:
                             continue
                         box = (
-                            max(rows[0], r_lo, 0),
-                            min(rows[-1] + 1, r_hi),
-                            max(cols[0], c_lo, 0),
-                            min(cols[-1] + 1, c_hi),
+                            max(support[0], r_lo, 0),
+                            min(support[1], r_hi),
+                            max(support[2], c_lo, 0),
+                            min(support[3], c_hi),
                         )
-                        weights = weight2d
+                        weights = (u, v)
                     if box[0] >= box[1] or box[2] >= box[3]:
                         continue
                     per_node.setdefault((gy, gx), []).append((gz, weights, box))
@@ -326,7 +441,7 @@ class LSVOperator:
             fft = (fast_length(bh + h - 1), fast_length(bw + w - 1))
             weights = []
             for _, weight, _ in entries:
-                if isinstance(weight, tuple):
+                if weight[0].ndim == 1:
                     weights.append(
                         (
                             torch.as_tensor(weight[0][box[0] : box[1]], dtype=torch.float32, device=self.device),
@@ -334,11 +449,7 @@ class LSVOperator:
                         )
                     )
                 else:
-                    weights.append(
-                        torch.as_tensor(
-                            weight[box[0] : box[1], box[2] : box[3]], dtype=torch.float32, device=self.device
-                        )
-                    )
+                    weights.append(_TentMap(weight[0], weight[1], gy, gx, box, self._grid_xy))
             tiles.append(_Tile(gy, gx, box, fft, [e[0] for e in entries], weights, (int(out_r), int(out_c))))
         return tiles
 
@@ -347,7 +458,12 @@ class LSVOperator:
         splat = self._splats[z]
         Hp, Wp = self.plane_shape
         if splat.kind == "general":
-            return torch.sparse.mm(splat.general[0], plane.reshape(-1, 1)).reshape(Hp, Wp)
+            out = torch.zeros(Hp * Wp, dtype=plane.dtype, device=plane.device)
+            for rows, index, weights in _affine_bilinear(splat.affine, plane.shape, Wp, plane.device):
+                values = plane[rows].reshape(-1)
+                for target, weight in zip(index, weights, strict=True):
+                    out.index_add_(0, target, values * weight)
+            return out.reshape(Hp, Wp)
         if splat.kind == "anti":
             plane = plane.T
         tmp = _splat_axis(plane, splat.rows)
@@ -356,7 +472,15 @@ class LSVOperator:
     def _gather(self, plane: torch.Tensor, z: int) -> torch.Tensor:
         splat = self._splats[z]
         if splat.kind == "general":
-            return torch.sparse.mm(splat.general[1], plane.reshape(-1, 1)).reshape(self.grid.shape[1:])
+            ny, nx = self.grid.shape[1:]
+            flat = plane.reshape(-1)
+            out = torch.empty((ny, nx), dtype=plane.dtype, device=plane.device)
+            for rows, index, weights in _affine_bilinear(splat.affine, (ny, nx), plane.shape[1], plane.device):
+                total = flat[index[0]] * weights[0]
+                for target, weight in zip(index[1:], weights[1:], strict=True):
+                    total += flat[target] * weight
+                out[rows] = total.reshape(-1, nx)
+            return out
         tmp = _gather_axis(plane, splat.rows)
         out = _gather_axis(tmp.T, splat.cols).T
         return out.T if splat.kind == "anti" else out
@@ -388,7 +512,46 @@ class LSVOperator:
     def _weighted(block: torch.Tensor, weight) -> torch.Tensor:
         if isinstance(weight, tuple):
             return block * weight[0][:, None] * weight[1][None, :]
-        return block * weight
+        return block * weight.tensor()
+
+    # -- memory -----------------------------------------------------------------------------
+    def memory_bytes(self) -> int:
+        """Bytes the operator keeps between calls: shift kernels, basis, coefficients, the
+        splats' 1-D matrices and the tiles' 1-D weights (a 'general' mapping keeps none per
+        voxel or pixel: its splat and tent weights are computed when used)."""
+
+        def size(t: torch.Tensor | None) -> int:
+            if t is None:
+                return 0
+            if t.layout == torch.sparse_csr:
+                return sum(x.numel() * x.element_size() for x in (t.values(), t.crow_indices(), t.col_indices()))
+            return t.numel() * t.element_size()
+
+        kernels = (self._ky, self._kx, self._ky_conj, self._kx_conj)
+        total = sum(size(t) for t in (*kernels, self._basis, self._coefficients))
+        for splat in self._splats:
+            for axis in (splat.rows, splat.cols):
+                if axis is not None:
+                    total += size(axis.matrix) + size(axis.transpose)
+        for tiles in self.tiles:
+            for tile in tiles:
+                for weight in tile.weights:
+                    if isinstance(weight, tuple):
+                        total += size(weight[0]) + size(weight[1])
+        return int(total)
+
+    def transient_bytes(self) -> int:
+        """Peak bytes one forward or adjoint call adds (the input and output not counted): the
+        J × depth-node spectra accumulators, one lenslet's canvases, a batch of tiles and a
+        chunk of the 'general' splat."""
+        Hc, Wc = self.canvas_shape
+        n_nodes = len(self.depth_nodes)
+        spectra = self.n_lenslets * n_nodes * Hc * (Wc // 2 + 1) * 8
+        canvases = n_nodes * Hc * Wc * 4 + 2 * Hc * (Wc // 2 + 1) * 8
+        tiles = 6 * min(TILE_BATCH_ELEMENTS, n_nodes * Hc * Wc) * 8
+        voxels = self.grid.shape[1] * self.grid.shape[2]
+        splat = min(SPLAT_CHUNK_ELEMENTS, voxels) * 96 if self._kind_all == "general" else 0
+        return int(spectra + canvases + tiles + splat + 2 * self.plane_shape[0] * self.plane_shape[1] * 4)
 
     # -- forward ----------------------------------------------------------------------------
     def _as_batch(self, data, ndim: int) -> tuple[torch.Tensor, bool, bool]:
@@ -512,9 +675,14 @@ class LSVOperator:
         Hp, Wp = self.plane_shape
         for z in range(nz):
             total = torch.zeros((Hc, Wc // 2 + 1), dtype=torch.complex64, device=self.device)
+            mixed = torch.empty_like(total)
             for j in range(J):
-                mixed = sum(a * spectra[j, self._slot[g]] for g, a in self.depth_weights[z])
-                total += mixed * torch.conj(self._kx[z, j])[None, :] * torch.conj(self._ky[z, j])[:, None]
+                (g, a), *rest = self.depth_weights[z]
+                torch.mul(spectra[j, self._slot[g]], a, out=mixed)
+                for g, a in rest:
+                    mixed.add_(spectra[j, self._slot[g]], alpha=a)
+                mixed.mul_(self._kx_conj[z, j][None, :])
+                total.addcmul_(mixed, self._ky_conj[z, j][:, None])
             plane = torch.fft.irfft2(total, s=(Hc, Wc))[:Hp, :Wp]
             volume[z] = self._gather(plane, z)
             if progress:
@@ -567,3 +735,28 @@ def _take_clipped(image: torch.Tensor, origin: tuple[int, int], shape: tuple[int
     if rs < re and cs < ce:
         out[rs - r : re - r, cs - c : ce - c] = image[rs:re, cs:ce]
     return out
+
+
+#: Voxels per chunk of the on-the-fly bilinear splat (bounds its index arrays to ≈ 100 MB).
+SPLAT_CHUNK_ELEMENTS = 2**21
+
+
+def _affine_bilinear(affine: np.ndarray, shape: tuple[int, int], width: int, device: torch.device):
+    """Bilinear splat of a (ny, nx) plane through ``affine`` (see :class:`_Splat`) onto a plane
+    ``width`` px wide, chunk by chunk of rows: yields ``(rows, index, weights)`` with ``rows`` a
+    slice of the input rows and, for the four corners, the flat output indices (int64) and the
+    float32 weights of every input voxel of the chunk (computed in float64)."""
+    ny, nx = shape
+    ix = torch.arange(nx, dtype=torch.float64, device=device) - (nx - 1) / 2.0
+    step = max(1, SPLAT_CHUNK_ELEMENTS // max(nx, 1))
+    for start in range(0, ny, step):
+        stop = min(start + step, ny)
+        iy = torch.arange(start, stop, dtype=torch.float64, device=device)[:, None] - (ny - 1) / 2.0
+        rows = affine[0, 0] * iy + affine[0, 1] * ix + affine[0, 2]
+        cols = affine[1, 0] * iy + affine[1, 1] * ix + affine[1, 2]
+        r0, c0 = torch.floor(rows), torch.floor(cols)
+        tr, tc = (rows - r0).reshape(-1), (cols - c0).reshape(-1)
+        base = (r0.long() * width + c0.long()).reshape(-1)
+        index = (base, base + 1, base + width, base + width + 1)
+        weights = tuple(w.to(torch.float32) for w in ((1 - tr) * (1 - tc), (1 - tr) * tc, tr * (1 - tc), tr * tc))
+        yield slice(start, stop), index, weights

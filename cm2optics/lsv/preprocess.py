@@ -12,7 +12,10 @@ measured from the data, nothing is taken from a design except the number of lens
    same stack;
 2. at every depth, each image's foci pattern is located by correlating it with that depth's
    lattice of foci (a comb), first near the axis and then outwards, predicted from the positions
-   already found; a least-squares fit gives ``A(z)``.
+   already found; a least-squares fit gives ``A(z)``. Before any prediction exists, the comb may
+   lock onto an alias one lenslet step off (a lateral grid step of ≳ 1.4 mm moves a CM² V2's foci
+   by more than half the lattice): the candidate that covers more foci wins, a tie (foci off the
+   sensor) is broken by the design's magnification, and without a design it is an error.
 
 **Misordered files.** An image whose foci sit more than a quarter of a lateral grid step away
 from where its neighbours put them (a smooth cubic fit per depth), or an on-axis image that breaks
@@ -328,25 +331,46 @@ def estimate_geometry(
         layer = [n for n in range(n_images) if gi[n, 2] == iz]
         layer.sort(key=lambda n: math.hypot(positions[n, 0] - x0, positions[n, 1] - y0))
         comb = foci[iz]  # the on-axis source's foci at this depth
+        steps = _alias_steps(comb, rows, cols)
         A_current: np.ndarray | None = None
         done: list[int] = []
-        for n in layer:
+        queue = [n for n in layer if bright[n]]
+        deferred: set[int] = set()
+        while queue:
+            n = queue.pop(0)
             delta = positions[n, :2] - (x0, y0)
-            if not bright[n]:
-                continue
             if abs(delta[0]) < 1e-9 and abs(delta[1]) < 1e-9:
                 translations[n] = 0.0
                 done.append(n)
                 continue
             if A_current is None:
-                guess, window = np.zeros(2), 0.6 * pitch
+                # no prediction yet: a window wider than half the lattice pitch, whose peak may be
+                # an alias (the comb shifted by a lattice step), resolved by _resolve_alias
+                found = _comb_peak(prepared_ds[n], comb, np.zeros(2), 0.6 * pitch, factor)
+                if found is not None:
+                    ties = _resolve_alias(prepared_ds[n], comb, found, steps, 0.15 * pitch, factor)
+                    found = ties[0]
+                    if len(ties) > 1 and fallback_A is not None:  # the design's magnification decides
+                        expected = fallback_A(float(z)) @ delta
+                        found = min(ties, key=lambda c: float(np.hypot(*(c[0] - expected))))
+                    elif len(ties) > 1 and n not in deferred:  # try it again once neighbours predict it
+                        deferred.add(n)
+                        queue.append(n)
+                        continue
+                    elif len(ties) > 1:
+                        raise ScanError(
+                            f"{index.files[n]} (x = {positions[n, 0]:g}, y = {positions[n, 1]:g}, z = {z:g} mm): its "
+                            "foci match the on-axis pattern about as well shifted by one lenslet step (the foci that "
+                            "would tell them apart are dark or off the sensor), and no position nearer the axis fixes "
+                            "the magnification: the scan's lateral grid step is too coarse; scan nearer the axis or "
+                            "give a design to take the magnification from"
+                        )
             else:
-                guess, window = A_current @ delta, 0.3 * pitch
-            t = _comb_peak(prepared_ds[n], comb, guess, window, factor)
-            if t is None:
+                found = _comb_peak(prepared_ds[n], comb, A_current @ delta, 0.3 * pitch, factor)
+            if found is None:
                 bright[n] = False
                 continue
-            translations[n] = t
+            translations[n] = found[0]
             done.append(n)
             if len(done) >= 3:
                 D = positions[done, :2] - (x0, y0)
@@ -420,9 +444,62 @@ def _smooth_residual(D: np.ndarray, t: np.ndarray) -> np.ndarray:
     return out
 
 
-def _comb_peak(image: np.ndarray, comb: np.ndarray, guess: np.ndarray, window: float, factor: int) -> np.ndarray | None:
+def _alias_steps(comb: np.ndarray, rows: int, cols: int) -> list[np.ndarray]:
+    """The lattice steps (px) by which the foci comb ``comb`` (J, 2) can be shifted onto itself
+    in part: ±row step, ±column step and their sums."""
+    grid = comb.reshape(rows, cols, 2)
+    vectors = []
+    if cols > 1:
+        vectors.append(np.diff(grid, axis=1).reshape(-1, 2).mean(axis=0))
+    if rows > 1:
+        vectors.append(np.diff(grid, axis=0).reshape(-1, 2).mean(axis=0))
+    if not vectors:  # a single lenslet: no lattice to alias on
+        return []
+    if len(vectors) == 1:
+        return [vectors[0], -vectors[0]]
+    return [a * vectors[0] + b * vectors[1] for a in (-1, 0, 1) for b in (-1, 0, 1) if (a, b) != (0, 0)]
+
+
+#: An alias must outscore the current peak by this factor to replace it; within it they tie.
+ALIAS_MARGIN = 1.25
+
+
+def _resolve_alias(
+    image: np.ndarray,
+    comb: np.ndarray,
+    found: tuple[np.ndarray, float],
+    steps: list[np.ndarray],
+    window: float,
+    factor: int,
+) -> list[tuple[np.ndarray, float]]:
+    """The translation among ``found``'s aliases that the image supports, first, followed by
+    the aliases it cannot tell from it.
+
+    The comb score (the brightness under the comb's teeth) has a local maximum wherever the comb
+    sits a lattice step off the image's foci (all but one row or column of teeth still land on
+    foci), and a search window wider than half the lattice pitch can lock onto it: a coarse
+    lateral grid step (≳ 1.4 mm for a CM² V2) would give a magnification that is silently wrong.
+    At the true translation every tooth sits on its focus, and brightness is ≥ 0, so the true
+    translation outscores its aliases by the foci they miss: climb from alias to alias while the
+    score grows by more than :data:`ALIAS_MARGIN`. Aliases within that margin tie with it: the
+    foci that would tell them apart are dim, or off the sensor."""
+    best = found
+    for _ in range(6):
+        candidates = [_comb_peak(image, comb, best[0] + step, window, factor) for step in steps]
+        candidates = [c for c in candidates if c is not None and np.hypot(*(c[0] - best[0])) > window]
+        better = [c for c in candidates if c[1] > ALIAS_MARGIN * best[1]]
+        if not better:
+            return [best] + [c for c in candidates if c[1] * ALIAS_MARGIN >= best[1]]
+        best = max(better, key=lambda c: c[1])
+    return [best]
+
+
+def _comb_peak(
+    image: np.ndarray, comb: np.ndarray, guess: np.ndarray, window: float, factor: int
+) -> tuple[np.ndarray, float] | None:
     """Translation t (px, full resolution) maximising Σ_j image((comb_j + t)/factor) within
-    ``window`` of ``guess``; parabolic sub-sample refinement; None if no clear peak."""
+    ``window`` of ``guess`` (parabolic sub-sample refinement), and that maximum score; None if
+    no clear peak."""
     half = int(math.ceil(window / factor))
     centre = np.round(guess / factor).astype(int)
     ts = np.arange(-half, half + 1)
@@ -448,7 +525,7 @@ def _comb_peak(image: np.ndarray, comb: np.ndarray, guess: np.ndarray, window: f
             curvature = left - 2 * score[k] + right
             if curvature < 0:
                 offset[axis] = 0.5 * (left - right) / curvature
-    return (np.array([tr[k[0]], tc[k[1]]], float) + offset) * factor
+    return (np.array([tr[k[0]], tc[k[1]]], float) + offset) * factor, float(score[k])
 
 
 # ----------------------------------------------------------------------------- crops

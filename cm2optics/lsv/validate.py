@@ -33,7 +33,7 @@ from cm2optics.lsv.model import LSVModel
 from cm2optics.lsv.preprocess import extract_crops, prepared_image
 from cm2optics.psf_scan import ScanIndex, open_scan
 
-__all__ = ["validate_model"]
+__all__ = ["image_errors", "validate_model"]
 
 Progress = Callable[[str, int, int], None]
 DEFAULT_RANKS = (1, 4, 8, 16, 32, 64, 128)
@@ -267,3 +267,29 @@ def validate_model(
         result["nmse_subsampled"] = {"lateral_2x": lateral_errors.get(rank), "axial_2x": axial_errors.get(rank)}
         result["nmse_subsampled_vs_rank"] = {"lateral_2x": lateral_errors, "axial_2x": axial_errors}
     return result
+
+
+def image_errors(model_image: np.ndarray, reference: np.ndarray) -> dict[str, float]:
+    """How well ``model_image`` reproduces ``reference`` (two images of the same shape, in the
+    same units: e.g. a traced image divided by the total of the traced in-focus on-axis source,
+    which is the model's unit).
+
+    error: ‖m − r‖ / ‖r‖. shape_error: min over s of ‖s·m − r‖ / ‖r‖ (the error left once
+    the total is fitted). flux_ratio: Σm / Σr.
+    """
+    m = np.asarray(model_image, dtype=np.float64)
+    r = np.asarray(reference, dtype=np.float64)
+    if m.shape != r.shape:
+        raise ValueError(f"model image {m.shape} and reference {r.shape} differ in shape")
+    if not (np.all(np.isfinite(m)) and np.all(np.isfinite(r))):
+        raise ValueError("images contain NaN or infinite values")
+    norm = float(np.linalg.norm(r))
+    if not norm > 0:
+        raise ValueError("the reference image is empty")
+    mm = float(np.sum(m * m))
+    scale = float(np.sum(m * r)) / mm if mm > 0 else 0.0
+    return {
+        "error": float(np.linalg.norm(m - r)) / norm,
+        "shape_error": float(np.linalg.norm(scale * m - r)) / norm,
+        "flux_ratio": float(m.sum() / r.sum()) if r.sum() != 0 else float("nan"),
+    }

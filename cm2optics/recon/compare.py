@@ -245,10 +245,7 @@ def compare_baselines(
             "run": runs[name],
             "variant": result["records"][0]["variant"],
             "threshold": threshold,
-            **{
-                k: pooled[k]
-                for k in REPORTED_KEYS
-            },
+            **{k: pooled[k] for k in REPORTED_KEYS},
             "per_volume_mean": {
                 k: _mean([m[k] for m in per_volume])
                 for k in ("recall", "precision", "f1", "jaccard", "rmse_lateral_um", "rmse_axial_um")
