@@ -145,6 +145,8 @@ def test_cli_simulate_writes_a_scan(v2, tmp_path):
                 str(tmp_path / "s"),
                 "--dask-address",
                 cluster.scheduler_address,
+                "--profile",
+                "isotropic",
                 "--json",
             ],
         )
@@ -153,6 +155,7 @@ def test_cli_simulate_writes_a_scan(v2, tmp_path):
     assert data["inputs"]["positions"] == 2
     scan = read_scan(tmp_path / "s")
     assert scan.meta.pixel_um == pytest.approx(8 * v2.sensor.pixel_um)
+    assert "source_profile: isotropic" in (tmp_path / "s" / "scan.yaml").read_text()
 
 
 @pytest.mark.parametrize(
@@ -162,6 +165,7 @@ def test_cli_simulate_writes_a_scan(v2, tmp_path):
         (["simulate", "--grid", "3x3x3", "--positions", "p.csv"], "not both"),
         (["simulate", "--positions", "nope.csv"], "nope.csv"),
         (["simulate", "--grid", "1x1x1", "--binning", "0"], "binning"),
+        (["simulate", "--grid", "1x1x1", "--profile", "conical"], "--profile"),
         (["simulate", "--preset", "cm2-v9", "--grid", "1x1x1"], "preset"),
         (["image", "--emitters", "nope.csv"], "nope.csv"),
     ],

@@ -89,6 +89,14 @@ def simulate(
         float | None, typer.Option("--depth-mm", help="Axial extent of --grid, mm (default: 1.25 × volume.depth_mm).")
     ] = None,
     pinhole_um: Annotated[float, typer.Option("--pinhole-um", help="Pinhole diameter, µm.")] = 5.0,
+    profile: Annotated[
+        str,
+        typer.Option(
+            "--profile",
+            help="Angular emission of the source: gaussian (a pinhole behind a diffuser, the paper's calibration; "
+            "--half-angle-deg), isotropic (a fluorescent bead) or lambertian.",
+        ),
+    ] = "gaussian",
     half_angle_deg: Annotated[
         float,
         typer.Option("--half-angle-deg", help="1/e² half-angle of the pinhole's Gaussian emission profile, degrees."),
@@ -107,7 +115,7 @@ def simulate(
     from cm2optics.design import load_preset
     from cm2optics.emission.psf import PSFSettings
     from cm2optics.emission.scan import ScanSettings, calibration_grid_mm, parse_grid, read_positions_csv, simulate_scan
-    from cm2optics.emission.source import calibration_pinhole
+    from cm2optics.emission.source import scan_source
 
     if grid is not None and positions is not None:
         raise ValueError("give --grid or --positions, not both")
@@ -117,7 +125,8 @@ def simulate(
     else:
         points = calibration_grid_mm(design, parse_grid(grid or "9x9x11"), field_mm, depth_mm)
     settings = ScanSettings(
-        psf=PSFSettings(binning=binning, band_nm=band_nm), source=calibration_pinhole(pinhole_um, half_angle_deg)
+        psf=PSFSettings(binning=binning, band_nm=band_nm),
+        source=scan_source(profile, pinhole_um, half_angle_deg),
     )
     start = time.perf_counter()
     try:

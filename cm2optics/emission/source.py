@@ -41,6 +41,7 @@ __all__ = [
     "ProfileKind",
     "calibration_pinhole",
     "fluorescent_bead",
+    "scan_source",
 ]
 
 
@@ -157,3 +158,16 @@ def calibration_pinhole(diameter_um: float = 5.0, half_angle_deg: float = PINHOL
 def fluorescent_bead(diameter_um: float) -> PointSource:
     """A fluorescent bead of ``diameter_um`` (µm): isotropic emission."""
     return PointSource(diameter_um, AngularProfile(ProfileKind.ISOTROPIC))
+
+
+def scan_source(profile: str, diameter_um: float, half_angle_deg: float = PINHOLE_HALF_ANGLE_DEG) -> PointSource:
+    """The source of a scan by the name of its profile: ``gaussian`` (:func:`calibration_pinhole`
+    with ``half_angle_deg``), ``isotropic`` (:func:`fluorescent_bead`) or ``lambertian``;
+    ``diameter_um`` in µm."""
+    if profile == ProfileKind.GAUSSIAN:
+        return calibration_pinhole(diameter_um, half_angle_deg)
+    if profile == ProfileKind.ISOTROPIC:
+        return fluorescent_bead(diameter_um)
+    if profile == ProfileKind.LAMBERTIAN:
+        return PointSource(diameter_um, AngularProfile(ProfileKind.LAMBERTIAN))
+    raise ValueError(f"--profile {profile!r}: choose gaussian, isotropic or lambertian")
