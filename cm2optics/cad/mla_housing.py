@@ -34,12 +34,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import cadquery as cq
-import numpy as np
 
 from cm2optics.cad.fits import Fit
 from cm2optics.design import SystemDesign
 from cm2optics.layout import mla_housing_envelope
-from cm2optics.lenslets import lens_cells
+from cm2optics.lenslets import lens_top_under_tabs_mm
 
 
 @dataclass(frozen=True)
@@ -106,31 +105,6 @@ def mla_tab_geometry(design: SystemDesign) -> TabGeometry:
     (the array may sit ``clearance_mm`` off centre and still meet all four)."""
     mla, lip = design.mla, design.mla_housing.lip_mm
     return TabGeometry(lens_top_under_tabs_mm(design, lip), design.mask_z_mm, (mla.width_mm + mla.length_mm) / 2 - lip)
-
-
-def lens_top_under_tabs_mm(design: SystemDesign, lip_mm: float, samples: int = 101) -> float:
-    """Highest point (device frame, mm) of the array's lens surface under the corner tabs: the
-    triangles of legs ``lip_mm`` (mm) in the corners of the array's footprint, sampled on a
-    ``samples``-point grid per leg, plus 1 µm (the sampling's bound), so that the tabs touch the
-    lenses without cutting into them."""
-    mla = design.mla
-    cells = lens_cells(mla)
-    half_w, half_l, half = mla.width_mm / 2, mla.length_mm / 2, mla.aperture_mm / 2
-    t = np.linspace(0.0, 1.0, samples)
-    a, b = (g.ravel() for g in np.meshgrid(t, t))
-    a, b = a[a + b <= 1.0], b[a + b <= 1.0]
-    land = mla.thickness_mm - mla.corner_sag_mm
-    top = land
-    for sx in (-1, 1):
-        for sy in (-1, 1):
-            x, y = sx * (half_w - lip_mm * a), sy * (half_l - lip_mm * b)
-            for cell in cells:
-                inside = (x >= cell.x_min) & (x <= cell.x_max) & (y >= cell.y_min) & (y <= cell.y_max)
-                lens = inside & (np.abs(x - cell.vertex_x) <= half) & (np.abs(y - cell.vertex_y) <= half)
-                if lens.any():
-                    rho2 = (x[lens] - cell.vertex_x) ** 2 + (y[lens] - cell.vertex_y) ** 2
-                    top = max(top, float(np.max(mla.thickness_mm - mla.sag_mm(np.sqrt(rho2)))))
-    return design.imaging.mla_to_sensor_mm + top + 1e-3
 
 
 def _mla_tabs(design: SystemDesign, seat: BoreStep) -> cq.Workplane:
