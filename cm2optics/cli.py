@@ -6,19 +6,18 @@ and exit status 2; ``--json`` makes a command print machine-readable output on s
 
 from __future__ import annotations
 
-import functools
 import json
 import sys
-from collections.abc import Callable
 from pathlib import Path
-from typing import Annotated, Any, TypeVar
+from typing import Annotated
 
 import typer
 from rich.console import Console
 from rich.table import Table
 
 import cm2optics
-from cm2optics.design import DesignError, SystemDesign, available_presets, load_preset
+from cm2optics.cli_options import JsonOption, PresetOption, user_errors
+from cm2optics.design import SystemDesign, available_presets, load_preset
 from cm2optics.emission.cli import psf_app
 from cm2optics.illumination.cli import illum_app
 from cm2optics.lsv.cli import lsv_app, simulate_command
@@ -50,30 +49,6 @@ app.command("reconstruct")(reconstruct_command)
 
 err = Console(stderr=True, soft_wrap=True)
 out = Console()
-F = TypeVar("F", bound=Callable[..., Any])
-
-PresetOption = Annotated[
-    str,
-    typer.Option("--preset", "-p", help="Preset name (cm2-v2, cm2-v1) or path to a design YAML."),
-]
-JsonOption = Annotated[bool, typer.Option("--json", help="Print machine-readable JSON on stdout.")]
-
-
-def user_errors(command: F) -> F:
-    """Turn errors a user can cause into one clear line and exit status 2."""
-
-    @functools.wraps(command)
-    def wrapper(*args: Any, **kwargs: Any) -> Any:
-        try:
-            return command(*args, **kwargs)
-        except (DesignError, ValueError, FileNotFoundError, NotADirectoryError, PermissionError) as error:
-            err.print(f"[bold red]error:[/] {error}", highlight=False)
-            raise typer.Exit(2) from None
-        except KeyboardInterrupt:
-            err.print("[yellow]interrupted: nothing half-written was left behind[/]")
-            raise typer.Exit(130) from None
-
-    return wrapper  # type: ignore[return-value]
 
 
 def _version(value: bool) -> None:

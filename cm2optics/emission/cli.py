@@ -1,26 +1,24 @@
 """``cm2 psf``: synthetic PSF calibration scans and brute-force measurements of emitters.
 
 Registered by :mod:`cm2optics.cli` as ``app.add_typer(psf_app, name="psf")``. User errors end in
-one line and exit status 2 through :func:`cm2optics.cli.user_errors`, looked up when a command
-runs (so that ``cm2optics.cli`` may import this module at any point of its own import).
+one line and exit status 2 (:func:`cm2optics.cli_options.user_errors`).
 """
 
 from __future__ import annotations
 
-import functools
 import json
 import time
-from collections.abc import Callable
 from pathlib import Path
-from typing import Annotated, Any, TypeVar
+from typing import Annotated
 
 import typer
 from rich.console import Console
 from rich.table import Table
 
+from cm2optics.cli_options import BinningOption, JsonOption, PresetOption, user_errors
+
 __all__ = ["psf_app"]
 
-F = TypeVar("F", bound=Callable[..., Any])
 out = Console()
 err = Console(stderr=True)
 
@@ -31,31 +29,9 @@ psf_app = typer.Typer(
     context_settings={"help_option_names": ["-h", "--help"]},
 )
 
-# The same options as cm2optics.cli (not imported from it: that module imports this one).
-PresetOption = Annotated[
-    str,
-    typer.Option("--preset", "-p", help="Preset name (cm2-v2, cm2-v1) or path to a design YAML."),
-]
-JsonOption = Annotated[bool, typer.Option("--json", help="Print machine-readable JSON on stdout.")]
-BinningOption = Annotated[
-    int, typer.Option("--binning", "-b", help="Sensor pixels per saved pixel along each axis (1–16).")
-]
-
-
-def _user_errors(command: F) -> F:
-    """cm2optics.cli.user_errors, looked up when the command runs (no import cycle)."""
-
-    @functools.wraps(command)
-    def wrapper(*args: Any, **kwargs: Any) -> Any:
-        from cm2optics.cli import user_errors
-
-        return user_errors(command)(*args, **kwargs)
-
-    return wrapper  # type: ignore[return-value]
-
 
 @psf_app.command("simulate")
-@_user_errors
+@user_errors
 def simulate(
     preset: PresetOption = "cm2-v2",
     grid: Annotated[
@@ -159,7 +135,7 @@ def simulate(
 
 
 @psf_app.command("image")
-@_user_errors
+@user_errors
 def image(
     emitters: Annotated[
         Path, typer.Option("--emitters", "-e", help="CSV x_um,y_um,z_um,diameter_um,intensity (object space).")

@@ -5,24 +5,22 @@ Registered by :mod:`cm2optics.cli` as ``app.add_typer(illum_app, name="illum")``
 
 from __future__ import annotations
 
-import functools
 import json
 import math
 import re
 import time
-from collections.abc import Callable
 from pathlib import Path
-from typing import Annotated, Any, TypeVar
+from typing import Annotated, Any
 
 import typer
 from rich.console import Console
 from rich.table import Table
 
+from cm2optics.cli_options import JsonOption, PresetOption, user_errors
 from cm2optics.illumination.metrics import DEFINITIONS, IlluminationFigures
 
 __all__ = ["illum_app"]
 
-F = TypeVar("F", bound=Callable[..., Any])
 err = Console(stderr=True)
 out = Console()
 
@@ -34,25 +32,6 @@ illum_app = typer.Typer(
     no_args_is_help=True,
     context_settings={"help_option_names": ["-h", "--help"]},
 )
-
-# The same options as cm2optics.cli (not imported from it: that module imports this one).
-PresetOption = Annotated[
-    str,
-    typer.Option("--preset", "-p", help="Preset name (cm2-v2, cm2-v1) or path to a design YAML."),
-]
-JsonOption = Annotated[bool, typer.Option("--json", help="Print machine-readable JSON on stdout.")]
-
-
-def _user_errors(command: F) -> F:
-    """cm2optics.cli.user_errors, looked up when the command runs (no import cycle)."""
-
-    @functools.wraps(command)
-    def wrapper(*args: Any, **kwargs: Any) -> Any:
-        from cm2optics.cli import user_errors
-
-        return user_errors(command)(*args, **kwargs)
-
-    return wrapper  # type: ignore[return-value]
 
 
 def _slug(label: str) -> str:
@@ -104,7 +83,7 @@ def _vector(text: str | None, name: str, default: tuple[float, float, float]) ->
 
 
 @illum_app.command("run")
-@_user_errors
+@user_errors
 def run(
     preset: PresetOption = "cm2-v2",
     collimator: Annotated[
@@ -261,7 +240,7 @@ def run(
 
 
 @illum_app.command("optimize")
-@_user_errors
+@user_errors
 def optimize(
     preset: PresetOption = "cm2-v2",
     rays: Annotated[int, typer.Option("--rays", "-n", help="LED rays per candidate (all LEDs).")] = 200_000,

@@ -1,23 +1,22 @@
 """``cm2 lsv build``, ``cm2 lsv validate`` and ``cm2 simulate``.
 
 Register with ``app.add_typer(lsv_app, name="lsv")`` and ``app.command("simulate")(simulate_command)``.
-User errors end in one line and exit status 2 through :func:`cm2optics.cli.user_errors`,
-imported when a command runs (so that ``cm2optics.cli`` may import this module at any point).
+User errors end in one line and exit status 2 (:func:`cm2optics.cli_options.user_errors`).
 """
 
 from __future__ import annotations
 
-import functools
 import json
-from collections.abc import Callable
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Annotated, Any, TypeVar
+from typing import Annotated, Any
 
 import typer
 from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
+
+from cm2optics.cli_options import JsonOption, PresetOption, user_errors
 
 __all__ = ["lsv_app", "simulate_command"]
 
@@ -28,22 +27,6 @@ lsv_app = typer.Typer(
 
 _out = Console()
 _err = Console(stderr=True)
-F = TypeVar("F", bound=Callable[..., Any])
-
-JsonOption = Annotated[bool, typer.Option("--json", help="Print machine-readable JSON on stdout.")]
-PresetOption = Annotated[
-    str, typer.Option("--preset", "-p", help="Design (preset name or YAML) for the lenslet layout and fall-backs.")
-]
-
-
-def _user_errors(command: F) -> F:
-    @functools.wraps(command)
-    def wrapper(*args: Any, **kwargs: Any) -> Any:
-        from cm2optics.cli import user_errors
-
-        return user_errors(command)(*args, **kwargs)
-
-    return wrapper  # type: ignore[return-value]
 
 
 @contextmanager
@@ -83,7 +66,7 @@ def _parse_ranks(text: str | None) -> tuple[int, ...] | None:
 
 
 @lsv_app.command("build")
-@_user_errors
+@user_errors
 def build(
     scan_dir: Annotated[Path, typer.Argument(help="PSF scan folder (positions.csv, TIFFs, scan.yaml).")],
     rank: Annotated[int, typer.Option("--rank", "-k", help="K, the number of basis PSFs.")] = 64,
@@ -159,7 +142,7 @@ def build(
 
 
 @lsv_app.command("validate")
-@_user_errors
+@user_errors
 def validate(
     model_path: Annotated[Path, typer.Argument(metavar="MODEL", help="Model file from `cm2 lsv build`.")],
     scan_dir: Annotated[
@@ -217,7 +200,7 @@ def validate(
         )
 
 
-@_user_errors
+@user_errors
 def simulate_command(
     out: Annotated[
         Path, typer.Option("--out", "-o", help="Measurement TIFF to write (16-bit counts, YAML sidecar beside it).")

@@ -5,32 +5,15 @@ The lead registers it on the top-level app: ``app.command("evaluate")(evaluate_c
 
 from __future__ import annotations
 
-import functools
 import json
-from collections.abc import Callable
 from pathlib import Path
-from typing import Annotated, Any, TypeVar
+from typing import Annotated
 
 import typer
 
-__all__ = ["evaluate_command", "parse_triple", "user_errors_lazy"]
+from cm2optics.cli_options import JsonOption, user_errors
 
-F = TypeVar("F", bound=Callable[..., Any])
-
-JsonFlag = Annotated[bool, typer.Option("--json", help="Print machine-readable JSON on stdout.")]
-
-
-def user_errors_lazy(command: F) -> F:
-    """:func:`cm2optics.cli.user_errors`, looked up when the command runs (``cm2optics.cli``
-    imports the stage CLIs, so importing it here at module level would be circular)."""
-
-    @functools.wraps(command)
-    def wrapper(*args: Any, **kwargs: Any) -> Any:
-        from cm2optics.cli import user_errors
-
-        return user_errors(command)(*args, **kwargs)
-
-    return wrapper  # type: ignore[return-value]
+__all__ = ["evaluate_command", "parse_triple"]
 
 
 def parse_triple(text: str | None, name: str) -> tuple[float, float, float] | None:
@@ -58,7 +41,7 @@ def _pairs(values: list[str] | None) -> list[tuple[str, str]] | None:
     return pairs
 
 
-@user_errors_lazy
+@user_errors
 def evaluate_command(
     recon: Annotated[Path, typer.Argument(help="Reconstructed volume: TIFF (z, y, x) with ImageJ spacing, or .npy.")],
     ground_truth: Annotated[
@@ -103,7 +86,7 @@ def evaluate_command(
         Path | None,
         typer.Option("--out", "-o", help="Folder for metrics.json and the figures (breakdowns, maps, overlay)."),
     ] = None,
-    as_json: JsonFlag = False,
+    as_json: JsonOption = False,
 ) -> None:
     """Recall, precision, F1, Jaccard and lateral/axial RMSE of RECON against GT.
 

@@ -11,7 +11,8 @@ from typing import Annotated
 
 import typer
 
-from cm2optics.metrics.cli import JsonFlag, parse_triple, user_errors_lazy
+from cm2optics.cli_options import JsonOption, user_errors
+from cm2optics.metrics.cli import parse_triple
 
 __all__ = ["read_measurement", "reconstruct_command", "reconstruct_file"]
 
@@ -77,7 +78,7 @@ def reconstruct_file(
     return record
 
 
-@user_errors_lazy
+@user_errors
 def reconstruct_command(
     measurement: Annotated[
         Path, typer.Argument(metavar="MEAS", help="Measurement: one image (TIFF or .npy), e.g. a raw 16-bit frame.")
@@ -114,7 +115,7 @@ def reconstruct_command(
     max_memory_gib: Annotated[
         float, typer.Option("--max-memory-gib", help="Refuse a run estimated above this.")
     ] = 20.0,
-    as_json: JsonFlag = False,
+    as_json: JsonOption = False,
 ) -> None:
     """Model-based reconstruction: FISTA, ADMM or Richardson–Lucy with non-negativity, ℓ1 and
     3-D TV. With --forward lsi and --method admm this is the V1 paper's depth-wise LSI ADMM."""

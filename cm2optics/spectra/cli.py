@@ -1,22 +1,21 @@
 """``cm2 spectra``: the spectral report of a design, and the filter fitter.
 
 Register with ``app.add_typer(spectra_app, name="spectra")``. User errors end in one line and
-exit status 2 through :func:`cm2optics.cli.user_errors`, imported when a command runs (so that
-``cm2optics.cli`` may import this module at any point of its own import).
+exit status 2 (:func:`cm2optics.cli_options.user_errors`).
 """
 
 from __future__ import annotations
 
-import functools
 import json
 import math
-from collections.abc import Callable
 from pathlib import Path
-from typing import Annotated, Any, TypeVar
+from typing import Annotated
 
 import typer
 from rich.console import Console
 from rich.table import Table
+
+from cm2optics.cli_options import PresetOption, user_errors
 
 __all__ = ["spectra_app"]
 
@@ -27,25 +26,12 @@ spectra_app = typer.Typer(
 )
 
 _out = Console()
-F = TypeVar("F", bound=Callable[..., Any])
-
-
-def _user_errors(command: F) -> F:
-    @functools.wraps(command)
-    def wrapper(*args: Any, **kwargs: Any) -> Any:
-        from cm2optics.cli import user_errors
-
-        return user_errors(command)(*args, **kwargs)
-
-    return wrapper  # type: ignore[return-value]
 
 
 @spectra_app.command("report")
-@_user_errors
+@user_errors
 def report(
-    preset: Annotated[
-        str, typer.Option("--preset", "-p", help="Preset name (cm2-v2, cm2-v1) or path to a design YAML.")
-    ] = "cm2-v2",
+    preset: PresetOption = "cm2-v2",
     out_dir: Annotated[Path, typer.Option("--out", "-o", help="Folder for the PNG plots.")] = Path("out/spectra"),
     as_json: Annotated[bool, typer.Option("--json", help="Print machine-readable JSON on stdout.")] = False,
 ) -> None:
@@ -107,7 +93,7 @@ def _parse_angles(text: str) -> tuple[float, ...]:
 
 
 @spectra_app.command("fit-filter")
-@_user_errors
+@user_errors
 def fit_filter(
     curves: Annotated[
         Path,

@@ -11,7 +11,8 @@ from typing import Annotated, Any
 
 import typer
 
-from cm2optics.metrics.cli import JsonFlag, parse_triple, user_errors_lazy
+from cm2optics.cli_options import JsonOption, user_errors
+from cm2optics.metrics.cli import parse_triple
 
 __all__ = ["export_sample", "synth_command"]
 
@@ -68,7 +69,7 @@ def export_sample(sample_path: str | Path, out_dir: str | Path) -> dict[str, str
     return {k: str(v) for k, v in paths.items()}
 
 
-@user_errors_lazy
+@user_errors
 def synth_command(
     model: Annotated[
         Path, typer.Option("--model", "-m", help="Forward model: an LSV model (cm2 lsv build) or a PSF stack (HDF5).")
@@ -120,7 +121,7 @@ def synth_command(
         int,
         typer.Option("--export", help="Also write the first N samples as TIFF/CSV (for cm2 reconstruct / evaluate)."),
     ] = 0,
-    as_json: JsonFlag = False,
+    as_json: JsonOption = False,
 ) -> None:
     """Synthesise volumes of spherical emitters, their noisy measurements through the model,
     the ground-truth demixed views, the nine views cropped at the chief rays and training patches.
