@@ -28,7 +28,7 @@ import warnings
 
 from cm2optics.design import load_preset
 from cm2optics.emission.analysis import central_lenslet
-from cm2optics.emission.backend import variant
+from cm2optics.optics.backend import variant
 from cm2optics.emission.crosscheck import optiland_lenslet
 from cm2optics.emission.psf import EmissionModel, PSFSettings
 from cm2optics.emission.source import calibration_pinhole

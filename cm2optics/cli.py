@@ -22,6 +22,7 @@ from cm2optics.emission.cli import psf_app
 from cm2optics.illumination.cli import illum_app
 from cm2optics.lsv.cli import lsv_app, simulate_command
 from cm2optics.metrics.cli import evaluate_command
+from cm2optics.optics import first_order
 from cm2optics.recon.cli import reconstruct_command
 from cm2optics.spectra.cli import spectra_app
 from cm2optics.synth.cli import synth_command
@@ -73,15 +74,15 @@ def design_summary(design: SystemDesign) -> dict[str, float | str]:
     """Derived optics of a design (mm, µm as named): at the focal plane (best focus) and paraxial."""
     return {
         "name": design.name,
-        "lenslet_focal_length_mm": round(design.lenslet_focal_length_mm, 4),
-        "magnification": round(design.magnification, 4),
-        "object_pixel_um": round(design.object_pixel_um, 4),
-        "working_distance_mm": round(design.working_distance_mm, 4),
-        "object_plane_z_mm": round(design.object_plane_z_mm, 4),
-        "paraxial_magnification": round(design.paraxial_magnification, 4),
-        "paraxial_object_plane_z_mm": round(design.paraxial_object_plane_z_mm, 4),
-        "focus_shift_mm": round(design.focus_shift_mm, 4),
-        "object_na": round(design.object_na, 4),
+        "lenslet_focal_length_mm": round(first_order.lenslet_focal_length_mm(design), 4),
+        "magnification": round(first_order.magnification(design), 4),
+        "object_pixel_um": round(first_order.object_pixel_um(design), 4),
+        "working_distance_mm": round(first_order.working_distance_mm(design), 4),
+        "object_plane_z_mm": round(first_order.object_plane_z_mm(design), 4),
+        "paraxial_magnification": round(first_order.paraxial_magnification(design), 4),
+        "paraxial_object_plane_z_mm": round(first_order.paraxial_object_plane_z_mm(design), 4),
+        "focus_shift_mm": round(first_order.focus_shift_mm(design), 4),
+        "object_na": round(first_order.object_na(design), 4),
         "mla_flat_z_mm": design.imaging.mla_to_sensor_mm,
         "mla_vertex_z_mm": round(design.mla_vertex_z_mm, 4),
         "emission_filter_z_mm": round(design.emission_filter_z_mm, 4),

@@ -2,7 +2,7 @@
 
 Pure NumPy/SciPy, shared by the CAD part, the illumination tracer and design optimisers.
 
-Frame: the LED frame of :mod:`cm2optics.layout` — origin at the centre of the LED's emitting
+Frame: the LED frame of :mod:`cm2optics.optics.layout` — origin at the centre of the LED's emitting
 surface, ``+z`` along the unit's axis (the direction the light leaves in). A profile point is
 ``(r, z)``: distance from the axis and height, mm. The design point is the LED centre, the
 shared focus of both optical surfaces.
@@ -61,7 +61,7 @@ from scipy.integrate import solve_ivp
 from scipy.interpolate import CubicSpline
 
 from cm2optics.design import Collimator, DesignError, SystemDesign
-from cm2optics.materials import refractive_index
+from cm2optics.design.materials import refractive_index
 
 __all__ = [
     "CollimatorProfile",

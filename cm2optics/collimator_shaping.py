@@ -41,7 +41,7 @@ from scipy.integrate import solve_ivp
 
 from cm2optics.collimator import CollimatorProfile, enclosed_profile
 from cm2optics.design import Collimator, DesignError
-from cm2optics.materials import refractive_index
+from cm2optics.design.materials import refractive_index
 
 __all__ = ["shaped_profile"]
 

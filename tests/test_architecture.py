@@ -12,8 +12,8 @@ PACKAGE = Path(__file__).resolve().parents[1] / "cm2optics"
 ROOMS = {
     "cadquery": ("cad",),
     "OCP": ("cad",),
-    "mitsuba": ("illumination", "emission"),
-    "drjit": ("illumination", "emission"),
+    "mitsuba": ("optics", "illumination", "emission"),
+    "drjit": ("optics", "illumination", "emission"),
     "torch": ("lsv", "synth", "recon", "calibrate"),
 }
 

@@ -16,6 +16,7 @@ from cm2optics.emission.image import Emitters, read_emitters_csv
 from cm2optics.emission.psf import EmissionModel, PSFSettings, SensorGrid
 from cm2optics.emission.scan import ScanSettings, calibration_grid_mm, parse_grid, read_positions_csv, simulate_scan
 from cm2optics.emission.source import fluorescent_bead
+from cm2optics.optics import first_order
 from cm2optics.psf_scan import read_scan
 
 runner = CliRunner()
@@ -31,15 +32,15 @@ def test_the_papers_calibration_grid(v2):
     assert np.allclose(positions[:9, 0], xs)  # x runs fastest, z slowest
     assert np.allclose(calibration_grid_mm(v2, (1, 1, 1)), 0.0)
     # z = 0 is the best focus; the paraxial conjugate lies beyond the calibrated depth.
-    assert v2.object_z_to_height_mm(0.0) == v2.object_plane_z_mm
-    assert -v2.focus_shift_mm < zs.min()
+    assert first_order.object_z_to_height_mm(v2, 0.0) == first_order.object_plane_z_mm(v2)
+    assert -first_order.focus_shift_mm(v2) < zs.min()
 
 
 def test_scan_metadata_names_the_focal_plane(v2):
     meta = scan_module._extra_meta(v2, FAST, SensorGrid.of(v2, 8))
     assert "best focus" in meta["position_units"] and "best focus" in meta["focal_plane"]
-    assert meta["focal_plane_height_mm"] == pytest.approx(v2.object_plane_z_mm, abs=1e-6)
-    assert meta["paraxial_focal_plane_z_mm"] == pytest.approx(-v2.focus_shift_mm, abs=1e-6)
+    assert meta["focal_plane_height_mm"] == pytest.approx(first_order.object_plane_z_mm(v2), abs=1e-6)
+    assert meta["paraxial_focal_plane_z_mm"] == pytest.approx(-first_order.focus_shift_mm(v2), abs=1e-6)
     assert meta["object_pixel_um"] == pytest.approx(4.15, rel=0.01)
 
 

@@ -8,6 +8,7 @@ import math
 import numpy as np
 import pytest
 
+from cm2optics.optics import first_order
 from cm2optics.spectra.absorption import fresnel_transmittance
 from cm2optics.spectra.chain import emission_chain, excitation_spectrum
 from cm2optics.spectra.geometry import (
@@ -30,7 +31,7 @@ def test_on_axis_source_collects_the_solid_angle_of_the_mask_opening(v2):
     # (and puts its edges on the pupil grid's cell edges, so the sum is exact).
     design = v2.with_changes({"aperture_mask.opening_mm": 2.4})
     rays = trace_from_sources(design, Sources(np.zeros((1, 2)), np.ones(1)), Emitter.ISOTROPIC, pupil_samples=60)
-    h = design.object_plane_z_mm - (design.mask_z_mm + design.aperture_mask.thickness_mm)
+    h = first_order.object_plane_z_mm(design) - (design.mask_z_mm + design.aperture_mask.thickness_mm)
     a = design.aperture_mask.opening_mm / 2
     square = 4 * math.atan(a * a / (h * math.sqrt(h * h + 2 * a * a)))  # solid angle of a centred square
     assert rays.collection == pytest.approx(square / (4 * math.pi), rel=1e-3)

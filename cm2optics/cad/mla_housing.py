@@ -37,8 +37,8 @@ import cadquery as cq
 
 from cm2optics.cad.fits import Fit
 from cm2optics.design import SystemDesign
-from cm2optics.layout import mla_housing_envelope
-from cm2optics.lenslets import lens_top_under_tabs_mm
+from cm2optics.optics.layout import mla_housing_envelope
+from cm2optics.optics.lenslets import lens_top_under_tabs_mm
 
 
 @dataclass(frozen=True)

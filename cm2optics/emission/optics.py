@@ -47,9 +47,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from cm2optics.design import Side, SystemDesign
-from cm2optics.layout import mla_housing_envelope
-from cm2optics.lenslets import lens_cells, lens_top_under_tabs_mm
-from cm2optics.materials import Material
+from cm2optics.optics import first_order
+from cm2optics.optics.layout import mla_housing_envelope
+from cm2optics.optics.lenslets import lens_cells, lens_top_under_tabs_mm
+from cm2optics.design.materials import Material
 
 __all__ = ["Bore", "EmissionOptics", "Lenslet", "Plate", "emission_optics", "housing_bores", "lenslets", "mla_tabs"]
 
@@ -133,7 +134,7 @@ class EmissionOptics:
     mla_x_mm, mla_y_mm: (low, high) extent of the diced array, partial cells included. film: the absorption film or None.
     bores: openings of the housing and mask. sensor_half_x_mm, sensor_half_y_mm: half the
     active area. object_plane_z_mm: the nominal focal plane (the plane of best focus,
-    :attr:`SystemDesign.object_plane_z_mm`), where object-space z = 0.
+    :func:`~cm2optics.optics.first_order.object_plane_z_mm`), where object-space z = 0.
     """
 
     filter: Plate
@@ -162,7 +163,7 @@ class EmissionOptics:
 
 def lenslets(design: SystemDesign) -> tuple[Lenslet, ...]:
     """Every lenslet of the array (full cells row by row, then with the partial cells that
-    :func:`cm2optics.lenslets.lens_cells` adds on ``partial_sides``), in the device frame.
+    :func:`cm2optics.optics.lenslets.lens_cells` adds on ``partial_sides``), in the device frame.
 
     A lenslet's clear aperture is its cell intersected with the square of side
     ``mla.aperture_mm`` around its vertex.
@@ -254,8 +255,8 @@ def emission_optics(design: SystemDesign) -> EmissionOptics:
         film_plate = Plate(z0, z0 + film.thickness_mm, film.width_mm / 2, film.length_mm / 2, film.material)
     z_filter = design.emission_filter_z_mm
     cells = lenslets(design)
-    if not math.isfinite(design.object_plane_z_mm):
-        raise ValueError(f"the design has no finite focal plane (object_plane_z_mm = {design.object_plane_z_mm})")
+    if not math.isfinite(first_order.object_plane_z_mm(design)):
+        raise ValueError(f"the design has no finite focal plane (object_plane_z_mm = {first_order.object_plane_z_mm(design)})")
     return EmissionOptics(
         filter=Plate(z_filter, z_filter + filt.thickness_mm, filt.width_mm / 2, filt.length_mm / 2, filt.material),
         mask_z0_mm=design.mask_z_mm,
@@ -273,5 +274,5 @@ def emission_optics(design: SystemDesign) -> EmissionOptics:
         lenslets=cells,
         sensor_half_x_mm=design.sensor.active_width_mm / 2,
         sensor_half_y_mm=design.sensor.active_length_mm / 2,
-        object_plane_z_mm=design.object_plane_z_mm,
+        object_plane_z_mm=first_order.object_plane_z_mm(design),
     )

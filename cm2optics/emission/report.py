@@ -21,6 +21,7 @@ from cm2optics.emission.psf import EmissionModel, PSFSettings
 from cm2optics.emission.scan import ScanSettings, calibration_grid_mm, simulate_scan
 from cm2optics.emission.source import calibration_pinhole
 from cm2optics.io import write_atomic
+from cm2optics.optics import first_order
 from cm2optics.report import Report
 
 __all__ = ["add_psf_section", "psf_numbers"]
@@ -42,17 +43,17 @@ def psf_numbers(design: SystemDesign, binning: int = 4) -> dict[str, float]:
         fine.foci((0.0, 0.0, 0.0))
         times.append(time.perf_counter() - start)
     per_position = min(times)
-    paraxial = analysis.on_axis_focus(fine, -design.focus_shift_mm)
+    paraxial = analysis.on_axis_focus(fine, -first_order.focus_shift_mm(design))
     best_z = analysis.best_focus_z_mm(fine)
     best = analysis.on_axis_focus(fine, 0.0)
     return {
         "magnification": magnification,
-        "magnification_design": design.magnification,
+        "magnification_design": first_order.magnification(design),
         "object_pixel_um": design.sensor.pixel_um / magnification,
-        "object_pixel_um_design": design.object_pixel_um,
+        "object_pixel_um_design": first_order.object_pixel_um(design),
         "shear_side_focus": shear,
         "shear_paraxial": shear_paraxial,
-        "paraxial_plane_z_mm": -design.focus_shift_mm,
+        "paraxial_plane_z_mm": -first_order.focus_shift_mm(design),
         "fwhm_paraxial_um": paraxial.fwhm_um,
         "strehl_paraxial": paraxial.strehl,
         "best_focus_z_mm": best_z,

@@ -41,6 +41,7 @@ from cm2optics.design import SystemDesign
 from cm2optics.emission.psf import EmissionModel, Focus, PSFSettings, SensorGrid
 from cm2optics.emission.source import PointSource, calibration_pinhole
 from cm2optics.io import write_atomic, write_json_atomic
+from cm2optics.optics import first_order
 from cm2optics.psf_scan import ScanError, ScanMeta, grid_axes_mm, write_scan
 
 __all__ = [
@@ -119,9 +120,9 @@ def calibration_grid_mm(
     100-µm steps), as the paper's 9×9×11 scan. ``field_mm``/``depth_mm`` (mm) override the extents.
 
     The nominal focal plane (z = 0) is the design's plane of best focus
-    (:attr:`~cm2optics.design.SystemDesign.object_plane_z_mm`), where the PSFs are sharpest and
+    (:func:`~cm2optics.optics.first_order.object_plane_z_mm`), where the PSFs are sharpest and
     where a lab centres its calibration, not the paraxial conjugate of the sensor, which lies
-    :attr:`~cm2optics.design.SystemDesign.focus_shift_mm` (≈ 0.85 mm for cm2-v2) farther from the
+    :func:`~cm2optics.optics.first_order.focus_shift_mm` (≈ 0.85 mm for cm2-v2) farther from the
     device, outside the scanned depth: so the scan spans the usable depth symmetrically, and its
     centre has the design's magnification (0.58) and object pixel (4.1 µm).
     """
@@ -228,7 +229,7 @@ def _simulate_chunk(
 
 def _set_jit_threads(threads: int) -> None:
     """Dr.Jit's thread pool size in this process (a no-op without a JIT variant)."""
-    from cm2optics.emission.backend import is_jit
+    from cm2optics.optics.backend import is_jit
 
     if is_jit():
         import drjit as dr
@@ -521,10 +522,10 @@ def _extra_meta(design: SystemDesign, settings: ScanSettings, grid: SensorGrid) 
             "of best focus), +z towards the device"
         ),
         "focal_plane": "best focus: least RMS wavefront error of the on-axis image (design wavelength)",
-        "focal_plane_height_mm": round(float(design.object_plane_z_mm), 6),
-        "paraxial_focal_plane_z_mm": round(float(-design.focus_shift_mm), 6),
-        "magnification": round(design.magnification, 6),
-        "object_pixel_um": round(design.object_pixel_um, 6),
+        "focal_plane_height_mm": round(float(first_order.object_plane_z_mm(design)), 6),
+        "paraxial_focal_plane_z_mm": round(float(-first_order.focus_shift_mm(design)), 6),
+        "magnification": round(first_order.magnification(design), 6),
+        "object_pixel_um": round(first_order.object_pixel_um(design), 6),
         "source_diameter_um": source.diameter_um,
         "source_profile": source.profile.describe(),
         "source_photons_per_ms": settings.source_photons_per_ms,

@@ -40,7 +40,7 @@ from typing import Any
 
 import numpy as np
 
-from cm2optics.emission.backend import is_jit, mitsuba
+from cm2optics.optics.backend import is_jit, mitsuba
 from cm2optics.emission.optics import EmissionOptics
 
 __all__ = ["ENGINES", "RayBatch", "TracedRays", "default_engine", "trace_rays"]

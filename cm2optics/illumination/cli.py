@@ -18,6 +18,7 @@ from rich.table import Table
 
 from cm2optics.cli_options import JsonOption, PresetOption, user_errors
 from cm2optics.illumination.metrics import DEFINITIONS, IlluminationFigures
+from cm2optics.optics import first_order
 
 __all__ = ["illum_app"]
 
@@ -158,7 +159,7 @@ def run(
     --collimator CM2_V2_freeform_illuminator.stl --led-position 0,0,1 --led-axis 0,0,-1.
     """
     from cm2optics.design import load_preset
-    from cm2optics.illumination.backend import mitsuba, variant
+    from cm2optics.optics.backend import mitsuba, variant
     from cm2optics.illumination.compare import (
         Setup,
         compare_designs,
@@ -222,7 +223,7 @@ def run(
         "housing": setup.housing,
         "smooth_normals": setup.smooth_normals,
         "seed": seed,
-        "sample_plane_z_mm": round(design.object_plane_z_mm, 4),
+        "sample_plane_z_mm": round(first_order.object_plane_z_mm(design), 4),
         "backend": variant().variant,
         "elapsed_s": round(time.perf_counter() - start, 2),
     }

@@ -3,7 +3,7 @@
 Pure NumPy/trimesh: the Mitsuba tracer (:mod:`cm2optics.illumination.scene`) and the NumPy
 reference tracer (:mod:`cm2optics.illumination.reference_numpy`) both read these parts.
 
-One LED unit, in its LED frame (:mod:`cm2optics.layout`; ``z`` along the unit's axis), with
+One LED unit, in its LED frame (:mod:`cm2optics.optics.layout`; ``z`` along the unit's axis), with
 ``g = led_array.excitation_gap_mm``, ``t`` the filter's thickness, ``c = mechanics.clearance_mm``:
 
 ==================  =========================================================================
@@ -28,7 +28,7 @@ housing             absorbing square tube: the bore (filter + c on each side) fr
 ==================  =========================================================================
 
 Around the units: the MLA housing (an absorbing tower of the envelope of
-:func:`cm2optics.layout.mla_housing_envelope`, its top standing for the emission filter that
+:func:`cm2optics.optics.layout.mla_housing_envelope`, its top standing for the emission filter that
 light must not enter, on a flange plane) and the sample plane ``z = object_plane_z_mm``
 (a perfect absorber that records where each ray lands).
 """
@@ -45,8 +45,9 @@ import numpy as np
 import trimesh
 
 from cm2optics.design import SystemDesign
-from cm2optics.layout import led_poses, mla_housing_envelope
-from cm2optics.materials import Material, refractive_index
+from cm2optics.optics import first_order
+from cm2optics.optics.layout import led_poses, mla_housing_envelope
+from cm2optics.design.materials import Material, refractive_index
 
 __all__ = [
     "Absorber",
@@ -196,7 +197,7 @@ class IlluminationScene:
 
     @property
     def sample_z_mm(self) -> float:
-        return float(self.design.object_plane_z_mm)
+        return float(first_order.object_plane_z_mm(self.design))
 
     @property
     def field_radius_mm(self) -> float:
@@ -551,7 +552,7 @@ def build_scene(
         flange = env.flange_side_mm / 2
         v, fc = _quads(_frame(half, half, flange, flange, env.flange_top_z_mm))
         parts.append(Part("imaging_flange", v, fc, Role.ABSORBER, absorber=Absorber.IMAGING_TOWER))
-    z = design.object_plane_z_mm
+    z = first_order.object_plane_z_mm(design)
     v, fc = _quads([_rect(-SAMPLE_HALF_MM, SAMPLE_HALF_MM, -SAMPLE_HALF_MM, SAMPLE_HALF_MM, z)])
     parts.append(Part("sample_plane", v, fc, Role.SAMPLE))
     if label is None:

@@ -100,7 +100,7 @@ def evaluate_candidate(
 ) -> dict[str, Any]:
     """Trace one candidate (runs on a Dask worker). Returns its parameters and figures, or
     ``feasible: False`` and the reason. ``design_data``: the base design as plain data."""
-    from cm2optics.illumination.backend import mitsuba
+    from cm2optics.optics.backend import mitsuba
 
     mi = mitsuba()
     if threads is not None and not mi.variant().startswith("scalar"):

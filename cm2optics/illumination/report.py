@@ -6,6 +6,7 @@ import time
 from pathlib import Path
 
 from cm2optics.design import SystemDesign
+from cm2optics.optics import first_order
 from cm2optics.report import Report
 
 __all__ = ["DEMO_RAYS", "REFERENCE_DIR", "add_illumination_section"]
@@ -29,7 +30,7 @@ def add_illumination_section(
     out_dir: the report's folder; maps go to ``out_dir/illumination/``. rays: rays per design.
     Returns the figures as JSON-able data (``illumination/illumination.json`` too).
     """
-    from cm2optics.illumination.backend import mitsuba, variant
+    from cm2optics.optics.backend import mitsuba, variant
     from cm2optics.illumination.bounds import etendue_bound, uniform_beam_bound
     from cm2optics.illumination.compare import compare_designs, configurations, setup_from_options, stl_collimator
     from cm2optics.illumination.metrics import DEFINITIONS, write_maps_png
@@ -51,7 +52,7 @@ def add_illumination_section(
     report.paragraph(
         f"Ray trace of LED → collimator → excitation filter → sample plane on Mitsuba 3 ({variant().variant}), "
         f"{rays:,} rays per design over the {design.led_array.count} LEDs ({design.led_array.tilt_deg:g}° tilt, "
-        f"{design.led_array.offset_mm:g} mm off-axis), housings absorbing, sample plane at z = {design.object_plane_z_mm:.2f} mm; "
+        f"{design.led_array.offset_mm:g} mm off-axis), housings absorbing, sample plane at z = {first_order.object_plane_z_mm(design):.2f} mm; "
         f"{elapsed:.1f} s in all. LED: {setup.notes['led_profile']}; spectrum: {setup.notes['led_spectrum']}. "
         f"Filter: {setup.notes['excitation_filter']}. Each figure ± its Monte Carlo standard error."
     )

@@ -37,7 +37,7 @@ from typing import Any
 
 import numpy as np
 
-from cm2optics.illumination.backend import is_jit, mitsuba, variant
+from cm2optics.optics.backend import is_jit, mitsuba, variant
 from cm2optics.illumination.excitation import Transmission, TransmissionTable, tabulate_transmission
 from cm2optics.illumination.geometry import IlluminationScene, Medium, Role
 from cm2optics.illumination.scene import MitsubaScene, mitsuba_scene

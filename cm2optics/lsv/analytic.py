@@ -26,7 +26,8 @@ from pathlib import Path
 import numpy as np
 
 from cm2optics.design import SystemDesign
-from cm2optics.materials import refractive_index
+from cm2optics.design.materials import refractive_index
+from cm2optics.optics import first_order
 from cm2optics.psf_scan import ScanMeta, write_scan
 
 __all__ = [
@@ -75,16 +76,16 @@ class AnalyticCM2:
     def from_design(cls, design: SystemDesign, binning: int = 1, **changes: float) -> AnalyticCM2:
         """The model of ``design`` on its sensor, binned ``binning``×; ``changes`` override fields."""
         n_filter = refractive_index(design.emission_filter.material, design.imaging.design_wavelength_nm)
-        reduced = design.working_distance_mm - design.emission_filter.thickness_mm * (1.0 - 1.0 / n_filter)
+        reduced = first_order.working_distance_mm(design) - design.emission_filter.thickness_mm * (1.0 - 1.0 / n_filter)
         model = cls(
-            magnification=design.magnification,
+            magnification=first_order.magnification(design),
             reduced_distance_mm=reduced,
             lenslet_centres_mm=tuple(tuple(c) for c in design.mla.lenslet_centres_mm()),
             rows=design.mla.rows,
             cols=design.mla.cols,
             pixel_um=design.sensor.pixel_um * binning,
             shape=(design.sensor.height_px // binning, design.sensor.width_px // binning),
-            object_na=design.object_na,
+            object_na=first_order.object_na(design),
         )
         return replace(model, **changes) if changes else model
 

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from cm2optics.design import AbsorptionFilter, InterferenceFilter, SystemDesign
-from cm2optics.materials import refractive_index
+from cm2optics.design.materials import refractive_index
 from cm2optics.spectra.absorption import AbsorptionFilm
 from cm2optics.spectra.geometry import excitation_half_angle_rad
 from cm2optics.spectra.interference import InterferenceBandpass

@@ -30,7 +30,8 @@ from enum import StrEnum
 import numpy as np
 
 from cm2optics.design import SystemDesign
-from cm2optics.materials import refractive_index
+from cm2optics.design.materials import refractive_index
+from cm2optics.optics import first_order
 from cm2optics.spectra.absorption import fresnel_transmittance
 
 __all__ = [
@@ -153,7 +154,7 @@ def excitation_beams(design: SystemDesign, samples: int = 8) -> tuple[np.ndarray
     tilt = math.radians(arr.tilt_deg)
     half_angle = excitation_half_angle_rad(design)
     width = design.collimator.footprint_mm if design.collimator is not None else design.excitation_filter.width_mm
-    height = design.object_plane_z_mm - (arr.offset_mm / math.tan(tilt) if tilt > 1e-9 else design.working_distance_mm)
+    height = first_order.object_plane_z_mm(design) - (arr.offset_mm / math.tan(tilt) if tilt > 1e-9 else first_order.working_distance_mm(design))
 
     u = (np.arange(samples) + 0.5) / samples - 0.5
     face_a, face_b = (g.ravel() * width for g in np.meshgrid(u, u))
@@ -184,7 +185,7 @@ def excitation_beams(design: SystemDesign, samples: int = 8) -> tuple[np.ndarray
 
 def _beam_hits(design: SystemDesign, samples: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     origins, directions, power = excitation_beams(design, samples)
-    t = (design.object_plane_z_mm - origins[:, 2]) / directions[:, 2]
+    t = (first_order.object_plane_z_mm(design) - origins[:, 2]) / directions[:, 2]
     return origins + directions * t[:, None], directions, power
 
 
@@ -196,7 +197,7 @@ def excitation_footprint(design: SystemDesign, step_mm: float = 0.5, samples: in
     if not (math.isfinite(step_mm) and 0.05 <= step_mm <= 5.0):
         raise ValueError(f"step_mm = {step_mm!r}: must lie within 0.05–5 mm")
     hits, _, power = _beam_hits(design, samples)
-    reach = (design.object_plane_z_mm - design.mask_z_mm) * math.tan(math.radians(75.0))
+    reach = (first_order.object_plane_z_mm(design) - design.mask_z_mm) * math.tan(math.radians(75.0))
     keep = np.hypot(hits[:, 0], hits[:, 1]) <= reach + design.aperture_mask.opening_mm
     cells = np.rint(hits[keep, :2] / step_mm).astype(int)
     unique, inverse = np.unique(cells, axis=0, return_inverse=True)
@@ -313,7 +314,7 @@ def trace_from_sources(
     emitter = Emitter(emitter)
     if not (isinstance(pupil_samples, int) and 4 <= pupil_samples <= 200):
         raise ValueError(f"pupil_samples = {pupil_samples!r}: must be an integer within 4–200")
-    z_object = design.object_plane_z_mm
+    z_object = first_order.object_plane_z_mm(design)
     z_target = design.mask_z_mm + design.aperture_mask.thickness_mm
     half = design.aperture_mask.opening_mm / 2 + 0.3  # margin: the filter plate shifts rays sideways
     cell = 2 * half / pupil_samples

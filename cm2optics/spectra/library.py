@@ -54,7 +54,7 @@ __all__ = [
     "write_library",
 ]
 
-#: Refractive index of a gelatin film base (n_D ≈ 1.53; cm2optics.materials uses the same value).
+#: Refractive index of a gelatin film base (n_D ≈ 1.53; cm2optics.design.materials uses the same value).
 GELATIN_INDEX = 1.53
 
 # ----------------------------------------------------------------------------- LED

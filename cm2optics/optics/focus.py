@@ -1,51 +1,36 @@
-"""The plane of best focus of a design's lenslets: an exact on-axis trace and its wavefront.
+"""The wavefront of a design's lenslets for an on-axis point: the exact trace that finds the plane
+of best focus (:func:`cm2optics.optics.first_order.object_plane_z_mm`).
 
 The lenslets carry several waves of spherical aberration, so the sharpest image of a point
-lies nearer the device than the paraxial conjugate of the sensor.
-:attr:`cm2optics.design.SystemDesign.object_plane_z_mm` is this plane of best focus and
-:attr:`~cm2optics.design.SystemDesign.magnification` the chief ray's magnification there;
-both are computed here. Heights are in the device frame (mm, z = 0 on the sensor).
+lies nearer the device than the paraxial conjugate of the sensor. Heights are in the device
+frame (mm, z = 0 on the sensor).
 """
 
 from __future__ import annotations
 
-import math
 from typing import TYPE_CHECKING
 
 import numpy as np
 
-from cm2optics import paraxial
-from cm2optics.materials import refractive_index
+from cm2optics.design.materials import refractive_index
+from cm2optics.optics.arrays import NumpyOps
+from cm2optics.optics.interfaces import refract, snell_cos_t
 
 if TYPE_CHECKING:
     from cm2optics.design import SystemDesign
 
-__all__ = ["FOCUS_RAYS", "best_focus_height_mm", "chief_ray_magnification", "on_axis_wavefront_rms_waves"]
+__all__ = ["FOCUS_RAYS", "on_axis_wavefront_rms_waves"]
 
 #: Rays along each side of the launch grid that finds the plane of best focus.
 FOCUS_RAYS = 48
-
-
-def chief_ray_magnification(design: SystemDesign, height_mm: float) -> float:
-    """|m| of a lenslet for a source plane at ``height_mm`` (device frame, mm): where the chief ray
-    (through the lenslet's vertex, its stop) lands on the sensor per mm of source height
-    (paraxial). At the sensor's conjugate this is the conjugate pair's magnification; elsewhere
-    it is the magnification of the blurred image's centre."""
-    filt = design.emission_filter
-    n_f = refractive_index(filt.material, design.imaging.design_wavelength_nm)
-    s = height_mm - (design.emission_filter_z_mm + filt.thickness_mm)
-    a, b = paraxial.chain(paraxial.propagate(s, 1.0), design._lenslet_system)[0]
-    to_vertex = s + filt.thickness_mm / n_f + (design.emission_filter_z_mm - design.mla_vertex_z_mm)
-    return float(abs(a - b / to_vertex))
 
 
 def _refract(d: np.ndarray, normal: np.ndarray, eta: np.ndarray | float) -> np.ndarray:
     """Snell's law for unit directions ``d`` (n, 3) through unit normals facing the rays, index
     ratio ``eta`` = n₁/n₂; NaN where totally reflected."""
     cos_i = -np.sum(d * normal, axis=-1, keepdims=True)
-    k = 1.0 - eta * eta * (1.0 - cos_i * cos_i)
-    with np.errstate(invalid="ignore"):
-        return eta * d + (eta * cos_i - np.sqrt(k)) * normal
+    cos_t, tir = snell_cos_t(NumpyOps, cos_i, eta)
+    return np.where(tir, np.nan, refract(d, normal, eta, cos_i, cos_t))
 
 
 def on_axis_wavefront_rms_waves(design: SystemDesign, height_mm: float, rays: int = FOCUS_RAYS) -> float:
@@ -113,25 +98,3 @@ def on_axis_wavefront_rms_waves(design: SystemDesign, height_mm: float, rays: in
     coef, *_ = np.linalg.lstsq(basis, wave[keep], rcond=None)
     residual = wave[keep] - basis @ coef
     return float(np.sqrt(np.mean(residual**2)) / (lam * 1e-6))
-
-
-def best_focus_height_mm(design: SystemDesign, tolerance_mm: float = 1e-4) -> float:
-    """Height (device frame, mm) of the plane of best focus: the on-axis source height that
-    minimises :func:`on_axis_wavefront_rms_waves`, found by golden-section search from 2.5 mm
-    nearer the device to 0.5 mm beyond the paraxial conjugate, to ``tolerance_mm``."""
-    paraxial_height = design.paraxial_object_plane_z_mm
-    low = max(paraxial_height - 2.5, design.emission_filter_z_mm + design.emission_filter.thickness_mm + 0.1)
-    high = paraxial_height + 0.5
-    ratio = (math.sqrt(5.0) - 1.0) / 2.0
-    a, b = high - ratio * (high - low), low + ratio * (high - low)
-    fa, fb = on_axis_wavefront_rms_waves(design, a), on_axis_wavefront_rms_waves(design, b)
-    while high - low > tolerance_mm:
-        if fa <= fb:
-            high, b, fb = b, a, fa
-            a = high - ratio * (high - low)
-            fa = on_axis_wavefront_rms_waves(design, a)
-        else:
-            low, a, fa = a, b, fb
-            b = low + ratio * (high - low)
-            fb = on_axis_wavefront_rms_waves(design, b)
-    return float(0.5 * (low + high))

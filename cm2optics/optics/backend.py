@@ -1,4 +1,5 @@
-"""Which Mitsuba variant the illumination tracer runs on, and the LLVM library it needs.
+"""Which Mitsuba variant the ray tracers (illumination and emission) run on, and the LLVM library
+it needs. One process has one Mitsuba variant; ``CM2_ILLUM_VARIANT`` forces it for both.
 
 Mitsuba 3.9 / Dr.Jit 1.5 compile their CPU kernels with LLVM at run time, loading
 ``libLLVM`` as a shared library. Dr.Jit's own search picks the first library it finds, and on
@@ -16,8 +17,8 @@ Variant choice (:func:`variant`), first match wins:
 4. otherwise ``scalar_rgb``, with ONE :class:`RuntimeWarning` per process saying so: the
    tracer still runs, one ray at a time (≈ 10³ rays/s instead of ≈ 10⁶).
 
-Mitsuba and Dr.Jit are imported only through :func:`mitsuba` (inside this subpackage, as the
-project's architecture test requires).
+Mitsuba and Dr.Jit are imported only through :func:`mitsuba` here, in :mod:`cm2optics.illumination`
+and in :mod:`cm2optics.emission` (as the project's architecture test requires).
 """
 
 from __future__ import annotations
@@ -136,7 +137,7 @@ def _prepare_llvm(backend: Backend) -> None:
         return
     if "drjit" in sys.modules and os.environ.get("DRJIT_LIBLLVM_PATH") != backend.libllvm:
         warnings.warn(
-            "Dr.Jit was imported before cm2optics.illumination could point DRJIT_LIBLLVM_PATH at "
+            "Dr.Jit was imported before cm2optics.optics.backend could point DRJIT_LIBLLVM_PATH at "
             f"{backend.libllvm}; if its own choice is LLVM < {MIN_LLVM_MAJOR} kernels will fail",
             RuntimeWarning,
             stacklevel=3,
@@ -181,7 +182,7 @@ def mitsuba() -> ModuleType:
     if backend.variant.startswith("scalar") and not os.environ.get("CM2_ILLUM_VARIANT") and not _WARNED:
         _WARNED = True
         warnings.warn(
-            f"illumination: {backend.reason}; tracing on Mitsuba's scalar variant, one ray at a time "
+            f"ray tracing: {backend.reason}; tracing on Mitsuba's scalar variant, one ray at a time "
             f"(≈ 10³ rays/s). Install LLVM ≥ {MIN_LLVM_MAJOR} (Debian/Ubuntu: apt install libllvm19) or set "
             "DRJIT_LIBLLVM_PATH to its libLLVM for ≈ 10⁶ rays/s.",
             RuntimeWarning,
@@ -190,7 +191,7 @@ def mitsuba() -> ModuleType:
     return mi
 
 
-# Point Dr.Jit at a good LLVM as soon as the subpackage is imported, before anything else in
+# Point Dr.Jit at a good LLVM as soon as this module is imported, before anything else in
 # the process can import Dr.Jit with its own (possibly broken) choice. (Cheap: file names only;
 # Dr.Jit itself is imported when a variant is first needed.)
 _prepare_llvm(_choose())

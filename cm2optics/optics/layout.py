@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from cm2optics.design import SystemDesign
+from cm2optics.optics import first_order
 
 
 @dataclass(frozen=True)
@@ -44,7 +45,7 @@ def led_poses(design: SystemDesign) -> list[Pose]:
     aperture (excitation filter's lower face) ``led_array.offset_mm`` off the optical axis."""
     arr = design.led_array
     tilt = math.radians(arr.tilt_deg)
-    aperture_z = design.object_plane_z_mm - (arr.offset_mm / math.tan(tilt) if tilt > 0 else 10.0)
+    aperture_z = first_order.object_plane_z_mm(design) - (arr.offset_mm / math.tan(tilt) if tilt > 0 else 10.0)
     poses = []
     for i in range(arr.count):
         phi = math.radians(arr.azimuth_deg) + 2.0 * math.pi * i / arr.count
