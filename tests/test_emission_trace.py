@@ -114,8 +114,7 @@ def test_the_octagonal_tabs_block_the_same_rays_in_both_engines(optics):
 
 
 def test_bores_follow_the_printed_housing(v2):
-    pytest.importorskip("cadquery")
-    from cm2optics.cad.mla_housing import bore_steps, mla_tab_geometry
+    from cm2optics.optics.housing import bore_steps, mla_tab_geometry
 
     ours = {b.name: b for b in housing_bores(v2)}
     for step in bore_steps(v2):
