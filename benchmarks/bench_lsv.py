@@ -132,7 +132,7 @@ def main() -> None:
     print(f"building the synthetic model (binning {binning}, K = {args.rank}) …", flush=True)
     start = time.perf_counter()
     design = load_preset("cm2-v2")
-    analytic = AnalyticCM2.from_design(design, binning=binning, sigma0_um=2.4 * binning)
+    analytic = AnalyticCM2.from_design(design, binning=binning, sigma0_um=design.sensor.pixel_um * binning)
     axis = np.linspace(-4, 4, 9)
     model = analytic_model(
         analytic, axis, axis, np.linspace(-0.5, 0.5, 11), rank=args.rank, trim=None if args.no_trim else 1e-6
@@ -140,7 +140,7 @@ def main() -> None:
     if args.cross_coupling_px:
         model = cross_coupled(model, args.cross_coupling_px)
     native = model.default_grid.voxel_um[1]
-    grid = VolumeGrid((nz, n_lateral, n_lateral), (10.0, native, native))
+    grid = VolumeGrid((nz, n_lateral, n_lateral), (design.volume.axial_step_um, native, native))
     results["model"] = {
         "sensor": list(model.sensor_shape),
         "rank": model.rank,

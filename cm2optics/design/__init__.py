@@ -17,7 +17,14 @@ package imports no other part of cm2optics.
 from cm2optics.design.filters import AbsorptionFilter, InterferenceFilter
 from cm2optics.design.illumination import LED, Collimator, LEDArray
 from cm2optics.design.imaging import ImagedVolume, ImagingLayout
-from cm2optics.design.io import available_presets, design_from_dict, load_design, load_preset
+from cm2optics.design.io import (
+    DEFAULT_PRESET,
+    available_presets,
+    default_design,
+    design_from_dict,
+    load_design,
+    load_preset,
+)
 from cm2optics.design.materials import Material, refractive_index
 from cm2optics.design.mechanics import BasePlate, LEDHousing, Mechanics, MLAHousing
 from cm2optics.design.mla import ApertureMask, MicrolensArray, Side
@@ -26,6 +33,7 @@ from cm2optics.design.system import SystemDesign
 from cm2optics.design.validation import DesignError
 
 __all__ = [
+    "DEFAULT_PRESET",
     "LED",
     "AbsorptionFilter",
     "ApertureMask",
@@ -46,6 +54,7 @@ __all__ = [
     "Side",
     "SystemDesign",
     "available_presets",
+    "default_design",
     "design_from_dict",
     "load_design",
     "load_preset",

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from functools import lru_cache
 from importlib import resources
 from pathlib import Path
 from typing import Any
@@ -12,7 +13,10 @@ from cm2optics.design.coerce import dataclass_from_dict
 from cm2optics.design.system import SystemDesign
 from cm2optics.design.validation import DesignError
 
-__all__ = ["available_presets", "design_from_dict", "load_design", "load_preset"]
+__all__ = ["DEFAULT_PRESET", "available_presets", "default_design", "design_from_dict", "load_design", "load_preset"]
+
+#: The preset that stands in where a function is given no design (the paper's device).
+DEFAULT_PRESET = "cm2-v2"
 
 
 def design_from_dict(data: dict[str, Any]) -> SystemDesign:
@@ -47,3 +51,9 @@ def load_preset(name: str) -> SystemDesign:
         raise DesignError("preset", name, f"unknown preset; available: {', '.join(presets)} (or a path to a .yaml)")
     text = (resources.files("cm2optics.design") / "presets" / f"{name}.yaml").read_text()
     return design_from_dict(yaml.safe_load(text))
+
+
+@lru_cache(maxsize=1)
+def default_design() -> SystemDesign:
+    """The :data:`DEFAULT_PRESET` design, loaded once: what a function given no design falls back on."""
+    return load_preset(DEFAULT_PRESET)

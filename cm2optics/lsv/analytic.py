@@ -48,10 +48,11 @@ class AnalyticCM2:
     reduced_distance_mm: D, focal plane to the lenslet vertices in reduced (air) units, mm.
     lenslet_centres_mm: (J, 2) lenslet vertices (x, y) in the device frame, mm.
     rows, cols: lenslet layout (J = rows·cols, row by row).
-    pixel_um: image pixel pitch (after binning), µm.
+    pixel_um: image pixel pitch (after binning), µm. binning: sensor pixels per image pixel and axis.
+    axial_step_um: axial voxel pitch of the model's default reconstruction grid, µm.
     shape: image shape (y, x), pixels.
     object_na: object-side NA of one lenslet (sets the defocus blur).
-    sigma0_um: in-focus Gaussian σ of a focus on the sensor, µm.
+    sigma0_um: in-focus Gaussian σ of a focus on the sensor, µm (None: one sensor pixel).
     aberration_per_mm2: a, radial widening per mm² of off-axis distance.
     distortion_um_per_mm3: b, radial displacement of a focus on the sensor per mm³, µm.
     vignetting_mm: ρ_v, off-axis distance where a focus is half as bright, mm.
@@ -65,12 +66,18 @@ class AnalyticCM2:
     cols: int
     pixel_um: float
     shape: tuple[int, int]
+    binning: int
+    axial_step_um: float
     object_na: float = 0.053
-    sigma0_um: float = 2.4
+    sigma0_um: float | None = None
     aberration_per_mm2: float = 0.12
     distortion_um_per_mm3: float = 0.3
     vignetting_mm: float = 3.2
     vignetting_soft_mm: float = 0.25
+
+    def __post_init__(self) -> None:
+        if self.sigma0_um is None:
+            object.__setattr__(self, "sigma0_um", self.pixel_um / self.binning)
 
     @classmethod
     def from_design(cls, design: SystemDesign, binning: int = 1, **changes: float) -> AnalyticCM2:
@@ -85,6 +92,8 @@ class AnalyticCM2:
             cols=design.mla.cols,
             pixel_um=design.sensor.pixel_um * binning,
             shape=(design.sensor.height_px // binning, design.sensor.width_px // binning),
+            binning=binning,
+            axial_step_um=design.volume.axial_step_um,
             object_na=first_order.object_na(design),
         )
         return replace(model, **changes) if changes else model
@@ -183,15 +192,14 @@ def analytic_model(
     *,
     rank: int = 64,
     patch_px: int | None = None,
-    axial_um: float = 10.0,
+    axial_um: float | None = None,
     trim: float | None = 1e-6,
 ):
     """An :class:`~cm2optics.lsv.model.LSVModel` of the analytic system built straight from
     noise-free crops on the grid x × y × z (mm): no scan files, the paraxial geometry known."""
     from cm2optics.lsv.build import default_patch_px, model_from_crops
 
-    binning = max(1, int(round(model.pixel_um / 2.4)))
-    patch = patch_px or default_patch_px(binning)
+    patch = patch_px or default_patch_px(model.binning)
     xs, ys, zs = (np.asarray(a, float) for a in (x_mm, y_mm, z_mm))
     geometry = analytic_geometry(model, zs)
     positions = np.array([[x, y, z] for z in zs for y in ys for x in xs])
@@ -205,7 +213,7 @@ def analytic_model(
         rank=rank,
         sensor_shape=model.shape,
         pixel_um=model.pixel_um,
-        axial_um=axial_um,
+        axial_um=model.axial_step_um if axial_um is None else axial_um,
         trim=trim,
         provenance={"source": "analytic CM²-like model (cm2optics.lsv.analytic), noise-free crops"},
     )

@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 import cm2optics
-from cm2optics.design import SystemDesign
+from cm2optics.design import SystemDesign, default_design
 from cm2optics.lsv.decompose import Decomposition, decompose, numerical_rank, trim_window
 from cm2optics.lsv.model import LSVModel
 from cm2optics.lsv.preprocess import Geometry, GeometryFit, estimate_geometry, extract_crops
@@ -149,7 +149,7 @@ def build_model(
     rank: int = 64,
     patch_px: int | None = None,
     lateral_um: float | None = None,
-    axial_um: float = 10.0,
+    axial_um: float | None = None,
     design: SystemDesign | None = None,
     degree: int = 2,
     trim: float | None = 1e-6,
@@ -161,7 +161,8 @@ def build_model(
     patch_px: crop side per focus in image pixels (default: 160 at full resolution, scaled by
         the scan's binning).
     lateral_um, axial_um: voxel pitch of the default reconstruction grid, µm (lateral default:
-        one sensor pixel per voxel at the focal plane).
+        one sensor pixel per voxel at the focal plane; axial default: ``volume.axial_step_um`` of
+        ``design``, or of the cm2-v2 preset without one).
     design: the design to take the lenslet layout from (unless scan.yaml says ``lenslets``) and
         to fall back on for the magnification if the scan's positions cannot fix it.
     trim: share of the PSF energy the basis may lose when its crops' dark margins are cut
@@ -169,6 +170,8 @@ def build_model(
     """
     if rank < 1:
         raise ValueError(f"rank = {rank}: must be ≥ 1")
+    if axial_um is None:
+        axial_um = (design or default_design()).volume.axial_step_um
     if axial_um <= 0 or (lateral_um is not None and lateral_um <= 0):
         raise ValueError("voxel sizes must be > 0 µm")
     seconds: dict[str, float] = {}
@@ -254,13 +257,14 @@ def model_from_crops(
     sensor_shape: tuple[int, int],
     pixel_um: float,
     lateral_um: float | None = None,
-    axial_um: float = 10.0,
+    axial_um: float | None = None,
     trim: float | None = 1e-6,
     provenance: dict[str, Any] | None = None,
 ) -> tuple[LSVModel, Decomposition]:
     """Truncated SVD of registered ``crops`` (N, J, h, w) at grid positions ``grid_index`` (N, 3)
     as (ix, iy, iz) of ``axes`` (x, y, z mm), scaled so that the in-focus on-axis image of a unit
-    source sums to 1, with a default grid spanning the axes. ``trim``: drop the crops' dark
+    source sums to 1, with a default grid spanning the axes (``axial_um`` None: the cm2-v2 preset's
+    ``volume.axial_step_um``). ``trim``: drop the crops' dark
     margins holding less than this share of the PSF energy (None: keep the full crops)."""
     xs, ys, zs = axes
     decomposition = decompose(crops, rank)
@@ -275,6 +279,8 @@ def model_from_crops(
     A0 = geometry.A(0.0)
     native_um = 1000.0 / math.sqrt(abs(float(np.linalg.det(A0))))
     dxy = lateral_um if lateral_um is not None else native_um
+    if axial_um is None:  # the cm2-v2 preset's axial step
+        axial_um = default_design().volume.axial_step_um
     shape = (
         int(math.floor((zs[-1] - zs[0]) * 1000.0 / axial_um + 1e-9)) + 1,
         int(math.floor((ys[-1] - ys[0]) * 1000.0 / dxy + 1e-9)) + 1,

@@ -83,7 +83,7 @@ def build(
     lateral_um: Annotated[
         float | None, typer.Option("--lateral-um", help="Default grid's lateral voxel, µm (default: one sensor pixel).")
     ] = None,
-    axial_um: Annotated[float, typer.Option("--axial-um", help="Default grid's axial voxel, µm.")] = 10.0,
+    axial_um: Annotated[float | None, typer.Option("--axial-um", help="Default grid's axial voxel, µm (default: the design's volume.axial_step_um).")] = None,
     trim: Annotated[
         float,
         typer.Option("--trim", help="Energy share the crops' dark margins may hold when cut (0: keep the full crops)."),

@@ -209,7 +209,7 @@ def add_lsv_section(
         from cm2optics.lsv.analytic import AnalyticCM2, write_analytic_scan
 
         binning = 8
-        analytic = AnalyticCM2.from_design(design, binning=binning, sigma0_um=2.4 * binning)
+        analytic = AnalyticCM2.from_design(design, binning=binning, sigma0_um=design.sensor.pixel_um * binning)
         scan_dir = write_analytic_scan(
             folder / "scan",
             analytic,

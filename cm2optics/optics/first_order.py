@@ -34,6 +34,7 @@ __all__ = [
     "object_z_to_height_mm",
     "paraxial_magnification",
     "paraxial_object_plane_z_mm",
+    "voxel_um",
     "working_distance_mm",
 ]
 
@@ -141,3 +142,10 @@ def object_pixel_um(design: SystemDesign) -> float:
 def object_na(design: SystemDesign) -> float:
     """Object-side numerical aperture of one lenslet (square aperture, inscribed circle)."""
     return math.sin(math.atan(design.mla.aperture_mm / 2 / working_distance_mm(design)))
+
+
+def voxel_um(design: SystemDesign) -> tuple[float, float, float]:
+    """(z, y, x) voxel of the design's native reconstruction grid, µm: ``volume.axial_step_um``
+    along z and one sensor pixel in object space (:func:`object_pixel_um`) laterally."""
+    pixel = object_pixel_um(design)
+    return (design.volume.axial_step_um, pixel, pixel)
