@@ -23,6 +23,8 @@ from cm2optics.illumination.cli import illum_app
 from cm2optics.lsv.cli import lsv_app, simulate_command
 from cm2optics.metrics.cli import evaluate_command
 from cm2optics.optics import first_order
+from cm2optics.optics.checks import require_plausible
+from cm2optics.spectra.library import egfp_emission_band_nm
 from cm2optics.recon.cli import reconstruct_command
 from cm2optics.spectra.cli import spectra_app
 from cm2optics.synth.cli import synth_command
@@ -103,7 +105,7 @@ def design_show(
     The focal plane (object_plane_z_mm) is the plane of best focus (least RMS wavefront error);
     its paraxial conjugate lies focus_shift_mm farther out. Heights are in the device frame: z = 0 on the sensor surface, +z towards the sample.
     """
-    design = load_preset(preset)
+    design = require_plausible(load_preset(preset), egfp_emission_band_nm())
     if yaml_out:
         sys.stdout.write(design.to_yaml())
         return
@@ -128,7 +130,7 @@ def design_validate(path: Annotated[Path, typer.Argument(help="Design YAML to ch
     """Check a design YAML: every field present, typed and in physical range."""
     from cm2optics.design import load_design
 
-    design = load_design(path)
+    design = require_plausible(load_design(path), egfp_emission_band_nm())
     out.print(f"[green]ok[/]: {path} is a valid design ({design.name}, hash {design.parameter_hash()})")
 
 

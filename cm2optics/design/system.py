@@ -57,6 +57,32 @@ class SystemDesign:
 
     def __post_init__(self) -> None:
         mla, lay, mech = self.mla, self.imaging, self.mechanics
+        sensor = self.sensor
+        check(
+            "mla.pitch_mm",
+            mla.pitch_mm,
+            mla.width_mm <= sensor.active_width_mm and mla.length_mm <= sensor.active_length_mm,
+            f"the MLA ({mla.width_mm:.3f} × {mla.length_mm:.3f} mm) must fit the sensor's active area "
+            f"({sensor.active_width_mm:.3f} × {sensor.active_length_mm:.3f} mm)",
+        )
+        emission, excitation = self.emission_filter, self.excitation_filter
+        emission_low = emission.center_nm - emission.bandwidth_nm / 2
+        emission_high = emission.center_nm + emission.bandwidth_nm / 2
+        check(
+            "emission_filter.center_nm",
+            emission.center_nm,
+            emission_low >= excitation.center_nm + excitation.bandwidth_nm / 2,
+            f"the emission passband ({emission_low:g}–{emission_high:g} nm) must lie above the excitation "
+            f"filter's ({excitation.center_nm:g} ± {excitation.bandwidth_nm / 2:g} nm): fluorescence is red-shifted",
+        )
+        if self.absorption_filter is not None:
+            check(
+                "absorption_filter.cut_on_nm",
+                self.absorption_filter.cut_on_nm,
+                self.absorption_filter.cut_on_nm < emission_high,
+                f"the film must cut on below the top of the emission passband ({emission_high:g} nm), "
+                "or it absorbs all the signal",
+            )
         if self.absorption_filter is not None:
             film_top = lay.film_to_sensor_mm + self.absorption_filter.thickness_mm
             check(

@@ -16,6 +16,8 @@ from rich.console import Console
 from rich.table import Table
 
 from cm2optics.cli_options import PresetOption, user_errors
+from cm2optics.optics.checks import check_design
+from cm2optics.spectra.library import egfp_emission_band_nm
 
 __all__ = ["spectra_app"]
 
@@ -47,6 +49,8 @@ def report(
     from cm2optics.spectra.report import spectra_report
 
     design = load_preset(preset)
+    for problem in check_design(design, egfp_emission_band_nm()):
+        typer.echo(f"warning: the SBR is implausible for this design: {problem}", err=True)
     figures = spectra_report(design, out_dir)
     if as_json:
         print(json.dumps(figures, indent=2, ensure_ascii=False))
