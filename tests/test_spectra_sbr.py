@@ -142,3 +142,37 @@ def test_the_hybrid_chain_of_a_design(v2):
 def test_bad_sample_values_name_the_field(kwargs, field):
     with pytest.raises(ValueError, match=field):
         Sample(**kwargs)
+
+
+def test_diced_array_partial_cells_count_as_in_the_psf_tracer(v2):
+    """Partial lenslets left by dicing collect light: spectra's rays go through the emission tracer
+    with every cell of lens_cells, so each ray lands exactly when some lenslet of the PSF tracer
+    passes it, at the same angles."""
+    from cm2optics.design.materials import refractive_index
+    from cm2optics.emission.optics import emission_optics
+    from cm2optics.emission.trace import RayBatch
+    from cm2optics.emission.trace import trace_rays as trace_emission
+    from cm2optics.spectra.geometry import trace_rays
+
+    diced = v2.with_changes({"mla.partial_border_mm": 0.3, "mla.partial_sides": ["+x", "-x", "+y", "-y"]})
+    source = np.array([1.2, 0.4, first_order.object_plane_z_mm(diced)])
+    t = np.linspace(-0.2, 0.2, 41)
+    u, v = (g.ravel() for g in np.meshgrid(t, t))
+    d = np.column_stack([u, v, -np.ones_like(u)]) / np.sqrt(1 + u * u + v * v)[:, None]
+    origins, power = np.tile(source, (len(d), 1)), np.full(len(d), 1.0 / len(d))
+
+    plain, cut = trace_rays(v2, origins, d, power), trace_rays(diced, origins, d, power)
+    assert len(cut.power) > len(plain.power)  # the partial cells add light
+
+    optics = emission_optics(diced)
+    lam = diced.imaging.design_wavelength_nm
+    n = len(d)
+    indices = [np.full(n, refractive_index(part.material, lam)) for part in (diced.emission_filter, diced.mla, diced.absorption_filter)]
+    passed, aoi = np.zeros(n, bool), np.zeros(n)
+    for k in range(len(optics.lenslets)):
+        traced = trace_emission(optics, RayBatch(origins, u, v, np.full(n, k), *indices), engine="numpy")
+        aoi = np.where(traced.passed & ~passed, traced.aoi_filter_rad, aoi)
+        passed |= traced.passed
+    assert any(c.partial for c in optics.lenslets)
+    assert len(cut.power) == passed.sum()
+    np.testing.assert_allclose(np.sort(cut.aoi_filter_rad), np.sort(aoi[passed]), atol=1e-9)

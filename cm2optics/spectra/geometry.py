@@ -31,8 +31,12 @@ import numpy as np
 
 from cm2optics.design import SystemDesign
 from cm2optics.design.materials import refractive_index
+from cm2optics.emission.optics import EmissionOptics, emission_optics
+from cm2optics.emission.trace import RayBatch
+from cm2optics.emission.trace import trace_rays as trace_emission_rays
 from cm2optics.optics import first_order
 from cm2optics.spectra.absorption import fresnel_transmittance
+from cm2optics.spectra.chain import excitation_half_angle_rad
 
 __all__ = [
     "EmissionRays",
@@ -124,20 +128,6 @@ def field_sources(design: SystemDesign, step_mm: float = 0.4) -> Sources:
     return Sources(points, np.full(len(points), 1.0 / len(points)))
 
 
-def excitation_half_angle_rad(design: SystemDesign) -> float:
-    """Half-angle of the cone of excitation light leaving an LED unit, rad.
-
-    With a collimator: the étendue limit of a Lambertian emitter of side e through a square exit
-    face of side b, sin δ = e / b (a perfect collimator can do no better). A bare LED: the widest
-    ray from the emitter's edge through the excitation filter's far edge.
-    """
-    led = design.led
-    if design.collimator is not None:
-        return math.asin(min(1.0, led.emitter_mm / design.collimator.footprint_mm))
-    half = max(design.excitation_filter.width_mm, design.excitation_filter.length_mm) / 2
-    return math.atan((half + led.emitter_mm / 2) / design.led_array.excitation_gap_mm)
-
-
 def excitation_beams(design: SystemDesign, samples: int = 8) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Rays leaving the LED units and the power share of each: (origins_mm, directions, power).
 
@@ -219,89 +209,65 @@ def specular_rays(design: SystemDesign, surface_index: float, samples: int = 24)
 # ----------------------------------------------------------------------------- tracing
 
 
-def _refract(d: np.ndarray, normal: np.ndarray, n1: float, n2: float) -> tuple[np.ndarray, np.ndarray]:
-    """Snell's law in vector form; ``normal`` faces the incoming ray's side. Returns (direction, ok):
-    a totally reflected ray is not ok and keeps a harmless straight-down direction."""
-    eta = n1 / n2
-    cos_i = -np.sum(d * normal, axis=-1)
-    k = 1.0 - eta**2 * (1.0 - cos_i**2)
-    ok = (k > 0) & (cos_i > 0)
-    t = eta * d + (eta * cos_i - np.sqrt(np.clip(k, 0, None)))[:, None] * normal
-    t[~ok] = (0.0, 0.0, -1.0)
-    return t, ok
-
-
-def _to_z(p: np.ndarray, d: np.ndarray, z: float) -> np.ndarray:
-    """Where rays from ``p`` along ``d`` (all going down, d_z < 0) cross the plane at height ``z``."""
-    return p + d * ((z - p[:, 2]) / d[:, 2])[:, None]
-
-
-def _inside(p: np.ndarray, half_x: float, half_y: float, cx: np.ndarray | float = 0.0, cy: np.ndarray | float = 0.0):
-    return (np.abs(p[:, 0] - cx) <= half_x) & (np.abs(p[:, 1] - cy) <= half_y)
+def _cells(optics: EmissionOptics, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Index of the lenslet (full or partial cell) whose clear aperture holds each (x, y), mm;
+    the nearest vertex where none does."""
+    cells = optics.lenslets
+    index = np.argmin(
+        [(x - c.vertex_x_mm) ** 2 + (y - c.vertex_y_mm) ** 2 for c in cells], axis=0
+    )
+    for k, c in enumerate(cells):
+        index[(x >= c.x0_mm) & (x <= c.x1_mm) & (y >= c.y0_mm) & (y <= c.y1_mm)] = k
+    return index
 
 
 def trace_rays(design: SystemDesign, origins_mm: np.ndarray, directions: np.ndarray, power: np.ndarray) -> EmissionRays:
     """Trace rays (device-frame origins, mm; unit directions; power shares) from above the emission
-    filter through it, the mask, one lenslet and the film to the sensor; keep those that land."""
+    filter to the sensor with the emission tracer (:func:`cm2optics.emission.trace.trace_rays`:
+    filter, mask, housing bore and tabs, every lenslet cell of :func:`cm2optics.optics.lenslets.lens_cells`
+    — partial cells included —, film); keep those that land on the active area.
+
+    Each ray goes to the lenslet whose cell holds its crossing of the vertices' plane, or else of
+    the lens surface's lowest plane (the sphere hit lies between the two)."""
     d = np.asarray(directions, dtype=float)
     p = np.asarray(origins_mm, dtype=float)
     power = np.asarray(power, dtype=float)
     down = d[:, 2] < -1e-9
     d, p, power = d[down], p[down], power[down]
+    optics = emission_optics(design)
     lam = design.imaging.design_wavelength_nm
-    mla, mask, filt, film = design.mla, design.aperture_mask, design.emission_filter, design.absorption_filter
-    n_filter = refractive_index(filt.material, lam)
-    n_lens = refractive_index(mla.material, lam)
-    up = np.broadcast_to(_UP, d.shape)
-
-    # Emission filter: a parallel plate that shifts the ray sideways.
-    p = _to_z(p, d, design.emission_filter_z_mm + filt.thickness_mm)
-    ok = _inside(p, filt.width_mm / 2, filt.length_mm / 2)
-    inside_glass, _ = _refract(d, up, 1.0, n_filter)
-    p = _to_z(p, inside_glass, design.emission_filter_z_mm)
-
-    # Aperture mask: both faces must be in the opening.
-    for z in (design.mask_z_mm + mask.thickness_mm, design.mask_z_mm):
-        p = _to_z(p, d, z)
-        ok &= _inside(p, mask.opening_mm / 2, mask.opening_mm / 2)
-
-    # Lenslet: the sphere of the cell the ray crosses (re-chosen once from the hit point).
-    z_vertex, radius = design.mla_vertex_z_mm, mla.radius_mm
-    x0, y0 = (mla.cols - 1) / 2, (mla.rows - 1) / 2
-
-    def sphere_hit(near: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        ix = np.clip(np.rint(near[:, 0] / mla.pitch_mm + x0), 0, mla.cols - 1)
-        iy = np.clip(np.rint(near[:, 1] / mla.pitch_mm + y0), 0, mla.rows - 1)
-        centre = np.column_stack(
-            [(ix - x0) * mla.pitch_mm, (iy - y0) * mla.pitch_mm, np.full(len(ix), z_vertex - radius)]
-        )
-        oc = p - centre
-        b = np.sum(d * oc, axis=1)
-        disc = b**2 - (np.sum(oc * oc, axis=1) - radius**2)
-        s = -b - np.sqrt(np.clip(disc, 0, None))
-        return p + d * s[:, None], centre, disc >= 0
-
-    h, centre, _ = sphere_hit(_to_z(p, d, z_vertex))
-    h, centre, on_sphere = sphere_hit(h)
-    ok &= on_sphere & _inside(h, mla.aperture_mm / 2, mla.aperture_mm / 2, centre[:, 0], centre[:, 1])
-    in_lens, refracted = _refract(d, (h - centre) / radius, 1.0, n_lens)
-    ok &= refracted
-
-    # Flat face of the MLA, then air, the film and the sensor.
-    p = _to_z(h, in_lens, design.imaging.mla_to_sensor_mm)
-    ok &= _inside(p, mla.width_mm / 2, mla.length_mm / 2)
-    out, leaves = _refract(in_lens, up, n_lens, 1.0)
-    ok &= leaves
-    aoi_film = np.zeros(len(d))
-    if film is not None:
-        p = _to_z(p, out, design.imaging.film_to_sensor_mm + film.thickness_mm)
-        ok &= _inside(p, film.width_mm / 2, film.length_mm / 2)
-        aoi_film = np.arccos(np.clip(-out[:, 2], -1, 1))
-        in_film, _ = _refract(out, up, 1.0, refractive_index(film.material, lam))
-        p = _to_z(p, in_film, design.imaging.film_to_sensor_mm)
-    p = _to_z(p, out, 0.0)
-    ok &= _inside(p, design.sensor.active_width_mm / 2, design.sensor.active_length_mm / 2)
-    return EmissionRays(np.arccos(np.clip(-d[ok, 2], -1, 1)), aoi_film[ok], power[ok])
+    n = len(d)
+    indices = [
+        np.full(n, refractive_index(part.material, lam) if part is not None else 1.0)
+        for part in (design.emission_filter, design.mla, design.absorption_filter)
+    ]
+    u, v = d[:, 0] / -d[:, 2], d[:, 1] / -d[:, 2]
+    # Filter plate: the ray leaves it parallel to itself, shifted by t·(1 − cos θ / (n cos θₜ)) tan θ.
+    n_f = indices[0]
+    tan2 = u * u + v * v
+    shift = optics.filter.thickness_mm * (1.0 - 1.0 / np.sqrt(n_f * n_f * (1.0 + tan2) - tan2))
+    passed = np.zeros(n, bool)
+    result = None
+    tried = np.full(n, -1)
+    for z in (optics.vertex_z_mm, optics.land_z_mm):
+        reach = p[:, 2] - z - shift
+        lenslet = _cells(optics, p[:, 0] + u * reach, p[:, 1] + v * reach)
+        todo = ~passed & (lenslet != tried)
+        if not todo.any():
+            continue
+        batch = RayBatch(p[todo], u[todo], v[todo], lenslet[todo], *(a[todo] for a in indices))
+        traced = trace_emission_rays(optics, batch)
+        if result is None:
+            result = (np.zeros(n), np.zeros(n))
+        rows = np.flatnonzero(todo)[traced.passed]
+        result[0][rows] = traced.aoi_filter_rad[traced.passed]
+        result[1][rows] = traced.aoi_film_rad[traced.passed]
+        passed[rows] = True
+        tried = np.where(todo, lenslet, tried)
+    aoi_filter, aoi_film = result if result is not None else (np.zeros(n), np.zeros(n))
+    if design.absorption_filter is None:
+        aoi_film = np.zeros(n)
+    return EmissionRays(aoi_filter[passed], aoi_film[passed], power[passed])
 
 
 def trace_from_sources(
