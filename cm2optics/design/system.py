@@ -159,20 +159,18 @@ class SystemDesign:
                 f"must equal collimator.led_gap_mm + height_mm = {exit_z:g}: the excitation filter rests on the "
                 "collimator's exit face (a printed spacer in a smaller gap would be thinner than a printable wall)",
             )
-        filt = max(self.excitation_filter.width_mm, self.excitation_filter.length_mm)
-        check(
-            "excitation_filter.width_mm",
-            filt,
-            filt + 2 * (mech.clearance_mm + mech.min_wall_mm) <= self.led_housing.outer_mm,
-            f"the excitation filter must fit its housing (led_housing.outer_mm = {self.led_housing.outer_mm})",
+        seated = (
+            ("excitation_filter.width_mm", self.excitation_filter.width_mm, self.excitation_filter.length_mm, "excitation filter"),
+            ("led.package_width_mm", self.led.package_width_mm, self.led.package_length_mm, "LED package"),
         )
-        package = max(self.led.package_width_mm, self.led.package_length_mm)
-        check(
-            "led.package_width_mm",
-            package,
-            package + 2 * (mech.clearance_mm + mech.min_wall_mm) <= self.led_housing.outer_mm,
-            f"the LED package must fit its housing (led_housing.outer_mm = {self.led_housing.outer_mm})",
-        )
+        for field_path, width, length, part in seated:
+            size = max(width, length)
+            check(
+                field_path,
+                size,
+                size + 2 * (mech.clearance_mm + mech.min_wall_mm) <= self.led_housing.outer_mm,
+                f"the {part} must fit its housing (led_housing.outer_mm = {self.led_housing.outer_mm})",
+            )
         check(
             "imaging.mla_to_sensor_mm",
             lay.mla_to_sensor_mm,
