@@ -811,7 +811,7 @@ class SystemDesign:
 
     def save(self, path: str | Path) -> None:
         """Write the design as YAML (atomically)."""
-        from cm2optics.io import write_text_atomic
+        from cm2optics.formats.atomic import write_text_atomic
 
         write_text_atomic(Path(path), self.to_yaml())
 

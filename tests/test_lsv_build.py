@@ -11,11 +11,11 @@ import pytest
 import tifffile
 import yaml
 
-from cm2optics.lsv.analytic import AnalyticCM2, write_analytic_scan
+from cm2optics.formats.scan import ScanError, ScanMeta, write_scan
 from cm2optics.lsv.build import build_model
 from cm2optics.lsv.decompose import numerical_rank
 from cm2optics.lsv.lsi import lsi_model
-from cm2optics.psf_scan import ScanError, ScanMeta, write_scan
+from cm2optics.lsv.toy import AnalyticCM2, write_analytic_scan
 
 BINNING = 8
 

@@ -12,10 +12,11 @@ import typer
 import yaml
 from typer.testing import CliRunner
 
-from cm2optics.lsv.analytic import AnalyticCM2, write_analytic_scan
+from cm2optics.formats.emitters import Emitters, write_emitters
+from cm2optics.formats.volume import write_volume
 from cm2optics.lsv.cli import lsv_app, simulate_command
 from cm2optics.lsv.report import FIGURES
-from cm2optics.volume_io import Emitters, write_emitters, write_volume
+from cm2optics.lsv.toy import AnalyticCM2, write_analytic_scan
 
 app = typer.Typer()
 app.add_typer(lsv_app, name="lsv")

@@ -1,6 +1,6 @@
 """The 3D linear-shift-variant (3D-LSV) forward model of a CM² (Xue et al., Optica 2022).
 
-Built from a sparse PSF calibration scan (:mod:`cm2optics.psf_scan`): foci cropped around
+Built from a sparse PSF calibration scan (:mod:`cm2optics.formats.scan`): foci cropped around
 their chief rays and registered (axial shear undone), a truncated SVD into K basis PSFs and
 coefficient volumes, the coefficients interpolated in x, y and z, and the basis PSFs placed
 back with the shear. Modules:
@@ -16,5 +16,5 @@ back with the shear. Modules:
 - :mod:`~cm2optics.lsv.lsi`: the depth-wise shift-invariant baseline of the V1 paper.
 - :mod:`~cm2optics.lsv.build`, :mod:`~cm2optics.lsv.validate`, :mod:`~cm2optics.lsv.report`,
   :mod:`~cm2optics.lsv.cli`: the ``cm2 lsv`` and ``cm2 simulate`` commands.
-- :mod:`~cm2optics.lsv.analytic`: a closed-form CM²-like PSF for tests and demos.
+- :mod:`~cm2optics.lsv.toy`: a closed-form CM²-like PSF for tests and demos.
 """

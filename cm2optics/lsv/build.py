@@ -25,11 +25,11 @@ import numpy as np
 
 import cm2optics
 from cm2optics.design import SystemDesign
+from cm2optics.formats.scan import ScanError, ScanIndex, open_scan
+from cm2optics.formats.volume import VolumeGrid
 from cm2optics.lsv.decompose import Decomposition, decompose, numerical_rank, trim_window
 from cm2optics.lsv.model import LSVModel
 from cm2optics.lsv.preprocess import Geometry, GeometryFit, estimate_geometry, extract_crops
-from cm2optics.psf_scan import ScanError, ScanIndex, open_scan
-from cm2optics.volume_io import VolumeGrid
 
 __all__ = ["BuildResult", "build_model", "default_patch_px", "model_from_crops", "scan_fingerprint"]
 
@@ -110,7 +110,7 @@ def _layout(index: ScanIndex, design: SystemDesign | None) -> tuple[int, int]:
 def _design_fallback(design: SystemDesign | None, pixel_um: float) -> Callable[[float], np.ndarray] | None:
     if design is None:
         return None
-    from cm2optics.lsv.analytic import AnalyticCM2
+    from cm2optics.lsv.toy import AnalyticCM2
 
     analytic = AnalyticCM2.from_design(design)
 

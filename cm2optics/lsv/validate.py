@@ -27,11 +27,11 @@ from typing import Any
 import numpy as np
 import torch
 
+from cm2optics.formats.scan import ScanIndex, open_scan
 from cm2optics.lsv.build import scan_fingerprint
 from cm2optics.lsv.interpolate import chief_ray_nodes
 from cm2optics.lsv.model import LSVModel
 from cm2optics.lsv.preprocess import extract_crops, prepared_image
-from cm2optics.psf_scan import ScanIndex, open_scan
 
 __all__ = ["image_errors", "validate_model"]
 

@@ -17,10 +17,11 @@ from typing import Any
 
 import numpy as np
 
+from cm2optics.formats.emitters import Emitters, read_emitters
+from cm2optics.formats.volume import VolumeGrid, read_volume
 from cm2optics.metrics.breakdown import BREAKDOWNS, breakdown, detection_maps
 from cm2optics.metrics.detect import volume_emitters
 from cm2optics.metrics.scores import Evaluation, MatchOptions, evaluate_volume, f1_optimal_threshold
-from cm2optics.volume_io import Emitters, VolumeGrid, read_emitters, read_volume
 
 __all__ = ["evaluate_files", "load_truth", "summary"]
 
@@ -120,7 +121,7 @@ def evaluate_files(
     result["ground_truth"] = str(truth_path)
     result["grid"] = grid.to_dict()
     if out_dir is not None:
-        from cm2optics.io import write_json_atomic
+        from cm2optics.formats.atomic import write_json_atomic
         from cm2optics.metrics.plots import plot_breakdowns, plot_maps, plot_overlay
 
         out_dir = Path(out_dir)

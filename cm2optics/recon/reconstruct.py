@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from cm2optics.recon.operators import DepthwiseConvOperator
+from cm2optics.lsv.lsi import DepthwiseConvOperator
 from cm2optics.recon.solvers import Progress, SolverResult, Stopping, admm, admm_lsi, fista, richardson_lucy
 
 __all__ = ["METHODS", "ReconOptions", "memory_estimate", "reconstruct"]

@@ -334,7 +334,7 @@ def admm_lsi(
     tv_weights: tuple[float, float, float] | None = None,
     progress: Progress | None = None,
 ) -> SolverResult:
-    """The V1 paper's ADMM for a :class:`~cm2optics.recon.operators.DepthwiseConvOperator` (see
+    """The V1 paper's ADMM for a :class:`~cm2optics.lsv.lsi.DepthwiseConvOperator` (see
     the module docstring). mu: (μ_v, μ_tv, μ_w), the last two relative to max |K̂|² (the
     operator's ‖A‖² on the canvas)."""
     start = time.perf_counter()

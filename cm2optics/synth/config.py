@@ -18,7 +18,7 @@ import math
 from dataclasses import asdict, dataclass, fields, replace
 from typing import Any
 
-from cm2optics.volume_io import VolumeGrid
+from cm2optics.formats.volume import VolumeGrid
 
 __all__ = ["NOISE_MODELS", "RENDER_MODES", "SynthConfig"]
 

@@ -35,11 +35,11 @@ import h5py
 import numpy as np
 
 import cm2optics
-from cm2optics.io import write_atomic, write_json_atomic
+from cm2optics.formats.atomic import write_atomic, write_json_atomic
+from cm2optics.formats.emitters import EMITTER_COLUMNS, Emitters
 from cm2optics.synth.config import SynthConfig
 from cm2optics.synth.generate import Sample, synthesize_sample
 from cm2optics.synth.imaging import Imaging, load_imaging
-from cm2optics.volume_io import EMITTER_COLUMNS, Emitters
 
 __all__ = ["SAMPLE_FORMAT", "make_dataset", "read_sample", "write_sample"]
 

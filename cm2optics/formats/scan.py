@@ -50,7 +50,7 @@ import numpy as np
 import tifffile
 import yaml
 
-from cm2optics.io import write_text_atomic
+from cm2optics.formats.atomic import write_text_atomic
 
 COLUMNS = ("file", "x_mm", "y_mm", "z_mm", "exposure_ms")
 REQUIRED_META = ("pixel_um", "binning", "bit_depth", "dark_level")

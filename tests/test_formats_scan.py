@@ -11,7 +11,7 @@ import pytest
 import tifffile
 import yaml
 
-from cm2optics.psf_scan import (
+from cm2optics.formats.scan import (
     PSFScan,
     ScanError,
     ScanIndex,
