@@ -109,6 +109,28 @@ def test_dataset_files_manifest_and_reproducibility(toy_file, tmp_path):
     assert not list((tmp_path / "a" / "samples").glob(".*tmp*"))
 
 
+def test_rerun_into_a_folder_refuses_other_inputs_and_samples_are_verified(toy_file, tmp_path):
+    from cm2optics.synth.dataset import DatasetError
+
+    first = make_dataset(CONFIG, toy_file, tmp_path / "a", 2, seed=3, workers=0)
+    again = make_dataset(CONFIG, toy_file, tmp_path / "a", 2, seed=3, workers=0)  # same inputs: a resume
+    assert [s["content_sha256"] for s in first["samples"]] == [s["content_sha256"] for s in again["samples"]]
+    with pytest.raises(DatasetError, match=r"another seed \(3 there, 4 now\)"):
+        make_dataset(CONFIG, toy_file, tmp_path / "a", 2, seed=4, workers=0)
+    other = SynthConfig.from_dict(CONFIG.to_dict() | {"noise": "none"})
+    with pytest.raises(DatasetError, match=r"another config \(noise\)"):
+        make_dataset(other, toy_file, tmp_path / "a", 2, seed=3, workers=0)
+    assert json.loads((tmp_path / "a" / "manifest.json").read_text())["seed"] == 3
+    import h5py
+
+    path = tmp_path / "a" / "samples" / "sample_00001.h5"
+    with h5py.File(path, "r+") as f:
+        f["measurement"][0, 0] += 1.0
+    with pytest.raises(DatasetError, match=r"sample_00001.h5: content_sha256 does not match"):
+        read_sample(path)
+    assert read_sample(path, verify=False)["index"] == 1
+
+
 def test_dask_workers_make_the_same_data(toy_file, tmp_path):
     serial = make_dataset(CONFIG, toy_file, tmp_path / "serial", 2, seed=5, workers=0)
     parallel = make_dataset(CONFIG, toy_file, tmp_path / "dask", 2, seed=5, workers=2)
