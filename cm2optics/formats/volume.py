@@ -74,11 +74,14 @@ class VolumeGrid:
 # ----------------------------------------------------------------------------- volumes
 
 
-def read_volume(path: str | Path, voxel_um: tuple[float, float, float] | None = None) -> tuple[np.ndarray, VolumeGrid]:
+def read_volume(
+    path: str | Path, voxel_um: tuple[float, float, float] | None = None, *, require_3d: bool = False
+) -> tuple[np.ndarray, VolumeGrid]:
     """Read a ``(z, y, x)`` volume (TIFF or ``.npy``) as float32 with its grid.
 
     ``voxel_um`` (z, y, x in µm) overrides the file's spacing; a ``.npy`` file (no spacing) or a
-    TIFF without ImageJ spacing needs it. Raises :class:`VolumeError` for a missing or unreadable
+    TIFF without ImageJ spacing needs it. A 2-D image is read as one plane, unless
+    ``require_3d`` (a reconstruction is always 3-D: a 2-D file is likely a raw measurement). Raises :class:`VolumeError` for a missing or unreadable
     file, a wrong number of dimensions, NaN/inf or negative values.
     """
     path = Path(path)
@@ -101,6 +104,11 @@ def read_volume(path: str | Path, voxel_um: tuple[float, float, float] | None = 
             raise VolumeError(f"{path}: not a readable TIFF ({error})") from None
     else:
         raise VolumeError(f"{path}: unknown volume format {path.suffix!r} (use .tif or .npy)")
+    if data.ndim == 2 and require_3d and spacing is None:  # a one-plane volume keeps its ImageJ spacing
+        raise VolumeError(
+            f"{path}: a 2-D image of shape {data.shape}, not a 3-D volume (z, y, x): a reconstruction must be a volume "
+            "(is this the raw measurement?)"
+        )
     if data.ndim == 2:
         data = data[None]
     if data.ndim != 3:

@@ -15,6 +15,7 @@ from __future__ import annotations
 import hashlib
 import math
 import time
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from datetime import UTC, datetime
@@ -173,7 +174,7 @@ def build_model(
         raise ValueError("voxel sizes must be > 0 µm")
     seconds: dict[str, float] = {}
     start = time.perf_counter()
-    index = open_scan(scan_dir)
+    index = open_scan(scan_dir, sensor_pixel_um=design.sensor.pixel_um if design is not None else None)
     rows, cols = _layout(index, design)
     patch = patch_px if patch_px is not None else default_patch_px(index.meta.binning)
     if patch < 4:
@@ -240,6 +241,12 @@ def build_model(
         provenance=provenance,
     )
     seconds["svd"] = time.perf_counter() - start
+    if model.rank < rank:
+        warnings.warn(
+            f"--rank {rank}: the scan's {len(index)} positions allow only {model.rank} basis PSFs; "
+            f"the model has rank {model.rank}",
+            stacklevel=2,
+        )
     model.provenance["seconds"] = {k: round(v, 3) for k, v in seconds.items()}
     return BuildResult(model, decomposition, replace(fit, geometry=geometry), crops, gi, seconds)
 

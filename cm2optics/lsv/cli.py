@@ -289,10 +289,15 @@ def simulate_command(
                 spacing = model.default_grid.voxel_um
             volume, grid = read_volume(volume_path, spacing)
             grid = VolumeGrid(volume.shape, grid.voxel_um)
+            lit = np.nonzero(volume)
+            model.warn_outside_calibration(
+                np.stack([grid.axis_mm(2)[lit[2]], grid.axis_mm(1)[lit[1]], grid.axis_mm(0)[lit[0]]], -1), "lit voxels"
+            )
             image = model.operator(grid).forward(volume, per_lenslet=per_lenslet, progress=progress)
             source = {"volume": str(volume_path), "grid": grid.to_dict()}
         else:
             emitters = read_emitters(emitters_path)
+            model.warn_outside_calibration(emitters.positions_mm(), "emitters")
             image = model.forward_sparse(emitters, per_lenslet=per_lenslet, subpixel_steps=subpixel_steps or None)
             source = {
                 "emitters": str(emitters_path),

@@ -14,6 +14,7 @@ File layout: :mod:`cm2optics.formats.lsv_model` (``format = "cm2optics-lsv"``).
 from __future__ import annotations
 
 import dataclasses
+import warnings
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -97,6 +98,35 @@ class LSVModel:
     def axes(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Calibration grid (x, y, z), mm."""
         return self.grid_x_mm, self.grid_y_mm, self.grid_z_mm
+
+    def outside_calibration(self, positions_mm: np.ndarray, slack: float = 0.05) -> np.ndarray:
+        """(N,) True for sources (N, 3) as (x, y, z) mm outside the calibration grid's x/y/z range
+        widened by ``slack`` of each axis's span on either side: where the model extrapolates. An
+        axis with a single node (the LSI baseline laterally) is shift invariant: no range."""
+        positions = np.asarray(positions_mm, float).reshape(-1, 3)
+        outside = np.zeros(len(positions), bool)
+        for k, axis in enumerate(self.axes):
+            if len(axis) < 2:
+                continue
+            margin = slack * (axis[-1] - axis[0])
+            outside |= (positions[:, k] < axis[0] - margin) | (positions[:, k] > axis[-1] + margin)
+        return outside
+
+    def warn_outside_calibration(self, positions_mm: np.ndarray, what: str = "emitters") -> int:
+        """Warn (``warnings.warn``) when sources lie outside the calibrated range; returns their count."""
+        count = int(np.sum(self.outside_calibration(positions_mm)))
+        if count:
+            ranges = ", ".join(
+                f"{name} {axis[0]:g}…{axis[-1]:g}"
+                for name, axis in zip(("x", "y", "z"), self.axes, strict=True)
+                if len(axis) > 1
+            )
+            warnings.warn(
+                f"{count} of {len(np.asarray(positions_mm).reshape(-1, 3))} {what} lie outside the model's calibrated "
+                f"range ({ranges} mm): their images are extrapolated",
+                stacklevel=2,
+            )
+        return count
 
     def truncated(self, rank: int) -> LSVModel:
         """The same model keeping its first ``rank`` basis PSFs."""

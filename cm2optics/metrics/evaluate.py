@@ -93,12 +93,12 @@ def evaluate_files(
     threshold: the global threshold; None: the F1-optimal one on ``validation`` (pairs of
     reconstruction and truth files), or without it on the evaluated pair itself."""
     options = options or MatchOptions()
-    recon, grid = read_volume(recon_path, voxel_um)
+    recon, grid = read_volume(recon_path, voxel_um, require_3d=True)
     truth = load_truth(truth_path, grid, voxel_um)
     if threshold is None and validation:
         pairs = []
         for v_recon, v_truth in validation:
-            v_volume, v_grid = read_volume(v_recon, voxel_um)
+            v_volume, v_grid = read_volume(v_recon, voxel_um, require_3d=True)
             pairs.append((v_volume, v_grid, load_truth(v_truth, v_grid, voxel_um)))
         threshold, sweep = f1_optimal_threshold(pairs, options, progress=progress)
         source = f"F1-optimal on {len(pairs)} validation pair(s)"
