@@ -147,28 +147,31 @@ class DepthwiseConvOperator:
         return torch.flip(data, dims) if dims else data
 
     # -- canvas ↔ sensor ----------------------------------------------------------------------
-    def canvas_to_sensor(self, canvas: torch.Tensor) -> torch.Tensor:
-        """The sensor's view of a canvas image (…, Hc, Wc) → (…, H, W), zero where unseen."""
+    def _overlap(self) -> tuple[tuple[slice, slice], tuple[slice, slice]] | None:
+        """(sensor slices, canvas slices) of the pixels both hold, or None when they do not meet."""
         H, W = self.sensor_shape
         Hc, Wc = self.canvas_shape
         r0, c0 = self._layout.plane_origin
-        out = torch.zeros(canvas.shape[:-2] + (H, W), dtype=canvas.dtype, device=canvas.device)
         rs, re = max(r0, 0), min(r0 + Hc, H)
         cs, ce = max(c0, 0), min(c0 + Wc, W)
-        if rs < re and cs < ce:
-            out[..., rs:re, cs:ce] = canvas[..., rs - r0 : re - r0, cs - c0 : ce - c0]
+        if rs >= re or cs >= ce:
+            return None
+        return (slice(rs, re), slice(cs, ce)), (slice(rs - r0, re - r0), slice(cs - c0, ce - c0))
+
+    def canvas_to_sensor(self, canvas: torch.Tensor) -> torch.Tensor:
+        """The sensor's view of a canvas image (…, Hc, Wc) → (…, H, W), zero where unseen."""
+        out = torch.zeros(canvas.shape[:-2] + self.sensor_shape, dtype=canvas.dtype, device=canvas.device)
+        overlap = self._overlap()
+        if overlap is not None:
+            out[(..., *overlap[0])] = canvas[(..., *overlap[1])]
         return out
 
     def sensor_to_canvas(self, image: torch.Tensor) -> torch.Tensor:
         """Transpose of :meth:`canvas_to_sensor`."""
-        H, W = self.sensor_shape
-        Hc, Wc = self.canvas_shape
-        r0, c0 = self._layout.plane_origin
-        out = torch.zeros(image.shape[:-2] + (Hc, Wc), dtype=image.dtype, device=image.device)
-        rs, re = max(r0, 0), min(r0 + Hc, H)
-        cs, ce = max(c0, 0), min(c0 + Wc, W)
-        if rs < re and cs < ce:
-            out[..., rs - r0 : re - r0, cs - c0 : ce - c0] = image[..., rs:re, cs:ce]
+        out = torch.zeros(image.shape[:-2] + self.canvas_shape, dtype=image.dtype, device=image.device)
+        overlap = self._overlap()
+        if overlap is not None:
+            out[(..., *overlap[1])] = image[(..., *overlap[0])]
         return out
 
     def sensor_mask_canvas(self) -> torch.Tensor:
