@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from cm2optics.formats.emitters import Emitters
-from cm2optics.formats.lsv_model import FORMAT, ModelError, read_lsv_model, write_lsv_model
+from cm2optics.formats.lsv_model import ModelError, read_lsv_model, write_lsv_model
 from cm2optics.formats.volume import VolumeGrid
 from cm2optics.lsv.interpolate import chief_ray_nodes, trilinear_coefficients
 from cm2optics.lsv.preprocess import Geometry
@@ -30,7 +30,7 @@ from cm2optics.lsv.preprocess import Geometry
 if TYPE_CHECKING:  # pragma: no cover
     from cm2optics.lsv.operators import LSVOperator
 
-__all__ = ["FORMAT", "LSVModel", "ModelError", "load_model"]
+__all__ = ["LSVModel", "ModelError", "load_model"]
 
 
 @dataclass(frozen=True, eq=False)
