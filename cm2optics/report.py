@@ -6,7 +6,7 @@ import html
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from cm2optics.io import write_text_atomic
+from cm2optics.formats.atomic import write_text_atomic
 
 
 @dataclass

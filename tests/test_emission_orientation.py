@@ -10,7 +10,7 @@ from cm2optics.emission.psf import EmissionModel, PSFSettings, SensorGrid
 from cm2optics.emission.scan import ScanSettings, simulate_scan
 from cm2optics.emission.source import fluorescent_bead
 from cm2optics.optics import first_order
-from cm2optics.psf_scan import read_scan
+from cm2optics.formats.scan import read_scan
 
 
 @pytest.fixture(scope="module")

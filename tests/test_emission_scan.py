@@ -12,12 +12,13 @@ from typer.testing import CliRunner
 
 import cm2optics.emission.scan as scan_module
 from cm2optics.emission.cli import psf_app
-from cm2optics.emission.image import Emitters, read_emitters_csv
+from cm2optics.emission.image import render_emitters
 from cm2optics.emission.psf import EmissionModel, PSFSettings, SensorGrid
 from cm2optics.emission.scan import ScanSettings, calibration_grid_mm, parse_grid, read_positions_csv, simulate_scan
 from cm2optics.emission.source import fluorescent_bead
 from cm2optics.optics import first_order
-from cm2optics.psf_scan import read_scan
+from cm2optics.formats.emitters import Emitters, read_emitters
+from cm2optics.formats.scan import read_scan
 
 runner = CliRunner()
 FAST = ScanSettings(psf=PSFSettings(binning=8), source=fluorescent_bead(5.0))
@@ -182,7 +183,7 @@ def test_cli_user_errors_end_in_one_line(args, message, tmp_path, monkeypatch):
 def test_emitters_csv_and_cli_image(v2, tmp_path):
     path = tmp_path / "emitters.csv"
     path.write_text("x_um,y_um,z_um,diameter_um,intensity\n0,0,0,10,1\n300,-200,100,15,0.5\n")
-    emitters = read_emitters_csv(path)
+    emitters = read_emitters(path)
     assert len(emitters) == 2 and emitters.diameter_um[1] == 15
     out = tmp_path / "m.tif"
     result = runner.invoke(psf_app, ["image", "--emitters", str(path), "--binning", "8", "--out", str(out), "--json"])
@@ -194,6 +195,6 @@ def test_emitters_csv_and_cli_image(v2, tmp_path):
     bad = tmp_path / "bad.csv"
     bad.write_text("x_um,y_um,z_um,diameter_um,intensity\n0,0,0,10,-1\n")
     with pytest.raises(ValueError, match="intensity"):
-        read_emitters_csv(bad)
+        read_emitters(bad)
     with pytest.raises(ValueError, match="diameter_um"):
-        Emitters(np.zeros((1, 3)), np.array([500.0]), np.array([1.0]))
+        render_emitters(v2, Emitters.from_positions_um(np.zeros((1, 3)), np.array([500.0]), np.array([1.0])))

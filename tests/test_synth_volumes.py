@@ -10,9 +10,10 @@ import pytest
 
 from cm2optics.design import load_preset
 from cm2optics.optics import first_order
+from cm2optics.formats.emitters import Emitters
+from cm2optics.formats.volume import VolumeGrid
 from cm2optics.synth import SynthConfig, add_noise, rasterize_balls, rasterize_balls_naive, sample_emitters, sample_rng
 from cm2optics.synth.noise import noise_variance
-from cm2optics.volume_io import Emitters, VolumeGrid
 
 GRID = VolumeGrid((41, 70, 90), (10.0, 4.15, 4.15))
 

@@ -24,7 +24,7 @@ from cm2optics.cad.mesh_checks import check_mesh
 from cm2optics.cad.render import render_meshes, render_part
 from cm2optics.cad.tessellate import DEFAULT_TOLERANCE_UM, export_stl
 from cm2optics.design import SystemDesign
-from cm2optics.io import write_json_atomic, write_text_atomic
+from cm2optics.formats.atomic import write_json_atomic, write_text_atomic
 
 FORMATS = ("stl", "step")
 #: Relative mesh-volume error accepted for an exported part.

@@ -156,16 +156,17 @@ def image(
     along +x, row along +y) and a YAML sidecar with the count scale.
     """
     from cm2optics.design import load_preset
-    from cm2optics.emission.image import read_emitters_csv, render_emitters, write_measurement
+    from cm2optics.emission.image import render_emitters, write_traced_measurement
     from cm2optics.emission.psf import PSFSettings
+    from cm2optics.formats.emitters import read_emitters
 
     design = load_preset(preset)
-    table = read_emitters_csv(emitters)
+    table = read_emitters(emitters)
     settings = PSFSettings(binning=binning)
     start = time.perf_counter()
     frame = render_emitters(design, table, settings, progress=not as_json)
     elapsed = time.perf_counter() - start
-    tif, sidecar = write_measurement(
+    tif, sidecar = write_traced_measurement(
         out_path, frame, design, binning, fill=fill, extra={"emitters": str(emitters), "count": len(table)}
     )
     result = {

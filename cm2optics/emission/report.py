@@ -20,8 +20,8 @@ from cm2optics.emission import analysis
 from cm2optics.emission.psf import EmissionModel, PSFSettings
 from cm2optics.emission.scan import ScanSettings, calibration_grid_mm, simulate_scan
 from cm2optics.emission.source import calibration_pinhole
-from cm2optics.io import write_atomic
 from cm2optics.optics import first_order
+from cm2optics.formats.atomic import write_atomic
 from cm2optics.report import Report
 
 __all__ = ["add_psf_section", "psf_numbers"]
@@ -126,7 +126,7 @@ def add_psf_section(
     report.paragraph(
         f"Scan: {len(positions)} positions (3 × 3 × 3 over ±2 mm, ±0.5 mm; binning 4) in {scan_s:.1f} s on Dask "
         f"({manifest['timings']['per_position_s_mean']:.2f} s per position per worker). Format: positions.csv, 16-bit "
-        "TIFFs, scan.yaml (cm2optics.psf_scan), read back with read_scan. The full 9 × 9 × 11 calibration: "
+        "TIFFs, scan.yaml (cm2optics.formats.scan), read back with read_scan. The full 9 × 9 × 11 calibration: "
         "`cm2 psf simulate --preset cm2-v2 --grid 9x9x11 --binning 2`."
     )
     report.table(

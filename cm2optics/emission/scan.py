@@ -1,8 +1,8 @@
 """Synthetic PSF calibration scans: a grid (or list) of source positions → a scan folder.
 
-The folder is the measured-scan format of DESIGN.md (:mod:`cm2optics.psf_scan`): ``positions.csv``,
+The folder is the measured-scan format of DESIGN.md (:mod:`cm2optics.formats.scan`): ``positions.csv``,
 one 16-bit TIFF per position, ``scan.yaml``, written atomically by
-:func:`~cm2optics.psf_scan.write_scan`; beside them ``montage.png`` and ``manifest.json``.
+:func:`~cm2optics.formats.scan.write_scan`; beside them ``montage.png`` and ``manifest.json``.
 
 Each image is what the sensor would record of the source at that position: the simulated
 frame (photons detected per emitted photon, :mod:`.psf`) × the source's photon rate
@@ -40,9 +40,9 @@ import cm2optics
 from cm2optics.design import SystemDesign
 from cm2optics.emission.psf import EmissionModel, Focus, PSFSettings, SensorGrid
 from cm2optics.emission.source import PointSource, calibration_pinhole
-from cm2optics.io import write_atomic, write_json_atomic
 from cm2optics.optics import first_order
-from cm2optics.psf_scan import ScanError, ScanMeta, grid_axes_mm, write_scan
+from cm2optics.formats.atomic import write_atomic, write_json_atomic
+from cm2optics.formats.scan import ScanError, ScanMeta, grid_axes_mm, write_scan
 
 __all__ = [
     "ScanSettings",
@@ -144,7 +144,7 @@ def read_positions_csv(path: str | Path) -> np.ndarray:
     """Positions (N, 3) in mm from a CSV with columns ``x_mm,y_mm,z_mm`` (others ignored).
 
     They must form a full grid (every combination of the unique x, y and z once), as a scan
-    folder must (:func:`cm2optics.psf_scan.grid_axes_mm`); a single line of positions is a grid.
+    folder must (:func:`cm2optics.formats.scan.grid_axes_mm`); a single line of positions is a grid.
     """
     path = Path(path)
     if not path.is_file():

@@ -167,9 +167,9 @@ def run(
         setup_from_options,
         stl_collimator,
     )
+    from cm2optics.formats.atomic import write_json_atomic
     from cm2optics.illumination.geometry import build_scene
     from cm2optics.illumination.metrics import write_maps_png
-    from cm2optics.io import write_json_atomic
 
     if rays < 1000 or rays > 100_000_000:
         raise ValueError(f"--rays = {rays}: must lie within 1000–100000000")

@@ -331,7 +331,7 @@ def write_maps_png(figures: IlluminationFigures, path: str | Path) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from cm2optics.io import write_atomic
+    from cm2optics.formats.atomic import write_atomic
 
     half = figures.map_half_mm
     fig, axes = plt.subplots(1, 2, figsize=(10, 4.4), constrained_layout=True)

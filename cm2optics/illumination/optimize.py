@@ -188,7 +188,7 @@ def optimize_collimator(
     """
     from rich.progress import Progress
 
-    from cm2optics.io import write_json_atomic
+    from cm2optics.formats.atomic import write_json_atomic
 
     if design.collimator is None:
         raise ValueError(f"design {design.name!r} has no collimator to optimise (use a preset with one, e.g. cm2-v2)")
@@ -289,7 +289,7 @@ def _export(design: SystemDesign, out_dir: Path) -> tuple[Path, dict[str, Any]]:
     from cm2optics.cad.collimator import build_collimator
     from cm2optics.cad.mesh_checks import check_mesh
     from cm2optics.cad.tessellate import DEFAULT_TOLERANCE_UM, export_stl
-    from cm2optics.io import write_atomic
+    from cm2optics.formats.atomic import write_atomic
 
     path = out_dir / "collimator.stl"
     solid = build_collimator(design).val()

@@ -31,10 +31,10 @@ def add_illumination_section(
     Returns the figures as JSON-able data (``illumination/illumination.json`` too).
     """
     from cm2optics.optics.backend import mitsuba, variant
+    from cm2optics.formats.atomic import write_json_atomic
     from cm2optics.illumination.bounds import etendue_bound, uniform_beam_bound
     from cm2optics.illumination.compare import compare_designs, configurations, setup_from_options, stl_collimator
     from cm2optics.illumination.metrics import DEFINITIONS, write_maps_png
-    from cm2optics.io import write_json_atomic
 
     folder = Path(out_dir) / "illumination"
     mitsuba()

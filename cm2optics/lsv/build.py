@@ -15,6 +15,7 @@ from __future__ import annotations
 import hashlib
 import math
 import time
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from datetime import UTC, datetime
@@ -25,11 +26,11 @@ import numpy as np
 
 import cm2optics
 from cm2optics.design import SystemDesign, default_design
+from cm2optics.formats.scan import ScanError, ScanIndex, open_scan
+from cm2optics.formats.volume import VolumeGrid
 from cm2optics.lsv.decompose import Decomposition, decompose, numerical_rank, trim_window
 from cm2optics.lsv.model import LSVModel
 from cm2optics.lsv.preprocess import Geometry, GeometryFit, estimate_geometry, extract_crops
-from cm2optics.psf_scan import ScanError, ScanIndex, open_scan
-from cm2optics.volume_io import VolumeGrid
 
 __all__ = ["BuildResult", "build_model", "default_patch_px", "model_from_crops", "scan_fingerprint"]
 
@@ -110,7 +111,7 @@ def _layout(index: ScanIndex, design: SystemDesign | None) -> tuple[int, int]:
 def _design_fallback(design: SystemDesign | None, pixel_um: float) -> Callable[[float], np.ndarray] | None:
     if design is None:
         return None
-    from cm2optics.lsv.analytic import AnalyticCM2
+    from cm2optics.lsv.toy import AnalyticCM2
 
     analytic = AnalyticCM2.from_design(design)
 
@@ -176,7 +177,7 @@ def build_model(
         raise ValueError("voxel sizes must be > 0 µm")
     seconds: dict[str, float] = {}
     start = time.perf_counter()
-    index = open_scan(scan_dir)
+    index = open_scan(scan_dir, sensor_pixel_um=design.sensor.pixel_um if design is not None else None)
     rows, cols = _layout(index, design)
     patch = patch_px if patch_px is not None else default_patch_px(index.meta.binning)
     if patch < 4:
@@ -243,6 +244,12 @@ def build_model(
         provenance=provenance,
     )
     seconds["svd"] = time.perf_counter() - start
+    if model.rank < rank:
+        warnings.warn(
+            f"--rank {rank}: the scan's {len(index)} positions allow only {model.rank} basis PSFs; "
+            f"the model has rank {model.rank}",
+            stacklevel=2,
+        )
     model.provenance["seconds"] = {k: round(v, 3) for k, v in seconds.items()}
     return BuildResult(model, decomposition, replace(fit, geometry=geometry), crops, gi, seconds)
 

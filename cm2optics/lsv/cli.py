@@ -250,12 +250,13 @@ def simulate_command(
     --voxel-um is taken to be on the model's default grid spacing.
     """
     import numpy as np
-    import tifffile
-    import yaml
 
-    from cm2optics.io import write_atomic, write_text_atomic
+    import cm2optics
+    from cm2optics.formats.emitters import read_emitters
+    from cm2optics.formats.measurement import write_measurement
+    from cm2optics.formats.volume import read_volume
     from cm2optics.lsv.model import load_model
-    from cm2optics.volume_io import read_emitters, read_volume
+    from cm2optics.synth.noise import poisson_gaussian
 
     if (volume_path is None) == (emitters_path is None):
         raise ValueError("give exactly one of --volume and --emitters")
@@ -282,16 +283,21 @@ def simulate_command(
             raise ValueError(f"--voxel-um = {voxel_um!r}: must be three numbers z,y,x in µm")
     with _progress(not as_json) as progress:
         if volume_path is not None:
-            from cm2optics.volume_io import VolumeGrid
+            from cm2optics.formats.volume import VolumeGrid
 
             if spacing is None and volume_path.suffix.lower() == ".npy":
                 spacing = model.default_grid.voxel_um
             volume, grid = read_volume(volume_path, spacing)
             grid = VolumeGrid(volume.shape, grid.voxel_um)
+            lit = np.nonzero(volume)
+            model.warn_outside_calibration(
+                np.stack([grid.axis_mm(2)[lit[2]], grid.axis_mm(1)[lit[1]], grid.axis_mm(0)[lit[0]]], -1), "lit voxels"
+            )
             image = model.operator(grid).forward(volume, per_lenslet=per_lenslet, progress=progress)
             source = {"volume": str(volume_path), "grid": grid.to_dict()}
         else:
             emitters = read_emitters(emitters_path)
+            model.warn_outside_calibration(emitters.positions_mm(), "emitters")
             image = model.forward_sparse(emitters, per_lenslet=per_lenslet, subpixel_steps=subpixel_steps or None)
             source = {
                 "emitters": str(emitters_path),
@@ -305,25 +311,24 @@ def simulate_command(
     normalised = np.clip(image / peak, 0, None)
     rng = np.random.default_rng(seed)
     if noise:
-        normalised = rng.poisson(normalised * peak_photons) / peak_photons
-        normalised = normalised + offset + rng.normal(0.0, read_noise, normalised.shape)
+        normalised = poisson_gaussian(normalised, peak_photons, offset, read_noise, rng)
     full = 2**bit_depth - 1
     counts = np.clip(np.round(normalised * full), 0, full).astype(np.uint16)
-    write_atomic(out, lambda tmp: tifffile.imwrite(tmp, counts, photometric="minisblack"))
     sidecar = {
-        "model": str(model_path),
-        "baseline": "lsi" if lsi else "lsv",
-        "source": source,
-        "per_lenslet": per_lenslet,
+        "pixel_um": model.pixel_um,
         "bit_depth": bit_depth,
+        "dark_level": round(offset * full, 3) if noise else 0.0,
         "counts_per_unit": float(full / peak),
         "noise": {"poisson_peak_photons": peak_photons, "read_noise": read_noise, "offset": offset, "seed": seed}
         if noise
         else None,
-        "pixel_um": model.pixel_um,
+        "generator": f"cm2optics {cm2optics.__version__} (cm2 lsv simulate)",
+        "model": str(model_path),
+        "baseline": "lsi" if lsi else "lsv",
+        "source": source,
+        "per_lenslet": per_lenslet,
     }
-    sidecar_path = out.with_suffix(".yaml")
-    write_text_atomic(sidecar_path, yaml.safe_dump(sidecar, sort_keys=False, allow_unicode=True))
+    _, sidecar_path = write_measurement(out, counts, sidecar)
     summary = {
         "measurement": str(out),
         "sidecar": str(sidecar_path),

@@ -18,7 +18,7 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from cm2optics.design import SystemDesign
-from cm2optics.io import write_atomic, write_json_atomic
+from cm2optics.formats.atomic import write_atomic, write_json_atomic
 from cm2optics.lsv.build import BuildResult
 from cm2optics.lsv.model import LSVModel
 from cm2optics.report import Report
@@ -199,14 +199,14 @@ def add_lsv_section(
     """Build an LSV model from ``scan_dir`` (a small analytic scan is made when it is None),
     write its figures and a simulated measurement of random emitters into ``out_dir/lsv``, and
     add a section to ``report``; returns the numbers shown."""
+    from cm2optics.formats.emitters import Emitters
     from cm2optics.lsv.build import build_model
-    from cm2optics.volume_io import Emitters
 
     folder = Path(out_dir) / "lsv"
     folder.mkdir(parents=True, exist_ok=True)
     source = "the scan given"
     if scan_dir is None:
-        from cm2optics.lsv.analytic import AnalyticCM2, write_analytic_scan
+        from cm2optics.lsv.toy import AnalyticCM2, write_analytic_scan
 
         binning = 8
         analytic = AnalyticCM2.from_design(design, binning=binning, sigma0_um=design.sensor.pixel_um * binning)
@@ -218,7 +218,7 @@ def add_lsv_section(
             np.linspace(-0.5, 0.5, 11),
             binning=binning,
         )
-        source = "a 9×9×11 analytic CM²-like scan (binned 8×; cm2optics.lsv.analytic)"
+        source = "a 9×9×11 analytic CM²-like scan (binned 8×; cm2optics.lsv.toy)"
     start = time.perf_counter()
     result = build_model(scan_dir, rank=rank, design=design)
     build_seconds = time.perf_counter() - start

@@ -14,37 +14,7 @@ import typer
 from cm2optics.cli_options import JsonOption, user_errors
 from cm2optics.metrics.cli import parse_triple
 
-__all__ = ["read_measurement", "reconstruct_command", "reconstruct_file"]
-
-
-def read_measurement(path: str | Path, dark_level: float = 0.0):
-    """A measurement image (TIFF or .npy) as float32 (y, x), less ``dark_level``."""
-    import numpy as np
-    import tifffile
-
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: no such measurement file")
-    try:
-        if path.suffix.lower() == ".npy":
-            data = np.load(path, allow_pickle=False)
-        elif path.suffix.lower() in (".tif", ".tiff"):
-            data = tifffile.imread(path)
-        else:
-            raise ValueError(f"{path}: unknown measurement format {path.suffix!r} (use .tif or .npy)")
-    except ValueError:
-        raise
-    except Exception as error:  # tifffile/numpy raise many types for corrupt files
-        raise ValueError(f"{path}: not a readable image ({error})") from None
-    data = np.squeeze(np.asarray(data))
-    if data.ndim != 2:
-        raise ValueError(f"{path}: a measurement is one image (y, x), found shape {data.shape}")
-    if not np.issubdtype(data.dtype, np.number) or np.iscomplexobj(data):
-        raise ValueError(f"{path}: pixel values must be real numbers (found {data.dtype})")
-    data = data.astype(np.float32) - np.float32(dark_level)
-    if not np.all(np.isfinite(data)):
-        raise ValueError(f"{path}: contains {int(np.sum(~np.isfinite(data)))} NaN or infinite pixels")
-    return data
+__all__ = ["reconstruct_command", "reconstruct_file"]
 
 
 def reconstruct_file(
@@ -59,10 +29,11 @@ def reconstruct_file(
     progress=None,
 ) -> dict:
     """Read, reconstruct, write the volume (TIFF/.npy) and ``<out>.json`` beside it; returns the record."""
-    from cm2optics.io import write_json_atomic
+    from cm2optics.formats.atomic import write_json_atomic
+    from cm2optics.formats.measurement import read_measurement
+    from cm2optics.formats.volume import write_volume
     from cm2optics.recon.operators import load_operator
     from cm2optics.recon.reconstruct import reconstruct
-    from cm2optics.volume_io import write_volume
 
     out_path = Path(out_path)
     if out_path.suffix.lower() not in (".tif", ".tiff", ".npy"):
@@ -122,8 +93,8 @@ def reconstruct_command(
     from rich.console import Console
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
+    from cm2optics.formats.volume import VolumeGrid
     from cm2optics.recon.reconstruct import ReconOptions
-    from cm2optics.volume_io import VolumeGrid
 
     options = ReconOptions(
         method=method,

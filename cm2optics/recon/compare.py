@@ -27,42 +27,13 @@ import numpy as np
 
 from cm2optics.synth.config import SynthConfig
 
-__all__ = ["DEFAULT_RUNS", "analytic_model", "compare_baselines", "scaled_test_config"]
+__all__ = ["DEFAULT_RUNS", "compare_baselines", "scaled_test_config"]
 
 #: run name → forward model, method and options (see :class:`~cm2optics.recon.reconstruct.ReconOptions`).
 DEFAULT_RUNS: dict[str, dict[str, Any]] = {
     "lsv-fista": {"forward": "lsv", "method": "fista", "l1": 0.02, "max_iter": 60},
     "lsi-admm": {"forward": "lsi", "method": "admm", "l1": 0.02, "max_iter": 30},
 }
-
-
-def analytic_model(
-    path: str | Path, design: Any, *, binning: int = 4, rank: int = 8, lateral_nodes: int = 7, depth_nodes: int = 5
-) -> Path:
-    """Build (once) an LSV model of ``design`` from a synthetic PSF scan of the analytic CM²-like
-    PSF (:mod:`cm2optics.lsv.analytic`) on a ``lateral_nodes``² × ``depth_nodes`` grid over
-    ±3.6 mm × ±0.4 mm, binned ``binning``×; returns its path (reused if it exists). Keep the
-    lateral step ≤ 1.2 mm (7 nodes): at 1.8 mm the foci move further than the geometry fit's
-    lattice search expects and the magnification comes out wrong."""
-    from cm2optics.lsv.analytic import AnalyticCM2, write_analytic_scan
-    from cm2optics.lsv.build import build_model
-
-    path = Path(path)
-    if path.is_file():
-        return path
-    scan = path.with_name(path.stem + "-scan")
-    xs = np.linspace(-3.6, 3.6, lateral_nodes)
-    write_analytic_scan(
-        scan,
-        AnalyticCM2.from_design(design, binning=binning),
-        xs,
-        xs,
-        np.linspace(-0.4, 0.4, depth_nodes),
-        binning=binning,
-    )
-    model = build_model(scan, rank=rank, design=design).model
-    shutil.rmtree(scan, ignore_errors=True)
-    return model.save(path)
 
 
 def scaled_test_config(model: Any, factor: float = 2.0, **changes: Any) -> SynthConfig:
@@ -82,10 +53,10 @@ def _run(
     """One run in one (fresh) worker process: reconstruct every sample, write the volumes."""
     import torch
 
+    from cm2optics.formats.volume import VolumeGrid
     from cm2optics.recon.operators import load_operator
     from cm2optics.recon.reconstruct import ReconOptions, reconstruct
     from cm2optics.synth.dataset import read_sample
-    from cm2optics.volume_io import VolumeGrid
 
     torch.set_num_threads(threads)
     start = time.perf_counter()
@@ -145,7 +116,7 @@ def compare_baselines(
     """Make the test set, run every run, evaluate; returns the summary (also ``comparison.json``)."""
     from dask.distributed import Client, LocalCluster
 
-    from cm2optics.io import write_json_atomic, write_text_atomic
+    from cm2optics.formats.atomic import write_json_atomic, write_text_atomic
     from cm2optics.lsv.model import load_model
     from cm2optics.metrics import (
         density_breakdown,
@@ -381,9 +352,10 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     from cm2optics.design import load_preset
     from cm2optics.lsv.model import load_model
+    from cm2optics.lsv.toy import analytic_lsv_model_file
 
     if not args.model.is_file():
-        analytic_model(args.model, load_preset("cm2-v2"), binning=args.build_binning)
+        analytic_lsv_model_file(args.model, load_preset("cm2-v2"), binning=args.build_binning)
 
     config = scaled_test_config(load_model(args.model), args.factor)
     runs = json.loads(args.runs) if args.runs else None

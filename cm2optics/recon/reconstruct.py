@@ -24,7 +24,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from cm2optics.recon.operators import DepthwiseConvOperator
+from cm2optics.formats.operator import VolumeOperator
+from cm2optics.lsv.lsi import DepthwiseConvOperator
 from cm2optics.recon.solvers import Progress, SolverResult, Stopping, admm, admm_lsi, fista, richardson_lucy
 
 __all__ = ["METHODS", "ReconOptions", "memory_estimate", "reconstruct"]
@@ -78,7 +79,7 @@ class ReconOptions:
         return Stopping(self.max_iter, self.tol, self.patience)
 
 
-def _operator_bytes(operator: Any) -> int:
+def _operator_bytes(operator: VolumeOperator) -> int:
     if hasattr(operator, "memory_bytes"):
         return int(operator.memory_bytes()) + int(getattr(operator, "transient_bytes", lambda: 0)())
     if hasattr(operator, "canvas_shape") and hasattr(operator, "depth_nodes") and hasattr(operator, "n_lenslets"):
@@ -87,7 +88,7 @@ def _operator_bytes(operator: Any) -> int:
     return 0
 
 
-def memory_estimate(operator: Any, options: ReconOptions) -> dict[str, float]:
+def memory_estimate(operator: VolumeOperator, options: ReconOptions) -> dict[str, float]:
     """Estimated peak bytes: ``volume_copies`` × volume + the operator's buffers (GiB)."""
     nz, ny, nx = operator.grid.shape
     if options.method == "admm" and isinstance(operator, DepthwiseConvOperator):
@@ -118,7 +119,7 @@ def _background(measurement: np.ndarray, background: str | float) -> float:
 
 def reconstruct(
     measurement: np.ndarray,
-    operator: Any,
+    operator: VolumeOperator,
     options: ReconOptions = ReconOptions(),
     *,
     progress: Progress | None = None,

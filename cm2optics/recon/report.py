@@ -62,9 +62,9 @@ def add_baseline_section(
     import torch
 
     from cm2optics.lsv.model import load_model
+    from cm2optics.lsv.toy import analytic_lsv_model_file
     from cm2optics.metrics import evaluate_volume, f1_optimal_threshold
     from cm2optics.metrics.plots import plot_overlay
-    from cm2optics.recon.compare import analytic_model
     from cm2optics.recon.operators import load_operator
     from cm2optics.recon.reconstruct import ReconOptions, reconstruct
     from cm2optics.synth.config import SynthConfig
@@ -79,7 +79,7 @@ def add_baseline_section(
     try:
         start = time.perf_counter()
         if model_path is None or not Path(model_path).is_file():
-            model_path = analytic_model(
+            model_path = analytic_lsv_model_file(
                 folder / "lsv-analytic-b8.h5", design, binning=8, rank=6, lateral_nodes=7, depth_nodes=3
             )
             origin = "a small analytic model of this design (PSF scan of the closed-form CM²-like PSF, binned 8×)"

@@ -14,7 +14,7 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from cm2optics.design import SystemDesign
-from cm2optics.io import write_atomic
+from cm2optics.formats.atomic import write_atomic
 from cm2optics.report import Report
 from cm2optics.spectra.chain import emission_chain, excitation_spectrum, interference_filter_from_design
 from cm2optics.spectra.fit import predict_edges_nm

@@ -52,9 +52,10 @@ def export_sample(sample_path: str | Path, out_dir: str | Path) -> dict[str, str
     import numpy as np
     import tifffile
 
-    from cm2optics.io import write_atomic
+    from cm2optics.formats.atomic import write_atomic
+    from cm2optics.formats.emitters import write_emitters
+    from cm2optics.formats.volume import write_volume
     from cm2optics.synth.dataset import read_sample
-    from cm2optics.volume_io import write_emitters, write_volume
 
     data = read_sample(sample_path)
     out_dir = Path(out_dir)
@@ -134,14 +135,14 @@ def synth_command(
     from rich.console import Console
     from rich.progress import Progress
 
-    from cm2optics.recon.operators import model_format
+    from cm2optics.formats.models import model_grid
     from cm2optics.synth.config import SynthConfig
     from cm2optics.synth.dataset import make_dataset
 
     if preset not in ("paper", "scaled"):
         raise ValueError(f"--size = {preset!r}: must be paper or scaled")
-    kind = model_format(model)
-    model_voxel = _model_voxel(model, kind)
+    defined_on = model_grid(model)
+    model_voxel = defined_on.voxel_um if defined_on is not None else None
     voxel = parse_triple(voxel_um, "--voxel-um") or model_voxel
     base = SynthConfig.paper() if preset == "paper" else SynthConfig.scaled(scale)
     values: dict[str, Any] = base.to_dict()
@@ -195,16 +196,3 @@ def synth_command(
         f"[green]{n_volumes} volumes[/] ({'×'.join(map(str, grid.shape))} voxels of {'×'.join(f'{v:g}' for v in grid.voxel_um)} µm, "
         f"{manifest['n_emitters']} emitters, {manifest['n_patches']} patches) in {manifest['seconds']:.1f} s → {out_dir}"
     )
-
-
-def _model_voxel(path: Path, kind: str) -> tuple[float, float, float] | None:
-    import h5py
-
-    from cm2optics.recon.operators import PSF_STACK_FORMAT
-
-    with h5py.File(path, "r") as f:
-        if kind == "cm2optics-lsv":
-            return tuple(json.loads(f.attrs["default_grid"])["voxel_um"])  # type: ignore[return-value]
-        if kind == PSF_STACK_FORMAT:
-            return tuple(json.loads(f.attrs["grid"])["voxel_um"])  # type: ignore[return-value]
-    return None

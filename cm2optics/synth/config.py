@@ -20,7 +20,7 @@ from typing import Any
 
 from cm2optics.design import default_design
 from cm2optics.optics import first_order
-from cm2optics.volume_io import VolumeGrid
+from cm2optics.formats.volume import VolumeGrid
 
 __all__ = ["NOISE_MODELS", "RENDER_MODES", "SynthConfig"]
 

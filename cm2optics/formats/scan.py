@@ -50,7 +50,8 @@ import numpy as np
 import tifffile
 import yaml
 
-from cm2optics.io import write_text_atomic
+from cm2optics.formats.atomic import write_text_atomic
+from cm2optics.formats.errors import FormatError
 
 COLUMNS = ("file", "x_mm", "y_mm", "z_mm", "exposure_ms")
 REQUIRED_META = ("pixel_um", "binning", "bit_depth", "dark_level")
@@ -58,9 +59,11 @@ REQUIRED_META = ("pixel_um", "binning", "bit_depth", "dark_level")
 EMBED_KEY = "cm2optics_psf_scan"
 #: Embedded and listed positions that differ by more than this (mm) are misordered files.
 POSITION_TOLERANCE_MM = 1e-5
+#: ``pixel_um`` may differ from ``binning`` × the sensor's pixel by this share (rounding).
+PIXEL_TOLERANCE = 0.01
 
 
-class ScanError(ValueError):
+class ScanError(FormatError):
     """A scan folder that does not follow the format; the message says what and where."""
 
 
@@ -90,6 +93,20 @@ class ScanMeta:
             raise ScanError(f"scan.yaml: bit_depth = {self.bit_depth!r}: must be one of 8, 10, 12, 14, 16")
         if not (math.isfinite(self.dark_level) and 0 <= self.dark_level < 2**self.bit_depth):
             raise ScanError(f"scan.yaml: dark_level = {self.dark_level!r}: must lie within 0 … 2**bit_depth")
+
+    def check_pixel(self, sensor_pixel_um: float, where: str = "scan.yaml") -> None:
+        """Raise :class:`ScanError` unless ``pixel_um`` = ``binning`` × ``sensor_pixel_um`` (µm).
+
+        A contradiction is a misread scan (the magnification comes out wrong by their ratio),
+        so it is an error: fix ``scan.yaml``, or name the design whose sensor took the scan.
+        """
+        expected = self.binning * float(sensor_pixel_um)
+        if abs(self.pixel_um - expected) > PIXEL_TOLERANCE * expected:
+            raise ScanError(
+                f"{where}: pixel_um = {self.pixel_um:g} contradicts binning = {self.binning} × the sensor's "
+                f"{float(sensor_pixel_um):g} µm pixel = {expected:g} µm; correct pixel_um or binning "
+                "(or use the design of the sensor that took the scan)"
+            )
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -304,12 +321,18 @@ def _dtype_message(path: Path, dtype: np.dtype) -> str:
     return message
 
 
-def open_scan(folder: str | Path) -> ScanIndex:
-    """Validate a scan folder from its CSV, YAML and TIFF headers; images load on demand."""
+def open_scan(folder: str | Path, *, sensor_pixel_um: float | None = None) -> ScanIndex:
+    """Validate a scan folder from its CSV, YAML and TIFF headers; images load on demand.
+
+    sensor_pixel_um: the pitch of the sensor that took the scan (µm, before binning); when
+    given, ``scan.yaml``'s ``pixel_um`` must equal ``binning`` × it (:meth:`ScanMeta.check_pixel`).
+    """
     folder = Path(folder)
     if not folder.is_dir():
         raise ScanError(f"{folder}: no such scan folder")
     meta = _read_meta(folder)
+    if sensor_pixel_um is not None:
+        meta.check_pixel(sensor_pixel_um, str(folder / "scan.yaml"))
     rows = _read_rows(folder)
     infos: dict[str, _TiffInfo] = {}
     positions, exposures, seen = [], [], {}
@@ -376,9 +399,9 @@ def open_scan(folder: str | Path) -> ScanIndex:
     )  # type: ignore[arg-type]
 
 
-def read_scan(folder: str | Path) -> PSFScan:
+def read_scan(folder: str | Path, *, sensor_pixel_um: float | None = None) -> PSFScan:
     """Load and validate a scan folder; every problem raises one :class:`ScanError`."""
-    return open_scan(folder).load()
+    return open_scan(folder, sensor_pixel_um=sensor_pixel_um).load()
 
 
 def write_scan(

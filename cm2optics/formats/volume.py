@@ -1,22 +1,17 @@
-"""Volumes and emitter lists on disk, shared by every stage (no torch here).
+"""Volumes on disk, shared by every stage (no torch here).
 
 - A volume is a ``(z, y, x)`` array in a TIFF with ImageJ spacing metadata (opens in Fiji and
   napari) or a ``.npy`` file. Voxel ``(iz, iy, ix)`` sits at ``x = (ix − (nx−1)/2)·dx`` (same for
   y) and ``z = (iz − (nz−1)/2)·dz``: centred on the optical axis and the nominal focal plane,
   ``iz`` increasing towards the device (+z). A ``.npy`` file carries no spacing: the caller
   supplies it (or takes a model's default grid).
-- An emitter list is a CSV with columns ``x_um,y_um,z_um,diameter_um,intensity`` in the same
-  physical coordinates (µm); ``diameter_um`` is the diameter of a uniform ball (0: a point);
-  ``intensity`` its total emission (any linear unit, ≥ 0).
 
-Every write is atomic (:func:`cm2optics.io.write_atomic`); every reader raises
+Every write is atomic (:func:`cm2optics.formats.atomic.write_atomic`); every reader raises
 :class:`VolumeError` (a ``ValueError``) with one clear message for bad input.
 """
 
 from __future__ import annotations
 
-import csv
-import io
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,23 +19,13 @@ from pathlib import Path
 import numpy as np
 import tifffile
 
-from cm2optics.io import write_atomic, write_text_atomic
+from cm2optics.formats.atomic import write_atomic
+from cm2optics.formats.errors import FormatError
 
-__all__ = [
-    "EMITTER_COLUMNS",
-    "Emitters",
-    "VolumeError",
-    "VolumeGrid",
-    "read_emitters",
-    "read_volume",
-    "write_emitters",
-    "write_volume",
-]
-
-EMITTER_COLUMNS = ("x_um", "y_um", "z_um", "diameter_um", "intensity")
+__all__ = ["VolumeError", "VolumeGrid", "read_volume", "write_volume"]
 
 
-class VolumeError(ValueError):
+class VolumeError(FormatError):
     """A volume or emitter file that cannot be used; the message says what and where."""
 
 
@@ -89,11 +74,14 @@ class VolumeGrid:
 # ----------------------------------------------------------------------------- volumes
 
 
-def read_volume(path: str | Path, voxel_um: tuple[float, float, float] | None = None) -> tuple[np.ndarray, VolumeGrid]:
+def read_volume(
+    path: str | Path, voxel_um: tuple[float, float, float] | None = None, *, require_3d: bool = False
+) -> tuple[np.ndarray, VolumeGrid]:
     """Read a ``(z, y, x)`` volume (TIFF or ``.npy``) as float32 with its grid.
 
     ``voxel_um`` (z, y, x in µm) overrides the file's spacing; a ``.npy`` file (no spacing) or a
-    TIFF without ImageJ spacing needs it. Raises :class:`VolumeError` for a missing or unreadable
+    TIFF without ImageJ spacing needs it. A 2-D image is read as one plane, unless
+    ``require_3d`` (a reconstruction is always 3-D: a 2-D file is likely a raw measurement). Raises :class:`VolumeError` for a missing or unreadable
     file, a wrong number of dimensions, NaN/inf or negative values.
     """
     path = Path(path)
@@ -116,6 +104,11 @@ def read_volume(path: str | Path, voxel_um: tuple[float, float, float] | None = 
             raise VolumeError(f"{path}: not a readable TIFF ({error})") from None
     else:
         raise VolumeError(f"{path}: unknown volume format {path.suffix!r} (use .tif or .npy)")
+    if data.ndim == 2 and require_3d and spacing is None:  # a one-plane volume keeps its ImageJ spacing
+        raise VolumeError(
+            f"{path}: a 2-D image of shape {data.shape}, not a 3-D volume (z, y, x): a reconstruction must be a volume "
+            "(is this the raw measurement?)"
+        )
     if data.ndim == 2:
         data = data[None]
     if data.ndim != 3:
@@ -186,76 +179,3 @@ def write_volume(path: str | Path, volume: np.ndarray, voxel_um: tuple[float, fl
 def _save_npy(tmp: Path, array: np.ndarray) -> None:
     with open(tmp, "wb") as handle:
         np.save(handle, array, allow_pickle=False)
-
-
-# ----------------------------------------------------------------------------- emitters
-
-
-@dataclass(frozen=True)
-class Emitters:
-    """Uniform balls: centres (µm, object space), diameters (µm, 0 = point), total intensities."""
-
-    x_um: np.ndarray
-    y_um: np.ndarray
-    z_um: np.ndarray
-    diameter_um: np.ndarray
-    intensity: np.ndarray
-
-    def __post_init__(self) -> None:
-        arrays = [np.atleast_1d(np.asarray(getattr(self, c), dtype=np.float64)) for c in EMITTER_COLUMNS]
-        n = len(arrays[0])
-        for name, array in zip(EMITTER_COLUMNS, arrays, strict=True):
-            if array.ndim != 1 or len(array) != n:
-                raise VolumeError(f"emitters: {name} must be a 1-D array of length {n}")
-            if not np.all(np.isfinite(array)):
-                raise VolumeError(f"emitters: {name} contains NaN or infinite values")
-            object.__setattr__(self, name, array)
-        if np.any(self.diameter_um < 0):
-            raise VolumeError("emitters: diameter_um must be ≥ 0")
-        if np.any(self.intensity < 0):
-            raise VolumeError("emitters: intensity must be ≥ 0")
-
-    def __len__(self) -> int:
-        return len(self.x_um)
-
-    def positions_mm(self) -> np.ndarray:
-        """(N, 3) positions as (x, y, z), mm."""
-        return np.stack([self.x_um, self.y_um, self.z_um], axis=1) / 1000.0
-
-    def subset(self, index: np.ndarray) -> Emitters:
-        return Emitters(*(getattr(self, c)[index] for c in EMITTER_COLUMNS))
-
-
-def read_emitters(path: str | Path) -> Emitters:
-    """Read an emitter CSV (columns ``x_um,y_um,z_um,diameter_um,intensity``)."""
-    path = Path(path)
-    if not path.is_file():
-        raise VolumeError(f"{path}: no such emitter file")
-    with path.open(newline="") as handle:
-        reader = csv.DictReader(handle)
-        header = [c.strip() for c in (reader.fieldnames or [])]
-        if header != list(EMITTER_COLUMNS):
-            raise VolumeError(f"{path}: columns must be {','.join(EMITTER_COLUMNS)} (found {','.join(header)})")
-        columns: dict[str, list[float]] = {c: [] for c in EMITTER_COLUMNS}
-        for line, row in enumerate(reader, start=2):
-            row = {k.strip(): (v or "").strip() for k, v in row.items() if k is not None}
-            for column in EMITTER_COLUMNS:
-                try:
-                    value = float(row[column])
-                except ValueError:
-                    raise VolumeError(f"{path} line {line}: {column} = {row[column]!r} is not a number") from None
-                if not math.isfinite(value):
-                    raise VolumeError(f"{path} line {line}: {column} = {row[column]!r} is not finite")
-                columns[column].append(value)
-            if columns["diameter_um"][-1] < 0 or columns["intensity"][-1] < 0:
-                raise VolumeError(f"{path} line {line}: diameter_um and intensity must be ≥ 0")
-    return Emitters(*(np.asarray(columns[c]) for c in EMITTER_COLUMNS))
-
-
-def write_emitters(path: str | Path, emitters: Emitters) -> Path:
-    """Write an emitter CSV atomically."""
-    buffer = io.StringIO()
-    buffer.write(",".join(EMITTER_COLUMNS) + "\n")
-    for row in zip(*(getattr(emitters, c) for c in EMITTER_COLUMNS), strict=True):
-        buffer.write(",".join(f"{v:.6g}" for v in row) + "\n")
-    return write_text_atomic(Path(path), buffer.getvalue())

@@ -1,8 +1,16 @@
-"""A simple analytic CM²-like point-spread function, and synthetic PSF scans made with it.
+"""Toy CM²-like forward models for tests, demos and fast fall-backs: not physics.
 
-Not a physical simulation (that is :mod:`cm2optics.emission`): nine anisotropic Gaussian foci
-per point source, placed by paraxial chief-ray geometry, so that the LSV tools can be built
-and tested on scans whose truth is known in closed form.
+The physical simulation is :mod:`cm2optics.emission`; these models are quick, closed-form
+stand-ins whose truth is known, so that the LSV tools, the synthesiser and the solvers can be
+built and tested without a ray tracer:
+
+- :class:`AnalyticCM2`: nine anisotropic Gaussian foci per point source placed by paraxial
+  chief-ray geometry (below), and :func:`write_analytic_scan`, a synthetic PSF scan of it;
+- :func:`analytic_lsv_model`: an in-memory LSV model of it, straight from noise-free crops;
+- :func:`analytic_lsv_model_file`: an LSV model file of it, built (once) the way a user does,
+  from a synthetic scan through ``cm2 lsv build``'s :func:`~cm2optics.lsv.build.build_model`;
+- :func:`gaussian_lsi_operator`: a tiny depth-wise LSI operator with isotropic Gaussian foci
+  (no LSV model at all), for the solver and synthesiser tests.
 
 For a source at object position (x, y, z) (mm; z from the nominal focal plane, +z towards the
 device) and a lenslet whose vertex sits at c (mm, device frame), the chief ray through the
@@ -20,22 +28,28 @@ from a lenslet, as in the paper for lateral positions > 1.7 mm).
 from __future__ import annotations
 
 import math
+import shutil
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from cm2optics.design import SystemDesign
 from cm2optics.design.materials import refractive_index
+from cm2optics.formats.scan import ScanMeta, write_scan
+from cm2optics.formats.volume import VolumeGrid
+from cm2optics.lsv.lsi import DepthwiseConvOperator
 from cm2optics.optics import first_order
-from cm2optics.psf_scan import ScanMeta, write_scan
 
 __all__ = [
     "AnalyticCM2",
     "analytic_crops",
     "analytic_geometry",
-    "analytic_model",
+    "analytic_lsv_model",
+    "analytic_lsv_model_file",
     "analytic_scan_images",
+    "gaussian_lsi_operator",
     "write_analytic_scan",
 ]
 
@@ -184,7 +198,7 @@ def analytic_crops(model: AnalyticCM2, geometry, positions_mm: np.ndarray, patch
     return out
 
 
-def analytic_model(
+def analytic_lsv_model(
     model: AnalyticCM2,
     x_mm: np.ndarray,
     y_mm: np.ndarray,
@@ -215,7 +229,7 @@ def analytic_model(
         pixel_um=model.pixel_um,
         axial_um=model.axial_step_um if axial_um is None else axial_um,
         trim=trim,
-        provenance={"source": "analytic CM²-like model (cm2optics.lsv.analytic), noise-free crops"},
+        provenance={"source": "analytic CM²-like model (cm2optics.lsv.toy), noise-free crops"},
     )
     return lsv
 
@@ -286,7 +300,7 @@ def write_analytic_scan(
     **options: float,
 ) -> Path:
     """Write a scan folder of the analytic model over the grid x × y × z (mm), in the shared
-    PSF-scan format (:mod:`cm2optics.psf_scan`); ``options`` go to :func:`analytic_scan_images`."""
+    PSF-scan format (:mod:`cm2optics.formats.scan`); ``options`` go to :func:`analytic_scan_images`."""
     positions = np.array([[x, y, z] for z in z_mm for y in y_mm for x in x_mm], float)
     images, exposures = analytic_scan_images(model, positions, dark_level=dark_level, bit_depth=bit_depth, **options)
     meta = ScanMeta(
@@ -294,6 +308,93 @@ def write_analytic_scan(
         binning=binning,
         bit_depth=bit_depth,
         dark_level=dark_level,
-        extra={"lenslets": [model.rows, model.cols], "source": "analytic CM²-like model (cm2optics.lsv.analytic)"},
+        extra={"lenslets": [model.rows, model.cols], "source": "analytic CM²-like model (cm2optics.lsv.toy)"},
     )
     return write_scan(folder, images, positions, exposures, meta)
+
+
+def analytic_lsv_model_file(
+    path: str | Path, design: Any, *, binning: int = 4, rank: int = 8, lateral_nodes: int = 7, depth_nodes: int = 5
+) -> Path:
+    """Build (once) an LSV model of ``design`` from a synthetic PSF scan of the analytic CM²-like
+    PSF (:class:`AnalyticCM2`) on a ``lateral_nodes``² × ``depth_nodes`` grid over
+    ±3.6 mm × ±0.4 mm, binned ``binning``×; returns its path (reused if it exists). Keep the
+    lateral step ≤ 1.2 mm (7 nodes): at 1.8 mm the foci move further than the geometry fit's
+    lattice search expects and the magnification comes out wrong."""
+    from cm2optics.lsv.build import build_model
+
+    path = Path(path)
+    if path.is_file():
+        return path
+    scan = path.with_name(path.stem + "-scan")
+    xs = np.linspace(-3.6, 3.6, lateral_nodes)
+    write_analytic_scan(
+        scan,
+        AnalyticCM2.from_design(design, binning=binning),
+        xs,
+        xs,
+        np.linspace(-0.4, 0.4, depth_nodes),
+        binning=binning,
+    )
+    model = build_model(scan, rank=rank, design=design).model
+    shutil.rmtree(scan, ignore_errors=True)
+    return model.save(path)
+
+
+def gaussian_lsi_operator(
+    grid: VolumeGrid,
+    sensor_shape: tuple[int, int],
+    *,
+    rows: int = 3,
+    cols: int = 3,
+    pitch_px: float | None = None,
+    sigma0_px: float = 0.8,
+    defocus_px_per_um: float = 0.012,
+    shear_per_um: float = 2.5e-4,
+    patch_px: int | None = None,
+) -> DepthwiseConvOperator:
+    """A small CM²-like depth-wise LSI operator with Gaussian foci, for tests and demos.
+
+    rows × cols lenslets at ``pitch_px`` on the sensor (default: a third of the smaller sensor
+    side); a focus widens with defocus (σ² = σ0² + (defocus·z)², px) and lenslet j's focus moves
+    radially by ``shear_per_um·z`` × its offset (the axial shear that encodes depth); each focus
+    carries 1/J of the light. The image is inverted (a source moved +x lands −x).
+    """
+    H, W = sensor_shape
+    nz, ny, nx = grid.shape
+    pitch = float(pitch_px) if pitch_px is not None else min(H, W) / 3.0
+    z_um = grid.axis_um(0)
+    sigma = np.sqrt(sigma0_px**2 + (defocus_px_per_um * z_um) ** 2)
+    half = int(math.ceil(4 * sigma.max())) + 1
+    size = patch_px if patch_px is not None else 2 * half + 1
+    J = rows * cols
+    offsets = np.array(
+        [((r - (rows - 1) / 2) * pitch, (c - (cols - 1) / 2) * pitch) for r in range(rows) for c in range(cols)]
+    )
+    centre = np.array([(H - 1) / 2.0, (W - 1) / 2.0])
+    patches = np.zeros((J, nz, size, size), np.float32)
+    origins = np.zeros((J, nz, 2), np.int64)
+    rays = centre + offsets
+    plane_half = np.array([(ny - 1) / 2.0, (nx - 1) / 2.0])
+    grid_px = np.arange(size)
+    for j in range(J):
+        for z in range(nz):
+            focus = centre + offsets[j] * (1.0 + shear_per_um * z_um[z])  # source at the plane centre
+            top_left_focus = focus - plane_half  # where the flipped plane's voxel (0, 0) focuses
+            origin = np.floor(top_left_focus).astype(np.int64) - size // 2
+            frac = top_left_focus - origin
+            g_r = np.exp(-0.5 * ((grid_px - frac[0]) / sigma[z]) ** 2)
+            g_c = np.exp(-0.5 * ((grid_px - frac[1]) / sigma[z]) ** 2)
+            patch = np.outer(g_r, g_c)
+            patches[j, z] = patch / patch.sum() / J
+            origins[j, z] = origin
+    meta = {
+        "kind": "gaussian-cm2",
+        "rows": rows,
+        "cols": cols,
+        "pitch_px": pitch,
+        "sigma0_px": sigma0_px,
+        "defocus_px_per_um": defocus_px_per_um,
+        "shear_per_um": shear_per_um,
+    }
+    return DepthwiseConvOperator(patches, origins, grid, sensor_shape, (True, True), rays, meta=meta)

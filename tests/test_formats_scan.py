@@ -11,7 +11,7 @@ import pytest
 import tifffile
 import yaml
 
-from cm2optics.psf_scan import (
+from cm2optics.formats.scan import (
     PSFScan,
     ScanError,
     ScanIndex,
@@ -245,3 +245,9 @@ def test_write_scan_is_atomic_and_embeds_positions(tmp_path: Path):
     folder = write_scan(tmp_path / "good", np.zeros((1, 4, 4), np.uint16), np.array([[0.25, -0.5, 0.1]]), 2.0, META)
     description = json.loads(tifffile.TiffFile(folder / "psf_00000.tif").pages[0].description)
     assert description["x_mm"] == 0.25 and description["z_mm"] == 0.1 and description["exposure_ms"] == 2.0
+
+
+def test_pixel_pitch_checked_against_the_sensor(scan: Path):
+    assert open_scan(scan, sensor_pixel_um=2.4).meta.pixel_um == 2.4
+    with pytest.raises(ScanError, match=r"scan.yaml: pixel_um = 2.4 contradicts binning = 1 × the sensor's 0.6 µm"):
+        open_scan(scan, sensor_pixel_um=0.6)
