@@ -7,7 +7,9 @@ patches are drawn from the same per-sample stream as the synth package's; each t
 block of voxels imaged onto the patch at the focal plane, in the views' orientation
 (:func:`~cm2optics.synth.views.volume_patch`), rasterised straight on that block (the emitters
 moved to its centre) rather than on the whole grid — the same voxels, without making a
-full-field volume per sample.
+full-field volume per sample. The block's lateral pitch is the model's object-side pixel
+(:func:`pixel_voxel_um`; the config's voxel within 2 %), so the targets stay aligned with the
+views across the whole field.
 
 Order: per epoch the volumes are shuffled and each volume's patches shuffled (generator
 ``(seed, epoch)``), and consecutive patches share a volume (one synthesis serves them). The global
@@ -30,7 +32,7 @@ from torch.utils.data import Dataset
 from cm2optics.recon.net._compat import Emitters, VolumeGrid
 from cm2optics.recon.net.config import ConfigError, NetConfig
 
-__all__ = ["Item", "PatchDataset", "PatchSource", "epoch_items", "forward_imaging", "validation_items"]
+__all__ = ["Item", "PatchDataset", "PatchSource", "epoch_items", "forward_imaging", "pixel_voxel_um", "sensor_window", "validation_items"]
 
 #: Offset between the training and validation data seeds.
 VALIDATION_SEED_OFFSET = 7919
@@ -62,8 +64,35 @@ def _analytic_lsv(preset: str, binning: int, grid_key: tuple, fov_mm: float, dep
     return analytic_model(model, xs, xs, zs, rank=8, axial_um=float(grid_key[1][0]))
 
 
+def sensor_window(model: Any, view_px: int, margin_px: int = 8) -> Any:
+    """The 3D-LSV ``model`` on the smallest sensor window that holds every view (its geometry
+    moved with the window's corner), or ``model`` itself when the window is the whole sensor.
+
+    The views cropped from the window are those of the full sensor (zeros beyond it either
+    way), and the per-sample rendering (FFTs over the sensor) costs the window's area only."""
+    from dataclasses import replace
+
+    if not (hasattr(model, "geometry") and hasattr(model, "forward_sparse")):
+        return model
+    rays = np.asarray(model.geometry.focus(0.0, 0.0, 0.0), float).reshape(-1, 2)
+    H, W = model.sensor_shape
+    half = view_px // 2 + margin_px
+    top = max(int(np.floor(rays[:, 0].min())) - half, 0)
+    left = max(int(np.floor(rays[:, 1].min())) - half, 0)
+    bottom = min(int(np.ceil(rays[:, 0].max())) + half + 1, H)
+    right = min(int(np.ceil(rays[:, 1].max())) + half + 1, W)
+    if (top, left, bottom, right) == (0, 0, H, W):
+        return model
+    g = model.geometry
+    r0 = np.array(g.r0_poly, float, copy=True)
+    r0[0] -= (top, left)
+    geometry = type(g)(r0, g.A_poly, g.o_poly, g.rows, g.cols)
+    provenance = dict(model.provenance, sensor_window=[top, left, bottom, right])
+    return replace(model, geometry=geometry, sensor_shape=(bottom - top, right - left), provenance=provenance)
+
+
 @functools.lru_cache(maxsize=4)
-def _imaging(spec: str, grid_key: tuple, toy_px: int, fov_mm: float, depth_um: float):
+def _imaging(spec: str, grid_key: tuple, toy_px: int, fov_mm: float, depth_um: float, view_px: int):
     from cm2optics.synth.imaging import Imaging, load_imaging
 
     grid = VolumeGrid(grid_key[0], grid_key[1])
@@ -77,17 +106,24 @@ def _imaging(spec: str, grid_key: tuple, toy_px: int, fov_mm: float, depth_um: f
             preset, binning = parts[1], int(parts[2]) if len(parts) > 2 else 1
         except (IndexError, ValueError):
             raise ConfigError(f"forward_model = {spec!r}: write analytic:<preset>:<binning>, e.g. analytic:cm2-v2:8") from None
-        return Imaging(_analytic_lsv(preset, binning, grid_key, fov_mm, depth_um), grid)
-    return load_imaging(spec, grid)
+        return Imaging(sensor_window(_analytic_lsv(preset, binning, grid_key, fov_mm, depth_um), view_px), grid)
+    imaging = load_imaging(spec, grid)
+    windowed = sensor_window(imaging.source, view_px)
+    return imaging if windowed is imaging.source else Imaging(windowed, grid)
 
 
 def forward_imaging(config: NetConfig):
     """The :class:`~cm2optics.synth.imaging.Imaging` of ``config.forward_model`` on the config's
-    grid (cached per process), checked: one view pixel must image one voxel at the focal plane
+    grid (cached per process; a 3D-LSV model on its :func:`sensor_window`), checked: one view pixel must image one voxel at the focal plane
     (the network maps a view patch onto a volume patch of the same size)."""
     grid = config.synth.grid
     imaging = _imaging(
-        config.forward_model, (grid.shape, grid.voxel_um), config.toy_sensor_px, config.synth.fov_mm[1], config.synth.depth_um
+        config.forward_model,
+        (grid.shape, grid.voxel_um),
+        config.toy_sensor_px,
+        config.synth.fov_mm[1],
+        config.synth.depth_um,
+        config.synth.view_px,
     )
     scale = imaging.pixels_per_voxel()
     if scale is None:
@@ -101,17 +137,23 @@ def forward_imaging(config: NetConfig):
     return imaging
 
 
+def pixel_voxel_um(config: NetConfig, scale: np.ndarray) -> tuple[float, float, float]:
+    """The voxel the network actually predicts: (dz, and the object-side pixel along y and x), µm
+    — the config's lateral voxel divided by the model's pixels per voxel (within 2 % of 1)."""
+    dz, dy, dx = config.synth.grid.voxel_um
+    return (dz, dy / abs(float(scale[0])), dx / abs(float(scale[1])))
+
+
 def _block(config: NetConfig, origin: np.ndarray, scale: np.ndarray) -> tuple[np.ndarray, int]:
-    """Centre (y, x) µm of the voxel block under a view patch, and its side q (voxels)."""
-    grid = config.synth.grid
+    """Object-space centre (y, x) µm of the block of voxels under a view patch, and its side
+    (one voxel per view pixel, at the model's object-side pixel pitch)."""
     p, V = config.synth.patch_px, config.synth.view_px
-    q = p  # one voxel per pixel (checked by forward_imaging)
-    centre = []
-    for axis, (n, s, d) in enumerate(zip(grid.shape[1:], scale, grid.voxel_um[1:], strict=True)):
-        centre_px = origin[axis] + (p - 1) / 2.0 - V // 2
-        start = int(np.round((n - 1) / 2.0 + centre_px / s - (q - 1) / 2.0))
-        centre.append((start + (q - 1) / 2.0 - (n - 1) / 2.0) * d)
-    return np.array(centre), q
+    voxel = config.synth.grid.voxel_um[1:]
+    centre = [
+        (origin[axis] + (p - 1) / 2.0 - V // 2) / float(s) * d
+        for axis, (s, d) in enumerate(zip(scale, voxel, strict=True))
+    ]
+    return np.array(centre), p
 
 
 def patch_emitters(emitters: Emitters, centre_um: np.ndarray, scale: np.ndarray, margin_um: float = 0.0,
@@ -167,7 +209,8 @@ class PatchSource:
             local = patch_emitters(sample.draw.emitters, centre, self.scale)
             near = (np.abs(local.x_um) <= q * grid.voxel_um[2]) & (np.abs(local.y_um) <= q * grid.voxel_um[1])
             local = Emitters(*(getattr(local, n)[near] for n in ("x_um", "y_um", "z_um", "diameter_um", "intensity")))
-            block = rasterize_balls(local, VolumeGrid((grid.shape[0], q, q), grid.voxel_um), supersample=synth.supersample, kind=kind)
+            block_grid = VolumeGrid((grid.shape[0], q, q), pixel_voxel_um(c, self.scale))
+            block = rasterize_balls(local, block_grid, supersample=synth.supersample, kind=kind)
             volumes.append(np.clip(block, 0.0, 1.0))
         return {
             "views": np.stack([sample.views[:, r : r + p, s : s + p] for r, s in origins]).astype(np.float32),
@@ -185,7 +228,7 @@ class PatchSource:
         """The true emitters of a patch in its frame, centres within the part the loss sees."""
         v = self.volume(item.seed, item.volume, item.density)
         centre, q = _block(self.config, v["origins"][item.patch], self.scale)
-        voxel = self.config.synth.grid.voxel_um[1]
+        voxel = pixel_voxel_um(self.config, self.scale)[1]
         return patch_emitters(v["emitters"], centre, self.scale, border * voxel, q * voxel / 2.0)
 
 

@@ -8,7 +8,8 @@
    training), ``view_px`` on a side (default: the training views');
 4. run the network on the whole view stack (fully convolutional), σ → [0, 1];
 5. turn the output from the views' orientation into the volume's (the image through a lenslet
-   is inverted) on a grid of the training voxels centred on the axis, and detect emitters
+   is inverted) on a grid centred on the axis whose lateral voxel is the model's object-side
+   pixel (the config's voxel within 2 %) and axial voxel the config's, and detect emitters
    (:func:`cm2optics.metrics.detect_emitters`).
 
 Border: nothing is cropped. The outer ``border_px`` (the largest refocusing shift) of the field
@@ -31,6 +32,7 @@ import numpy as np
 import torch
 
 from cm2optics.recon.net._compat import Emitters, VolumeGrid
+from cm2optics.recon.net.data import pixel_voxel_um
 from cm2optics.recon.net.refocus import refocus_planes
 from cm2optics.recon.net.weights import GeometryMismatchError, LoadedNet, NetInputError, load_weights
 
@@ -189,7 +191,7 @@ def reconstruct_with_net(
     if scale[1] < 0:
         volume = volume[:, :, ::-1]
     volume = np.ascontiguousarray(volume)
-    grid = VolumeGrid((volume.shape[0], V, V), config.synth.grid.voxel_um)
+    grid = VolumeGrid((volume.shape[0], V, V), pixel_voxel_um(config, scale))
     from cm2optics.metrics import detect_emitters
 
     threshold = config.detect_threshold if threshold is None else float(threshold)

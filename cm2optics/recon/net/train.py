@@ -44,6 +44,7 @@ from cm2optics.recon.net.data import (
     PatchSource,
     epoch_items,
     forward_imaging,
+    pixel_voxel_um,
     rank_items,
     steps_per_epoch,
     validation_items,
@@ -185,7 +186,7 @@ def evaluate(
     threshold = config.detect_threshold if threshold is None else threshold
     grid = config.synth.grid
     p = config.synth.patch_px
-    inner = VolumeGrid((grid.shape[0], p - 2 * border, p - 2 * border), grid.voxel_um)
+    inner = VolumeGrid((grid.shape[0], p - 2 * border, p - 2 * border), pixel_voxel_um(config, source.scale))
     totals = {"loss": 0.0, "demix": 0.0, "volume": 0.0}
     evaluations = []
     for start in range(0, len(items), max(config.batch_size, 1)):
