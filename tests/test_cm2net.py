@@ -286,3 +286,24 @@ def test_the_sensor_window_gives_the_full_sensors_views(v2):
     assert a.views.max() > 0
     np.testing.assert_allclose(b.views * b.image_scale, a.views * a.image_scale, atol=1e-4 * a.image_scale * a.views.max())
     np.testing.assert_allclose(b.demixed * b.image_scale, a.demixed * a.image_scale, atol=1e-4 * a.image_scale * a.views.max())
+
+
+def test_the_learning_rate_drops_by_the_factor_after_two_stalled_epochs():
+    from cm2optics.recon.net.train import make_optimiser, make_scheduler
+
+    config = tiny()
+    net, _ = make_net(config)
+    optimiser = make_optimiser(net, config)
+    scheduler = make_scheduler(optimiser, config)
+    lrs = []
+    for loss in (1.0, 1.0, 1.0, 1.0, 1.0):
+        scheduler.step(loss)
+        lrs.append(optimiser.param_groups[0]["lr"])
+    assert lrs[:2] == [1e-4, 1e-4] and lrs[2] == pytest.approx(0.9e-4)  # best, stalled, stalled → ×0.9
+
+
+def test_the_training_entry_point_reports_a_bad_config_without_a_traceback(tmp_path, capsys):
+    from cm2optics.recon.net.train import main
+
+    assert main([str(tmp_path / "missing.yaml")]) == 2
+    assert "no such config file" in capsys.readouterr().out
