@@ -103,8 +103,15 @@ def main() -> None:
     parser.add_argument("--config", type=Path, default=REPO / "reconstruction" / "configs" / "cm2net-cpu.yaml")
     parser.add_argument("--size", type=int, default=None, help="side of the views, px (default: the config's view_px)")
     parser.add_argument("--channels", type=int, default=None, help="network width (default: the config's)")
-    parser.add_argument("--blocks", type=int, default=None, help="residual blocks per sub-network (default: the config's)")
-    parser.add_argument("--planes", type=int, default=None, help="output planes (default: the config's); needs a forward model that fits")
+    parser.add_argument(
+        "--blocks", type=int, default=None, help="residual blocks per sub-network (default: the config's)"
+    )
+    parser.add_argument(
+        "--planes",
+        type=int,
+        default=None,
+        help="output planes (default: the config's); needs a forward model that fits",
+    )
     parser.add_argument("--iterations", type=int, default=100, help="FISTA iterations the reference stands for")
     parser.add_argument("--repeat", type=int, default=2, help="timed runs of each figure (best kept)")
     parser.add_argument("--threads", type=int, default=min(2, os.cpu_count() or 1))
@@ -136,12 +143,17 @@ def main() -> None:
         "threads": args.threads,
         "torch": torch.__version__,
     }
-    print(f"CM²Net {config.channels} ch × {config.blocks} blocks, {net.planes.n_planes} → {config.n_planes} planes, "
-          f"{net.parameter_count():,} parameters; views 9 × {size}², {args.threads} threads")
+    print(
+        f"CM²Net {config.channels} ch × {config.blocks} blocks, {net.planes.n_planes} → {config.n_planes} planes, "
+        f"{net.parameter_count():,} parameters; views 9 × {size}², {args.threads} threads"
+    )
 
     def run(model, x, autocast=False):
         def go():
-            with torch.inference_mode(), (torch.autocast("cpu", dtype=torch.bfloat16) if autocast else contextlib.nullcontext()):
+            with (
+                torch.inference_mode(),
+                torch.autocast("cpu", dtype=torch.bfloat16) if autocast else contextlib.nullcontext(),
+            ):
                 model(x)
 
         return go
@@ -187,12 +199,23 @@ def main() -> None:
             L = lipschitz(operator)
             stopping = Stopping(max_iter=1, tol=0.0)
             fista(operator, measurement, l1=0.01, stopping=stopping, lipschitz_value=L)  # warm-up
-            t_it, m_it = best_of(args.repeat, lambda: fista(operator, measurement, l1=0.01, stopping=stopping, lipschitz_value=L))
+            t_it, m_it = best_of(
+                args.repeat, lambda: fista(operator, measurement, l1=0.01, stopping=stopping, lipschitz_value=L)
+            )
             total = t_it * args.iterations
-            results["fista"] = {"seconds_per_iteration": t_it, "iterations": args.iterations, "seconds": total, "peak_mib": m_it / 2**20}
+            results["fista"] = {
+                "seconds_per_iteration": t_it,
+                "iterations": args.iterations,
+                "seconds": total,
+                "peak_mib": m_it / 2**20,
+            }
             results["speedup_net_vs_fista"] = total / t_fp32
-            print(f"  FISTA, one iteration {t_it:8.3f} s   peak {m_it / 2**20:8.1f} MiB   × {args.iterations} = {total:.1f} s")
-            print(f"  CM²Net fp32 is {total / t_fp32:.1f}× faster than {args.iterations} FISTA iterations on this field")
+            print(
+                f"  FISTA, one iteration {t_it:8.3f} s   peak {m_it / 2**20:8.1f} MiB   × {args.iterations} = {total:.1f} s"
+            )
+            print(
+                f"  CM²Net fp32 is {total / t_fp32:.1f}× faster than {args.iterations} FISTA iterations on this field"
+            )
     if args.json:
         args.json.write_text(json.dumps(results, indent=1))
 

@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from cm2optics.recon.net.config import ConfigError, NetConfig, load_config
-from cm2optics.recon.net.data import PatchSource, _block, epoch_items, patch_emitters
+from cm2optics.recon.net.data import PatchSource, epoch_items
 from cm2optics.recon.net.infer import histogram_match, reconstruct_with_net
 from cm2optics.recon.net.loss import cm2net_loss, volume_loss
 from cm2optics.recon.net.model import CM2Net
@@ -152,7 +152,9 @@ def test_losses_are_finite_and_the_border_is_left_out():
     assert volume_loss(logits, target, "focal") < volume_loss(logits, target, "bce")
     vol_logits = torch.full((1, 3, 16, 16), -5.0)
     vol_logits[..., 0, :] = 5.0  # wrong only on the border
-    total, parts = cm2net_loss(torch.zeros(1, 9, 16, 16), vol_logits, torch.zeros(1, 9, 16, 16), torch.zeros(1, 3, 16, 16), config, 2)
+    total, parts = cm2net_loss(
+        torch.zeros(1, 9, 16, 16), vol_logits, torch.zeros(1, 9, 16, 16), torch.zeros(1, 3, 16, 16), config, 2
+    )
     assert float(parts["volume"]) < 0.01 and torch.isfinite(total)
 
 
@@ -201,7 +203,9 @@ def test_curriculum_grows_the_density():
 def weights(tmp_path_factory):
     config = tiny()
     net, _ = make_net(config)
-    return save_weights(net, config, tmp_path_factory.mktemp("w") / "weights", metrics={"f1": 0.5}, histogram=np.linspace(0, 1, 256))
+    return save_weights(
+        net, config, tmp_path_factory.mktemp("w") / "weights", metrics={"f1": 0.5}, histogram=np.linspace(0, 1, 256)
+    )
 
 
 def test_weights_round_trip_and_refuse_a_failed_hash_or_another_config(weights, tmp_path):
@@ -225,7 +229,9 @@ def test_weights_round_trip_and_refuse_a_failed_hash_or_another_config(weights, 
     (other / "config.yaml").write_text(text)
     import hashlib
 
-    sums = "".join(f"{hashlib.sha256((other / n).read_bytes()).hexdigest()}  {n}\n" for n in (WEIGHTS_FILE, "config.yaml"))
+    sums = "".join(
+        f"{hashlib.sha256((other / n).read_bytes()).hexdigest()}  {n}\n" for n in (WEIGHTS_FILE, "config.yaml")
+    )
     (other / SUMS_FILE).write_text(sums)
     with pytest.raises(WeightsError, match="config"):
         load_weights(other)
@@ -280,12 +286,18 @@ def test_the_sensor_window_gives_the_full_sensors_views(v2):
     window = sensor_window(model, 48)
     assert window.sensor_shape[0] * window.sensor_shape[1] < 0.8 * model.sensor_shape[0] * model.sensor_shape[1]
     voxel = model.default_grid.voxel_um[1]
-    synth = SynthConfig.scaled(8, voxel_um=(50.0, voxel, voxel), view_px=48, patch_px=16, patches_per_volume=0, noise="none", depth_um=300.0)
+    synth = SynthConfig.scaled(
+        8, voxel_um=(50.0, voxel, voxel), view_px=48, patch_px=16, patches_per_volume=0, noise="none", depth_um=300.0
+    )
     a = synthesize_sample(synth, Imaging(model, synth.grid), 0, 5)
     b = synthesize_sample(synth, Imaging(window, synth.grid), 0, 5)
     assert a.views.max() > 0
-    np.testing.assert_allclose(b.views * b.image_scale, a.views * a.image_scale, atol=1e-4 * a.image_scale * a.views.max())
-    np.testing.assert_allclose(b.demixed * b.image_scale, a.demixed * a.image_scale, atol=1e-4 * a.image_scale * a.views.max())
+    np.testing.assert_allclose(
+        b.views * b.image_scale, a.views * a.image_scale, atol=1e-4 * a.image_scale * a.views.max()
+    )
+    np.testing.assert_allclose(
+        b.demixed * b.image_scale, a.demixed * a.image_scale, atol=1e-4 * a.image_scale * a.views.max()
+    )
 
 
 def test_the_learning_rate_drops_by_the_factor_after_two_stalled_epochs():

@@ -57,7 +57,13 @@ def _state(folder: Path) -> dict[str, torch.Tensor]:
 def test_a_stopped_and_resumed_run_ends_with_the_weights_of_an_uninterrupted_one(tmp_path):
     whole = train(tiny(tmp_path / "whole"))
     assert whole["global_step"] == 8 and not whole["stopped"]
-    for name in ("checkpoint.pt", "history.json", "loss_curve.png", "weights/model.safetensors", "weights/MODEL_CARD.md"):
+    for name in (
+        "checkpoint.pt",
+        "history.json",
+        "loss_curve.png",
+        "weights/model.safetensors",
+        "weights/MODEL_CARD.md",
+    ):
         assert (tmp_path / "whole" / name).is_file()
     history = json.loads((tmp_path / "whole" / "history.json").read_text())
     assert len(history["steps"]) == 8 and len(history["epochs"]) == 2 and "recall" in history["epochs"][0]
@@ -86,8 +92,18 @@ def test_the_loss_curve_of_two_ddp_processes_equals_one_process(tmp_path):
     train(one)
     config_path = two.save(tmp_path / "two.yaml")
     env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    command = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2",
-               "-m", "cm2optics.recon.net.train", str(config_path), "--device", "cpu"]
+    command = [
+        sys.executable,
+        "-m",
+        "torch.distributed.run",
+        "--standalone",
+        "--nproc_per_node=2",
+        "-m",
+        "cm2optics.recon.net.train",
+        str(config_path),
+        "--device",
+        "cpu",
+    ]
     run = subprocess.run(command, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
     assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-3000:]
     h1 = json.loads((tmp_path / "one" / "history.json").read_text())

@@ -17,7 +17,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-from dataclasses import asdict, dataclass, field, fields, replace
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
@@ -136,7 +136,9 @@ class NetConfig:
         _int("refocus_planes", self.refocus_planes, 0, 4096)
         _choice("norm", self.norm, NORMS)
         if not isinstance(self.forward_model, str) or not self.forward_model:
-            raise ConfigError(f"forward_model = {self.forward_model!r}: must name a model file, analytic:… or toy:gaussian")
+            raise ConfigError(
+                f"forward_model = {self.forward_model!r}: must name a model file, analytic:… or toy:gaussian"
+            )
         _int("toy_sensor_px", self.toy_sensor_px, 16, 100_000)
         _int("seed", self.seed, 0, 2**31 - 1)
         _int("train_volumes", self.train_volumes, 1, 10_000_000)
@@ -147,7 +149,9 @@ class NetConfig:
         try:
             lo, hi = (float(v) for v in self.curriculum_start_density)
         except (TypeError, ValueError):
-            raise ConfigError(f"curriculum_start_density = {self.curriculum_start_density!r}: must be (low, high) per mm²") from None
+            raise ConfigError(
+                f"curriculum_start_density = {self.curriculum_start_density!r}: must be (low, high) per mm²"
+            ) from None
         if not (math.isfinite(lo) and math.isfinite(hi) and 0 <= lo <= hi):
             raise ConfigError(f"curriculum_start_density = {self.curriculum_start_density!r}: need 0 ≤ low ≤ high")
         object.__setattr__(self, "curriculum_start_density", (lo, hi))
@@ -169,7 +173,9 @@ class NetConfig:
         _int("threads", self.threads, 0, 1024)
         s = self.synth
         if not (s.view_px and s.patch_px):
-            raise ConfigError(f"synth.view_px = {s.view_px}, synth.patch_px = {s.patch_px}: CM²Net trains on patches of views; both must be > 0")
+            raise ConfigError(
+                f"synth.view_px = {s.view_px}, synth.patch_px = {s.patch_px}: CM²Net trains on patches of views; both must be > 0"
+            )
         if s.patches_per_volume < 1:
             raise ConfigError(f"synth.patches_per_volume = {s.patches_per_volume}: must be ≥ 1")
         if s.grid.shape[0] != self.n_planes:
@@ -238,7 +244,3 @@ def load_config(path: str | Path) -> NetConfig:
         return NetConfig.from_dict(data or {})
     except (ConfigError, TypeError) as error:
         raise ConfigError(f"{path}: {error}") from None
-
-
-def _asdict(config: NetConfig) -> dict[str, Any]:  # pragma: no cover - convenience for notebooks
-    return asdict(config)

@@ -32,7 +32,16 @@ from torch.utils.data import Dataset
 from cm2optics.recon.net._compat import Emitters, VolumeGrid
 from cm2optics.recon.net.config import ConfigError, NetConfig
 
-__all__ = ["Item", "PatchDataset", "PatchSource", "epoch_items", "forward_imaging", "pixel_voxel_um", "sensor_window", "validation_items"]
+__all__ = [
+    "Item",
+    "PatchDataset",
+    "PatchSource",
+    "epoch_items",
+    "forward_imaging",
+    "pixel_voxel_um",
+    "sensor_window",
+    "validation_items",
+]
 
 #: Offset between the training and validation data seeds.
 VALIDATION_SEED_OFFSET = 7919
@@ -105,7 +114,9 @@ def _imaging(spec: str, grid_key: tuple, toy_px: int, fov_mm: float, depth_um: f
         try:
             preset, binning = parts[1], int(parts[2]) if len(parts) > 2 else 1
         except (IndexError, ValueError):
-            raise ConfigError(f"forward_model = {spec!r}: write analytic:<preset>:<binning>, e.g. analytic:cm2-v2:8") from None
+            raise ConfigError(
+                f"forward_model = {spec!r}: write analytic:<preset>:<binning>, e.g. analytic:cm2-v2:8"
+            ) from None
         return Imaging(sensor_window(_analytic_lsv(preset, binning, grid_key, fov_mm, depth_um), view_px), grid)
     imaging = load_imaging(spec, grid)
     windowed = sensor_window(imaging.source, view_px)
@@ -156,8 +167,9 @@ def _block(config: NetConfig, origin: np.ndarray, scale: np.ndarray) -> tuple[np
     return np.array(centre), p
 
 
-def patch_emitters(emitters: Emitters, centre_um: np.ndarray, scale: np.ndarray, margin_um: float = 0.0,
-                   half_um: float | None = None) -> Emitters:
+def patch_emitters(
+    emitters: Emitters, centre_um: np.ndarray, scale: np.ndarray, margin_um: float = 0.0, half_um: float | None = None
+) -> Emitters:
     """The emitters in a patch's frame: moved to its centre and flipped as the views are; with
     ``half_um``, only those whose centre lies within ±(half_um − margin_um) laterally."""
     y = (emitters.y_um - centre_um[0]) * np.sign(scale[0])
@@ -291,4 +303,6 @@ def rank_items(config: NetConfig, items: list[Item], rank: int, world: int, star
 def validation_items(config: NetConfig) -> list[Item]:
     seed = config.seed + VALIDATION_SEED_OFFSET
     density = tuple(float(v) for v in config.synth.density_per_mm2)
-    return [Item(seed, v, k, density) for v in range(config.val_volumes) for k in range(config.synth.patches_per_volume)]
+    return [
+        Item(seed, v, k, density) for v in range(config.val_volumes) for k in range(config.synth.patches_per_volume)
+    ]

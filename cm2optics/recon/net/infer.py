@@ -78,7 +78,9 @@ def _chief_rays(model: Any) -> np.ndarray:
         return np.asarray(model.geometry.focus(0.0, 0.0, 0.0), float).reshape(-1, 2)
     if hasattr(model, "chief_rays_px"):
         return np.asarray(model.chief_rays_px(), float).reshape(-1, 2)
-    raise GeometryMismatchError(f"{type(model).__name__}: has no chief rays (need a 3D-LSV model or an operator with chief_rays_px)")
+    raise GeometryMismatchError(
+        f"{type(model).__name__}: has no chief rays (need a 3D-LSV model or an operator with chief_rays_px)"
+    )
 
 
 def views_from_measurement(measurement: np.ndarray, model: Any, view_px: int) -> np.ndarray:
@@ -128,7 +130,9 @@ def check_geometry(loaded: LoadedNet, model: Any) -> tuple[np.ndarray, Any]:
     except ValueError as error:
         raise GeometryMismatchError(f"{where}: the model's geometry gives no refocusing planes ({error})") from None
     if mine.n_planes != planes.n_planes or not np.array_equal(mine.shifts_px, planes.shifts_px):
-        diff = np.abs(mine.shifts_px - planes.shifts_px).max() if mine.shifts_px.shape == planes.shifts_px.shape else None
+        diff = (
+            np.abs(mine.shifts_px - planes.shifts_px).max() if mine.shifts_px.shape == planes.shifts_px.shape else None
+        )
         raise GeometryMismatchError(
             f"{where}: the model's refocusing ({mine.n_planes} planes"
             + (f", shifts up to {diff} px apart" if diff is not None else "")
@@ -175,7 +179,9 @@ def reconstruct_with_net(
         image = image / max(float(image.max()), 1e-12)
     elif preprocess == "histogram":
         if loaded.histogram is None:
-            raise ValueError(f"{loaded.folder}: these weights carry no reference histogram; use preprocess='max' or 'none'")
+            raise ValueError(
+                f"{loaded.folder}: these weights carry no reference histogram; use preprocess='max' or 'none'"
+            )
         image = histogram_match(image, loaded.histogram)
     V = int(view_px or config.synth.view_px)
     views = views_from_measurement(image, model, V)

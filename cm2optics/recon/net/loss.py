@@ -21,8 +21,9 @@ def _crop(x: torch.Tensor, border: int) -> torch.Tensor:
     return x[..., border:-border, border:-border] if border > 0 else x
 
 
-def volume_loss(logits: torch.Tensor, target: torch.Tensor, kind: str = "bce", *, pos_weight: float = 10.0,
-                gamma: float = 2.0) -> torch.Tensor:
+def volume_loss(
+    logits: torch.Tensor, target: torch.Tensor, kind: str = "bce", *, pos_weight: float = 10.0, gamma: float = 2.0
+) -> torch.Tensor:
     """The volume term on logits and targets in [0, 1] (same shape), a scalar mean."""
     if kind == "bce":
         return F.binary_cross_entropy_with_logits(logits, target)

@@ -114,7 +114,9 @@ def refocus_planes(source: Any, z_range_mm: tuple[float, float], n_planes: int =
     z_table = np.linspace(lo - 4 * span, hi + 4 * span, 4001)
     _, d_table = _disparity(source, z_table)
     if not np.all(np.diff(d_table) > 0) and not np.all(np.diff(d_table) < 0):
-        raise ValueError("the lenslets' disparity is not monotonic in depth over the volume: cannot place refocus planes")
+        raise ValueError(
+            "the lenslets' disparity is not monotonic in depth over the volume: cannot place refocus planes"
+        )
     if d_table[-1] < d_table[0]:
         z_table, d_table = z_table[::-1], d_table[::-1]
     _, d_ends = _disparity(source, np.array([lo, hi]))

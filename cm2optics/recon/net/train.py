@@ -102,7 +102,14 @@ def _mean_over_ranks(value: torch.Tensor) -> float:
 
 
 def _progress(enabled: bool):
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
 
     return Progress(
         TextColumn("{task.description}"),
@@ -230,7 +237,12 @@ def plot_history(history: dict[str, Any], path: str | Path) -> Path:
             ax.plot(x, [s[key] for s in steps], style, lw=1, label=f"train {key}")
     epochs = history.get("epochs", [])
     if epochs and any("val_loss" in e for e in epochs):
-        ax.plot([e["step"] for e in epochs if "val_loss" in e], [e["val_loss"] for e in epochs if "val_loss" in e], "o-", label="validation loss")
+        ax.plot(
+            [e["step"] for e in epochs if "val_loss" in e],
+            [e["val_loss"] for e in epochs if "val_loss" in e],
+            "o-",
+            label="validation loss",
+        )
     ax.set_xlabel("step")
     ax.set_ylabel("loss")
     ax.set_yscale("log")
@@ -249,7 +261,10 @@ def _write_history(out: Path, history: dict[str, Any]) -> None:
 
 def _histogram(source: PatchSource, config: NetConfig, count: int = 4) -> np.ndarray:
     """Quantiles (0…1 in 256 steps) of training views: the reference for histogram matching."""
-    values = [source.volume(config.seed + 104729, i, tuple(config.synth.density_per_mm2))["views"].ravel() for i in range(count)]
+    values = [
+        source.volume(config.seed + 104729, i, tuple(config.synth.density_per_mm2))["views"].ravel()
+        for i in range(count)
+    ]
     return np.quantile(np.concatenate(values), np.linspace(0.0, 1.0, 256))
 
 
@@ -257,7 +272,9 @@ def _histogram(source: PatchSource, config: NetConfig, count: int = 4) -> np.nda
 def _setup_distributed(device: str | None) -> tuple[int, int, torch.device]:
     world = int(os.environ.get("WORLD_SIZE", "1"))
     if world > 1 and not dist.is_initialized():
-        backend = "nccl" if (device or "").startswith("cuda") or (device is None and torch.cuda.is_available()) else "gloo"
+        backend = (
+            "nccl" if (device or "").startswith("cuda") or (device is None and torch.cuda.is_available()) else "gloo"
+        )
         dist.init_process_group(backend)
     rank, world = _world()
     if device is None:
@@ -344,7 +361,9 @@ def train(
         )
         last = [time.perf_counter()]
 
-        def on_step(i: int, record: dict[str, float], e: int = epoch, first: int = step_in_epoch) -> bool:
+        def on_step(
+            i: int, record: dict[str, float], e: int = epoch, first: int = step_in_epoch, last: list[float] = last
+        ) -> bool:
             nonlocal global_step, stopped, stop_at_epoch_end
             global_step += 1
             now = time.perf_counter()
@@ -436,10 +455,14 @@ def main(argv: list[str] | None = None) -> int:
     from cm2optics.recon.net.checkpoint import CheckpointError
     from cm2optics.recon.net.config import ConfigError
 
-    parser = argparse.ArgumentParser(prog="python -m cm2optics.recon.net.train", description="Train CM²Net from a YAML config.")
+    parser = argparse.ArgumentParser(
+        prog="python -m cm2optics.recon.net.train", description="Train CM²Net from a YAML config."
+    )
     parser.add_argument("config", help="YAML config (reconstruction/configs/cm2net-cpu.yaml, …)")
     parser.add_argument("--resume", action="store_true", help="continue from out_dir/checkpoint.pt")
-    parser.add_argument("--max-steps", type=int, default=None, help="stop (with a checkpoint) after this many steps in all")
+    parser.add_argument(
+        "--max-steps", type=int, default=None, help="stop (with a checkpoint) after this many steps in all"
+    )
     parser.add_argument("--device", default=None, help="cpu or cuda:N (default: the rank's GPU, else cpu)")
     args = parser.parse_args(argv)
     try:

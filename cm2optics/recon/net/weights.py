@@ -24,7 +24,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import torch
 
 from cm2optics.recon.net._compat import write_atomic
 from cm2optics.recon.net.config import ConfigError, NetConfig, load_config
@@ -120,7 +119,11 @@ def _card(net: CM2Net, config: NetConfig, metrics: dict[str, Any] | None, traini
         + ".",
         f"- {config.train_volumes} volumes × {s.patches_per_volume} patches per epoch"
         + (", new volumes each epoch" if config.fresh_volumes else "")
-        + (f"; density curriculum over {config.curriculum_epochs} epochs from {config.curriculum_start_density}" if config.curriculum_epochs else "")
+        + (
+            f"; density curriculum over {config.curriculum_epochs} epochs from {config.curriculum_start_density}"
+            if config.curriculum_epochs
+            else ""
+        )
         + ".",
         f"- Loss: {config.alpha_demix:g}·BCE(demixed) + {config.alpha_volume:g}·{config.volume_loss}(volume), "
         f"Adam {config.lr:g}, ×{config.lr_factor:g} after {config.lr_patience} stalled epochs, global batch {config.batch_size}.",
@@ -196,7 +199,9 @@ def _check_sums(folder: Path) -> None:
             raise WeightsError(f"{sums}: lists no SHA-256 for {name}")
         actual = _sha256(path)
         if actual != listed[name]:
-            raise WeightsError(f"{path}: SHA-256 {actual[:16]}… does not match {SUMS_FILE} ({listed[name][:16]}…): corrupt or edited")
+            raise WeightsError(
+                f"{path}: SHA-256 {actual[:16]}… does not match {SUMS_FILE} ({listed[name][:16]}…): corrupt or edited"
+            )
 
 
 def load_weights(folder: str | Path, device: str = "cpu") -> LoadedNet:
@@ -224,7 +229,9 @@ def load_weights(folder: str | Path, device: str = "cpu") -> LoadedNet:
     if metadata.get("format") != FORMAT:
         raise WeightsError(f"{path}: not CM²Net weights (format = {metadata.get('format')!r})")
     if metadata.get("config_hash") != config.hash():
-        raise WeightsError(f"{path}: trained with config {metadata.get('config_hash', '?')[:12]}…, {CONFIG_FILE} is {config.hash()[:12]}…")
+        raise WeightsError(
+            f"{path}: trained with config {metadata.get('config_hash', '?')[:12]}…, {CONFIG_FILE} is {config.hash()[:12]}…"
+        )
     try:
         planes = RefocusPlanes(
             tensors["refocus_z_mm"].numpy(), tensors["refocus_disparity_px"].numpy(), tensors["refocus.shifts"].numpy()
@@ -243,7 +250,9 @@ def load_weights(folder: str | Path, device: str = "cpu") -> LoadedNet:
             for part in (
                 f"missing {', '.join(missing[:4])}" if missing else "",
                 f"unexpected {', '.join(unexpected[:4])}" if unexpected else "",
-                ", ".join(f"{k} is {tuple(tensors[k].shape)}, the config needs {tuple(expected[k].shape)}" for k in wrong[:3]),
+                ", ".join(
+                    f"{k} is {tuple(tensors[k].shape)}, the config needs {tuple(expected[k].shape)}" for k in wrong[:3]
+                ),
             )
             if part
         )
