@@ -121,6 +121,7 @@ def main() -> None:
     torch.set_num_threads(args.threads)
 
     from cm2optics.recon.net._compat import VolumeGrid
+
     from cm2optics.recon.net.config import load_config
     from cm2optics.recon.net.data import forward_imaging
     from cm2optics.recon.net.train import make_net

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import torch
 
+from cm2optics.lsv.toy import gaussian_lsi_operator as gaussian_cm2
 from cm2optics.recon.net.config import ConfigError, NetConfig, load_config
 from cm2optics.recon.net.data import PatchSource, epoch_items
 from cm2optics.recon.net.infer import histogram_match, reconstruct_with_net
@@ -27,7 +28,6 @@ from cm2optics.recon.net.weights import (
     load_weights,
     save_weights,
 )
-from cm2optics.recon.operators import gaussian_cm2
 from cm2optics.synth.config import SynthConfig
 
 SYNTH = SynthConfig.scaled(20, voxel_um=(100.0, 8.0, 8.0), view_px=64, patch_px=32, patches_per_volume=4)
@@ -85,7 +85,7 @@ def test_refocusing_planes_from_the_geometry_match_the_paper_at_full_size(v2):
     """The analytic CM² V2's geometry at full resolution: the paper's fixed 36 planes have
     disparities −18…+17 px and the neighbouring views shift by the disparity; auto planes span
     the 800-µm depth at one pixel of disparity each; depths increase with the plane index."""
-    from cm2optics.lsv.analytic import AnalyticCM2, analytic_geometry
+    from cm2optics.lsv.toy import AnalyticCM2, analytic_geometry
 
     model = AnalyticCM2.from_design(v2)
     source = types.SimpleNamespace(geometry=analytic_geometry(model, np.linspace(-0.8, 0.8, 9)))
@@ -275,14 +275,14 @@ def test_histogram_matching_maps_quantiles():
 def test_the_sensor_window_gives_the_full_sensors_views(v2):
     """The 3D-LSV model cut to the window the views need renders the same views (analytic CM²
     V2, binned 8×), on a smaller sensor."""
-    from cm2optics.lsv.analytic import AnalyticCM2, analytic_model
+    from cm2optics.lsv.toy import AnalyticCM2, analytic_lsv_model
     from cm2optics.recon.net.data import sensor_window
     from cm2optics.synth.generate import synthesize_sample
     from cm2optics.synth.imaging import Imaging
 
     analytic = AnalyticCM2.from_design(v2, binning=8, sigma0_um=19.2)
     xs = np.linspace(-1.2, 1.2, 3)
-    model = analytic_model(analytic, xs, xs, np.linspace(-0.2, 0.2, 3), rank=4)
+    model = analytic_lsv_model(analytic, xs, xs, np.linspace(-0.2, 0.2, 3), rank=4)
     window = sensor_window(model, 48)
     assert window.sensor_shape[0] * window.sensor_shape[1] < 0.8 * model.sensor_shape[0] * model.sensor_shape[1]
     voxel = model.default_grid.voxel_um[1]

@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from cm2optics.recon.net._compat import write_atomic
+from cm2optics.formats.atomic import write_atomic
 
 __all__ = ["CheckpointError", "load_checkpoint", "rng_state", "save_checkpoint", "set_rng_state"]
 

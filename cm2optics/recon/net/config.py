@@ -67,7 +67,7 @@ class NetConfig:
     norm: ``batch`` (synchronised across DDP ranks), ``group`` or ``none``.
 
     Data — forward_model: a model file (3D-LSV HDF5 or PSF stack), ``analytic:<preset>:<binning>``
-    (the analytic CM²-like model of :mod:`cm2optics.lsv.analytic`, built in memory) or
+    (the analytic CM²-like model of :mod:`cm2optics.lsv.toy`, built in memory) or
     ``toy:gaussian`` (the depth-wise Gaussian toy, tests); toy_sensor_px: the toy's sensor side;
     synth: the synthetic recipe (views, patches, densities, noise); seed: data and weights seed;
     train_volumes: volumes per epoch; val_volumes: validation volumes (fixed);
@@ -213,7 +213,7 @@ class NetConfig:
         return yaml.safe_dump(self.to_dict(), sort_keys=False, allow_unicode=True)
 
     def save(self, path: str | Path) -> Path:
-        from cm2optics.recon.net._compat import write_atomic
+        from cm2optics.formats.atomic import write_atomic
 
         text = "# CM²Net configuration (cm2optics.recon.net.config.NetConfig)\n" + self.to_yaml()
         return write_atomic(Path(path), lambda tmp: tmp.write_text(text, encoding="utf-8"))

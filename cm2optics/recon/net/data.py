@@ -29,7 +29,8 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from cm2optics.recon.net._compat import Emitters, VolumeGrid
+from cm2optics.formats.emitters import Emitters
+from cm2optics.formats.volume import VolumeGrid
 from cm2optics.recon.net.config import ConfigError, NetConfig
 
 __all__ = [
@@ -60,7 +61,7 @@ class Item:
 
 def _analytic_lsv(preset: str, binning: int, grid_key: tuple, fov_mm: float, depth_um: float):
     from cm2optics.design import load_preset
-    from cm2optics.lsv.analytic import AnalyticCM2, analytic_model
+    from cm2optics.lsv.toy import AnalyticCM2, analytic_lsv_model
 
     design = load_preset(preset)
     probe = AnalyticCM2.from_design(design, binning=binning)
@@ -70,7 +71,7 @@ def _analytic_lsv(preset: str, binning: int, grid_key: tuple, fov_mm: float, dep
     n_lateral = max(3, int(np.ceil(2 * half / 1.2)) + 1)  # ≤ 1.2 mm between nodes
     xs = np.linspace(-half, half, n_lateral)
     zs = np.linspace(-depth_um / 2000.0 - 0.05, depth_um / 2000.0 + 0.05, 5)
-    return analytic_model(model, xs, xs, zs, rank=8, axial_um=float(grid_key[1][0]))
+    return analytic_lsv_model(model, xs, xs, zs, rank=8, axial_um=float(grid_key[1][0]))
 
 
 def sensor_window(model: Any, view_px: int, margin_px: int = 8) -> Any:
@@ -106,7 +107,7 @@ def _imaging(spec: str, grid_key: tuple, toy_px: int, fov_mm: float, depth_um: f
 
     grid = VolumeGrid(grid_key[0], grid_key[1])
     if spec == "toy:gaussian":
-        from cm2optics.recon.operators import gaussian_cm2
+        from cm2optics.lsv.toy import gaussian_lsi_operator as gaussian_cm2
 
         return Imaging(gaussian_cm2(grid, (toy_px, toy_px), defocus_px_per_um=0.006), grid)
     if spec.startswith("analytic:"):

@@ -31,7 +31,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from cm2optics.recon.net._compat import Emitters, VolumeGrid
+from cm2optics.formats.emitters import Emitters
+from cm2optics.formats.volume import VolumeGrid
 from cm2optics.recon.net.data import pixel_voxel_um
 from cm2optics.recon.net.refocus import refocus_planes
 from cm2optics.recon.net.weights import GeometryMismatchError, LoadedNet, NetInputError, load_weights

@@ -72,7 +72,7 @@ def lenslet_offsets_px(source: Any, z_mm: np.ndarray) -> np.ndarray:
     part (any term the same for all lenslets cancels in the refocusing).
 
     source: an :class:`~cm2optics.lsv.model.LSVModel` (its fitted geometry), a depth-wise
-    operator from :func:`~cm2optics.recon.operators.gaussian_cm2` (its shear), or anything with a
+    operator from :func:`~cm2optics.lsv.toy.gaussian_lsi_operator` (its shear), or anything with a
     ``geometry`` holding ``offsets(z_mm)``."""
     z = np.asarray(z_mm, float)
     geometry = getattr(source, "geometry", None)

@@ -36,7 +36,8 @@ import torch
 import torch.distributed as dist
 from torch.utils.data import DataLoader
 
-from cm2optics.recon.net._compat import VolumeGrid, write_atomic
+from cm2optics.formats.atomic import write_atomic
+from cm2optics.formats.volume import VolumeGrid
 from cm2optics.recon.net.checkpoint import load_checkpoint, save_checkpoint, set_rng_state
 from cm2optics.recon.net.config import NetConfig, load_config
 from cm2optics.recon.net.data import (

@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from cm2optics.recon.net._compat import write_atomic
+from cm2optics.formats.atomic import write_atomic
 from cm2optics.recon.net.config import ConfigError, NetConfig, load_config
 from cm2optics.recon.net.model import CM2Net
 from cm2optics.recon.net.refocus import RefocusPlanes
