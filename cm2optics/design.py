@@ -36,6 +36,7 @@ import yaml
 
 from cm2optics import paraxial
 from cm2optics.materials import Material, refractive_index
+from cm2optics.errors import UserError
 
 __all__ = [
     "AbsorptionFilter",
@@ -62,7 +63,7 @@ __all__ = [
 ]
 
 
-class DesignError(ValueError):
+class DesignError(UserError):
     """A design value that is missing, misspelled, mistyped or physically impossible.
 
     ``field`` is the dotted path of the offending field (``mla.radius_mm``).

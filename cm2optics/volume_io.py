@@ -25,6 +25,7 @@ import numpy as np
 import tifffile
 
 from cm2optics.io import write_atomic, write_text_atomic
+from cm2optics.errors import UserError
 
 __all__ = [
     "EMITTER_COLUMNS",
@@ -40,7 +41,7 @@ __all__ = [
 EMITTER_COLUMNS = ("x_um", "y_um", "z_um", "diameter_um", "intensity")
 
 
-class VolumeError(ValueError):
+class VolumeError(UserError):
     """A volume or emitter file that cannot be used; the message says what and where."""
 
 

@@ -11,7 +11,7 @@ import yaml
 from typer.testing import CliRunner
 
 import cm2optics.emission.scan as scan_module
-from cm2optics.emission.cli import psf_app
+from cm2optics.cli.psf import psf_app
 from cm2optics.emission.image import Emitters, read_emitters_csv
 from cm2optics.emission.psf import EmissionModel, PSFSettings, SensorGrid
 from cm2optics.emission.scan import ScanSettings, calibration_grid_mm, parse_grid, read_positions_csv, simulate_scan

@@ -115,7 +115,7 @@ def test_uniform_beam_bound_of_the_oblique_array(v2):
 
 
 def test_optimize_writes_a_printable_design(tmp_path):
-    from cm2optics.illumination.cli import illum_app
+    from cm2optics.cli.illum import illum_app
 
     result = CliRunner().invoke(
         illum_app,

@@ -13,8 +13,8 @@ import yaml
 from typer.testing import CliRunner
 
 from cm2optics.lsv.analytic import AnalyticCM2, write_analytic_scan
-from cm2optics.lsv.cli import lsv_app, simulate_command
-from cm2optics.lsv.report import FIGURES
+from cm2optics.cli.lsv import lsv_app, simulate_command
+from cm2optics.reports.lsv import FIGURES
 from cm2optics.volume_io import Emitters, write_emitters, write_volume
 
 app = typer.Typer()

@@ -9,7 +9,7 @@ import pytest
 import typer
 from typer.testing import CliRunner
 
-from cm2optics.metrics.cli import evaluate_command
+from cm2optics.cli.evaluate import evaluate_command
 from cm2optics.volume_io import Emitters, VolumeGrid, write_emitters, write_volume
 
 GRID = VolumeGrid((11, 40, 40), (10.0, 4.15, 4.15))

@@ -117,7 +117,7 @@ def test_dask_workers_make_the_same_data(toy_file, tmp_path):
 
 
 def _app():
-    from cm2optics.synth.cli import synth_command
+    from cm2optics.cli.synth import synth_command
 
     app = typer.Typer()
 

@@ -362,7 +362,7 @@ def simulate_scan(
         raise ValueError(f"chunk_size = {chunk_size!r}: must be an integer within 1–64")
     settings = settings or ScanSettings()
     positions = check_positions(positions_mm)
-    out_dir = Path(out_dir)
+    out_dir = Path(os.path.abspath(out_dir))  # "." has no name: the work folder goes beside the absolute path
     if out_dir.exists() and not out_dir.is_dir():
         raise NotADirectoryError(f"{out_dir}: exists and is not a folder")
     model = EmissionModel(design, settings.source, settings=settings.psf)  # validates before any work

@@ -14,7 +14,7 @@ back with the shear. Modules:
   the naive per-(k, z) evaluation the fast one is checked and timed against;
   :mod:`~cm2optics.lsv.kernels`: the Keys cubic sub-pixel shifts.
 - :mod:`~cm2optics.lsv.lsi`: the depth-wise shift-invariant baseline of the V1 paper.
-- :mod:`~cm2optics.lsv.build`, :mod:`~cm2optics.lsv.validate`, :mod:`~cm2optics.lsv.report`,
-  :mod:`~cm2optics.lsv.cli`: the ``cm2 lsv`` and ``cm2 simulate`` commands.
+- :mod:`~cm2optics.lsv.build`, :mod:`~cm2optics.lsv.validate`, :mod:`~cm2optics.reports.lsv`,
+  :mod:`~cm2optics.cli.lsv`: the ``cm2 lsv`` and ``cm2 simulate`` commands.
 - :mod:`~cm2optics.lsv.analytic`: a closed-form CM²-like PSF for tests and demos.
 """

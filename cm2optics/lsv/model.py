@@ -29,6 +29,7 @@ from cm2optics.io import write_atomic
 from cm2optics.lsv.interpolate import chief_ray_nodes, trilinear_coefficients
 from cm2optics.lsv.preprocess import Geometry
 from cm2optics.volume_io import Emitters, VolumeGrid
+from cm2optics.errors import UserError
 
 if TYPE_CHECKING:  # pragma: no cover
     from cm2optics.lsv.operators import LSVOperator
@@ -39,7 +40,7 @@ FORMAT = "cm2optics-lsv"
 VERSION = 1
 
 
-class ModelError(ValueError):
+class ModelError(UserError):
     """A model file that cannot be used, or a request the model cannot serve."""
 
 

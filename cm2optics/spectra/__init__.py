@@ -8,7 +8,7 @@
 * :mod:`~cm2optics.spectra.geometry` — angles of incidence at the filters, from the design;
 * :mod:`~cm2optics.spectra.chain` — the design's excitation and emission filter chains;
 * :mod:`~cm2optics.spectra.sbr` — signal, background and SBR, interference-only vs hybrid;
-* :mod:`~cm2optics.spectra.report` — plots and figures for ``cm2 spectra report`` and ``cm2 demo``.
+* :mod:`~cm2optics.reports.spectra` — plots and figures for ``cm2 spectra report`` and ``cm2 demo``.
 
 Wavelengths in nm, angles in degrees in files and radians (``_rad``) in code.
 """

@@ -16,7 +16,7 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from cm2optics.cli_options import JsonOption, PresetOption, user_errors
+from cm2optics.cli.options import JsonOption, PresetOption, user_errors
 from cm2optics.illumination.metrics import DEFINITIONS, IlluminationFigures
 
 __all__ = ["illum_app"]

@@ -1,7 +1,7 @@
 """``cm2 psf``: synthetic PSF calibration scans and brute-force measurements of emitters.
 
 Registered by :mod:`cm2optics.cli` as ``app.add_typer(psf_app, name="psf")``. User errors end in
-one line and exit status 2 (:func:`cm2optics.cli_options.user_errors`).
+one line and exit status 2 (:func:`cm2optics.cli.options.user_errors`).
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from cm2optics.cli_options import BinningOption, JsonOption, PresetOption, user_errors
+from cm2optics.cli.options import BinningOption, JsonOption, PresetOption, user_errors
 
 __all__ = ["psf_app"]
 

@@ -15,7 +15,7 @@ from matplotlib.figure import Figure
 
 from cm2optics.design import SystemDesign
 from cm2optics.io import write_atomic
-from cm2optics.report import Report
+from cm2optics.reports.document import Report
 from cm2optics.spectra.chain import emission_chain, excitation_spectrum, interference_filter_from_design
 from cm2optics.spectra.fit import predict_edges_nm
 from cm2optics.spectra.geometry import excitation_half_angle_rad

@@ -1,7 +1,7 @@
 """``cm2 lsv build``, ``cm2 lsv validate`` and ``cm2 simulate``.
 
 Register with ``app.add_typer(lsv_app, name="lsv")`` and ``app.command("simulate")(simulate_command)``.
-User errors end in one line and exit status 2 (:func:`cm2optics.cli_options.user_errors`).
+User errors end in one line and exit status 2 (:func:`cm2optics.cli.options.user_errors`).
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from cm2optics.cli_options import JsonOption, PresetOption, user_errors
+from cm2optics.cli.options import JsonOption, PresetOption, user_errors
 
 __all__ = ["lsv_app", "simulate_command"]
 
@@ -101,7 +101,7 @@ def build(
     """
     from cm2optics.design import load_preset
     from cm2optics.lsv.build import build_model
-    from cm2optics.lsv.report import write_build_report
+    from cm2optics.reports.lsv import write_build_report
 
     if rank < 1:
         raise ValueError(f"--rank = {rank}: must be ≥ 1")

@@ -1,7 +1,7 @@
 """``cm2 spectra``: the spectral report of a design, and the filter fitter.
 
 Register with ``app.add_typer(spectra_app, name="spectra")``. User errors end in one line and
-exit status 2 (:func:`cm2optics.cli_options.user_errors`).
+exit status 2 (:func:`cm2optics.cli.options.user_errors`).
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from cm2optics.cli_options import PresetOption, user_errors
+from cm2optics.cli.options import PresetOption, user_errors
 
 __all__ = ["spectra_app"]
 
@@ -44,7 +44,7 @@ def report(
     sbr_interference_only, sbr_hybrid, sbr_gain, per-angle figures and the film sensitivity.
     """
     from cm2optics.design import load_preset
-    from cm2optics.spectra.report import spectra_report
+    from cm2optics.reports.spectra import spectra_report
 
     design = load_preset(preset)
     figures = spectra_report(design, out_dir)

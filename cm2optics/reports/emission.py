@@ -21,7 +21,7 @@ from cm2optics.emission.psf import EmissionModel, PSFSettings
 from cm2optics.emission.scan import ScanSettings, calibration_grid_mm, simulate_scan
 from cm2optics.emission.source import calibration_pinhole
 from cm2optics.io import write_atomic
-from cm2optics.report import Report
+from cm2optics.reports.document import Report
 
 __all__ = ["add_psf_section", "psf_numbers"]
 

@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 
 from cm2optics.design import SystemDesign
-from cm2optics.report import Report
+from cm2optics.reports.document import Report
 
 __all__ = ["add_baseline_section"]
 

@@ -11,7 +11,7 @@ from typing import Annotated
 
 import typer
 
-from cm2optics.cli_options import JsonOption, user_errors
+from cm2optics.cli.options import JsonOption, user_errors
 
 __all__ = ["evaluate_command", "parse_triple"]
 

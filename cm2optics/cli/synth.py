@@ -11,8 +11,8 @@ from typing import Annotated, Any
 
 import typer
 
-from cm2optics.cli_options import JsonOption, user_errors
-from cm2optics.metrics.cli import parse_triple
+from cm2optics.cli.options import JsonOption, user_errors
+from cm2optics.cli.evaluate import parse_triple
 
 __all__ = ["export_sample", "synth_command"]
 
