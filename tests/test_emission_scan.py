@@ -14,7 +14,8 @@ import cm2optics.emission.scan as scan_module
 from cm2optics.cli.psf import psf_app
 from cm2optics.emission.image import Emitters, read_emitters_csv
 from cm2optics.emission.psf import EmissionModel, PSFSettings, SensorGrid
-from cm2optics.emission.scan import ScanSettings, calibration_grid_mm, parse_grid, read_positions_csv, simulate_scan
+from cm2optics.cli.options import parse_int_list
+from cm2optics.emission.scan import ScanSettings, calibration_grid_mm, read_positions_csv, simulate_scan
 from cm2optics.emission.source import fluorescent_bead
 from cm2optics.psf_scan import read_scan
 
@@ -23,7 +24,7 @@ FAST = ScanSettings(psf=PSFSettings(binning=8), source=fluorescent_bead(5.0))
 
 
 def test_the_papers_calibration_grid(v2):
-    positions = calibration_grid_mm(v2, parse_grid("9x9x11"))
+    positions = calibration_grid_mm(v2, (9, 9, 11))
     assert positions.shape == (891, 3)
     xs, ys, zs = (np.unique(positions[:, k]) for k in range(3))
     assert np.allclose(xs, np.arange(-4, 4.01, 1.0)) and np.allclose(ys, xs)
@@ -51,7 +52,7 @@ def test_bad_chunk_sizes_are_refused(v2, tmp_path):
 @pytest.mark.parametrize("text", ["9x9", "0x9x11", "axbxc", "9x9x200"])
 def test_bad_grids_are_refused(text):
     with pytest.raises(ValueError, match="--grid"):
-        parse_grid(text)
+        parse_int_list(text, 3, name="--grid", sep="x", low=1, high=101)
 
 
 def test_positions_csv(tmp_path):

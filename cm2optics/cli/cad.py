@@ -10,7 +10,7 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from cm2optics.cli.options import JsonOption, OverwriteOption, PresetOption, check_output, user_errors
+from cm2optics.cli.options import JsonOption, OverwriteOption, PresetOption, output_folder, user_errors
 from cm2optics.errors import UserError
 
 __all__ = ["cad_app"]
@@ -51,17 +51,15 @@ def cad_export(
     from cm2optics.cad.export import FORMATS, export_design, size_text
     from cm2optics.cli.options import parse_names
     from cm2optics.design import load_preset
-    from cm2optics.formats.outputs import claim_folder
 
     chosen = parse_names(formats, name="--format", allowed=FORMATS)
     if not 0.1 <= tolerance_um <= 100:
         raise UserError(f"--tolerance-um = {tolerance_um}: must lie within 0.1–100 µm")
     design = load_preset(preset)
-    check_output(out_dir, command="cad export", kind="folder", inputs=[preset], overwrite=overwrite)
+    output_folder(out_dir, "cad export", inputs=[preset], overwrite=overwrite)
     manifest = export_design(
         design, out_dir, formats=chosen, tolerance_um=tolerance_um, pictures=pictures, show_progress=not as_json
     )
-    claim_folder(out_dir, "cad export")
     if as_json:
         print(json.dumps(manifest, indent=2, ensure_ascii=False))
         return

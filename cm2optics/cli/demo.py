@@ -9,7 +9,7 @@ from typing import Annotated
 import typer
 from rich.console import Console
 
-from cm2optics.cli.options import OverwriteOption, PresetOption, check_dask_address, check_output, user_errors
+from cm2optics.cli.options import OverwriteOption, PresetOption, check_dask_address, check_output, output_folder, user_errors
 
 __all__ = ["compare_baselines_command", "demo_command"]
 
@@ -26,13 +26,11 @@ def demo_command(
 ) -> None:
     """Run every stage built so far at demo size and write `report.html` and `report.md`."""
     from cm2optics.design import load_preset
-    from cm2optics.formats.outputs import claim_folder
     from cm2optics.reports.demo import run_demo
 
     design = load_preset(preset)
-    check_output(out_dir, command="demo", kind="folder", inputs=[preset], overwrite=overwrite)
+    output_folder(out_dir, "demo", inputs=[preset], overwrite=overwrite)
     report = run_demo(design, out_dir)
-    claim_folder(out_dir, "demo")
     out.print(f"[green]demo report:[/] {report}")
 
 
@@ -69,7 +67,6 @@ def compare_baselines_command(
     """
     from cm2optics.design import load_preset
     from cm2optics.errors import UserError
-    from cm2optics.formats.outputs import claim_folder
     from cm2optics.lsv.model import load_model
     from cm2optics.recon.compare import analytic_model, compare_baselines, scaled_test_config
 
@@ -80,7 +77,7 @@ def compare_baselines_command(
     except ValueError as error:
         raise UserError(f"--runs: not valid JSON ({error})") from None
     check_dask_address(dask_address)
-    check_output(out_dir, command="compare-baselines", kind="folder", inputs=[model], overwrite=overwrite or reuse)
+    output_folder(out_dir, "compare-baselines", inputs=[model], overwrite=overwrite)
     if not model.is_file():
         check_output(model, command="compare-baselines", option="MODEL")
         analytic_model(model, load_preset("cm2-v2"), binning=build_binning)
@@ -97,4 +94,3 @@ def compare_baselines_command(
         dask_address=dask_address,
         reuse=reuse,
     )
-    claim_folder(out_dir, "compare-baselines")

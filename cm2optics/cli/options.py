@@ -17,7 +17,7 @@ import socket
 import sys
 import tempfile
 import traceback
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Annotated, Any, TypeVar
 from urllib.parse import urlparse
@@ -36,6 +36,7 @@ __all__ = [
     "PresetOption",
     "check_dask_address",
     "check_output",
+    "output_folder",
     "clamped",
     "parse_float_list",
     "parse_names",
@@ -95,12 +96,13 @@ def parse_float_list(
     low: float = -math.inf,
     high: float = math.inf,
     low_open: bool = False,
+    high_open: bool = False,
     repeat_single: bool = False,
 ) -> tuple[float, ...] | None:
     """``"10,4.15,4.15"`` → ``(10.0, 4.15, 4.15)``; None stays None.
 
     n: the count required (an int), a range ``(least, most)``, or None for any count ≥ 1.
-    low/high: the allowed range of each value (``low_open``: strictly above ``low``); values
+    low/high: the allowed range of each value (``low_open``/``high_open``: the bound excluded); values
     must be finite. repeat_single: one value stands for all ``n``. Any fault raises a
     :class:`UserError` naming ``name``, the text and an example.
     """
@@ -126,20 +128,31 @@ def parse_float_list(
         raise UserError(f"{name} = {text!r}: give {count} separated by {sep!r}{hint} (got {len(values)})")
     for value in values:
         below = value <= low if low_open else value < low
-        if not math.isfinite(value) or below or value > high:
+        above = value >= high if high_open else value > high
+        if not math.isfinite(value) or below or above:
             lower = ("> " if low_open else "≥ ") + f"{low:g}"
-            bound = lower if math.isinf(high) else f"within {low:g}–{high:g}"
+            bound = lower if math.isinf(high) else f"within {low:g}–{high:g}{' (excluded)' if high_open else ''}"
             raise UserError(f"{name} = {text!r}: every value must be finite and {bound} (got {value:g})")
     return values
 
 
-def parse_names(text: str, *, name: str, allowed: tuple[str, ...] | None = None) -> tuple[str, ...]:
-    """``"stl, STEP"`` → ``("stl", "step")`` (lower case, no repeats); names outside ``allowed`` are refused."""
-    names = tuple(dict.fromkeys(part.strip().lower() for part in str(text).split(",") if part.strip()))
-    bad = [n for n in names if allowed is not None and n not in allowed]
-    if not names or bad:
-        choices = f": allowed are {', '.join(allowed)}" if allowed else ""
-        raise UserError(f"{name} = {text!r}: give comma-separated names{choices}")
+def parse_names(
+    text: str, *, name: str, allowed: tuple[str, ...] | None = None, n: int | None = None, what: str = "names"
+) -> tuple[str, ...]:
+    """``"stl, STEP"`` → ``("stl", "step")``: comma-separated names, no repeats.
+
+    allowed: the names accepted (compared in lower case, returned in lower case); without it the
+    names are kept as written (file names). n: the count required.
+    """
+    parts = [part.strip() for part in str(text).split(",")]
+    if allowed is not None:
+        parts = [p.lower() for p in parts if p]
+    names = tuple(dict.fromkeys(parts)) if allowed is not None else tuple(parts)
+    bad = [x for x in names if (allowed is not None and x not in allowed) or not x]
+    if not names or bad or (n is not None and len(names) != n):
+        choices = f"; allowed are {', '.join(allowed)}" if allowed else ""
+        count = f"{n} " if n is not None else ""
+        raise UserError(f"{name} = {text!r}: give {count}{what} separated by commas{choices}")
     return names
 
 
@@ -161,6 +174,17 @@ def clamped(option: str, given: Any, used: Any, why: str = "") -> Any:
     if given != used:
         err.print(f"[yellow]warning:[/] {option} = {given} is out of range; using {used}{f' ({why})' if why else ''}")
     return used
+
+
+def output_folder(
+    path: Path, command: str, *, inputs: Iterable[Path | str | None] = (), overwrite: bool = False
+) -> Path:
+    """Check that ``command`` may write the folder ``path`` (:func:`check_output`), then mark it
+    as this command's output, so that a re-run (or a resumed run) may write into it again."""
+    from cm2optics.formats.outputs import claim_folder
+
+    check_output(path, command=command, kind="folder", inputs=inputs, overwrite=overwrite)
+    return claim_folder(path, command)
 
 
 def check_dask_address(address: str | None, timeout_s: float = 3.0) -> None:

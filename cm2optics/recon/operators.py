@@ -475,6 +475,17 @@ def model_format(path: str | Path) -> str:
         ) from None
 
 
+def model_grid(path: str | Path) -> VolumeGrid | None:
+    """The grid a model file reconstructs on by default, read from its header (nothing allocated)."""
+    kind = model_format(path)
+    key = {"cm2optics-lsv": "default_grid", PSF_STACK_FORMAT: "grid"}.get(kind)
+    if key is None:
+        return None
+    with h5py.File(path, "r") as f:
+        text = f.attrs.get(key)
+    return None if text is None else VolumeGrid.from_dict(json.loads(text))
+
+
 def load_operator(
     path: str | Path, grid: VolumeGrid | None = None, *, forward: str = "lsv", device: str = "cpu"
 ) -> Any:

@@ -19,15 +19,17 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import asdict, dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 
+from cm2optics.errors import UserError
 from cm2optics.recon.operators import DepthwiseConvOperator
 from cm2optics.recon.solvers import Progress, SolverResult, Stopping, admm, admm_lsi, fista, richardson_lucy
 
-__all__ = ["METHODS", "ReconOptions", "memory_estimate", "reconstruct"]
+__all__ = ["METHODS", "ReconOptions", "check_memory", "memory_estimate", "read_measurement", "reconstruct", "reconstruct_file"]
 
 METHODS = ("fista", "admm", "rl")
 #: Volume-sized float32 arrays each method keeps (without TV, extra with TV).
@@ -106,6 +108,21 @@ def memory_estimate(operator: Any, options: ReconOptions) -> dict[str, float]:
         "operator_gib": op_bytes / 2**30,
         "total_gib": total / 2**30,
     }
+
+
+def check_memory(grid: Any, options: ReconOptions) -> None:
+    """Refuse, before anything is allocated, a run whose volume-sized arrays alone exceed
+    ``options.max_memory_gib`` on ``grid`` (a lower bound of :func:`memory_estimate`)."""
+    if grid is None:
+        return
+    nz, ny, nx = (int(n) for n in grid.shape)
+    base, extra = _COPIES[options.method]
+    gib = (base + (extra if options.tv > 0 else 0)) * nz * ny * nx * 4 / 2**30
+    if gib > options.max_memory_gib:
+        raise UserError(
+            f"{options.method} on a {nz}×{ny}×{nx} grid needs ≥ {gib:.3g} GiB (> --max-memory-gib "
+            f"{options.max_memory_gib:g}): use a coarser or smaller grid (--grid, --voxel-um), drop --tv, or use rl/fista"
+        )
 
 
 def _background(measurement: np.ndarray, background: str | float) -> float:
@@ -216,3 +233,67 @@ def reconstruct(
 def _finite(values: list[float]) -> float | None:
     finite = [v for v in values if v is not None and math.isfinite(v)]
     return finite[-1] if finite else None
+
+
+def read_measurement(path: str | Path, dark_level: float = 0.0):
+    """A measurement image (TIFF or .npy) as float32 (y, x), less ``dark_level``."""
+    import numpy as np
+    import tifffile
+
+    path = Path(path)
+    if path.is_dir():
+        raise UserError(f"{path}: is a folder; give a measurement file (.tif or .npy)")
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such measurement file")
+    try:
+        if path.suffix.lower() == ".npy":
+            data = np.load(path, allow_pickle=False)
+        elif path.suffix.lower() in (".tif", ".tiff"):
+            data = tifffile.imread(path)
+        else:
+            raise UserError(f"{path}: unknown measurement format {path.suffix!r} (use .tif or .npy)")
+    except ValueError:
+        raise
+    except Exception as error:  # tifffile/numpy raise many types for corrupt files
+        raise UserError(f"{path}: not a readable image ({type(error).__name__}: {error})") from None
+    data = np.squeeze(np.asarray(data))
+    if data.ndim != 2:
+        raise UserError(f"{path}: a measurement is one image (y, x), found shape {data.shape}")
+    if not np.issubdtype(data.dtype, np.number) or np.iscomplexobj(data):
+        raise UserError(f"{path}: pixel values must be real numbers (found {data.dtype})")
+    data = data.astype(np.float32) - np.float32(dark_level)
+    if not np.all(np.isfinite(data)):
+        raise UserError(f"{path}: contains {int(np.sum(~np.isfinite(data)))} NaN or infinite pixels")
+    return data
+
+
+def reconstruct_file(
+    measurement_path: str | Path,
+    model_path: str | Path,
+    out_path: str | Path,
+    options,
+    *,
+    forward: str = "lsv",
+    grid=None,
+    dark_level: float = 0.0,
+    progress=None,
+) -> dict:
+    """Read, reconstruct, write the volume (TIFF/.npy) and ``<out>.json`` beside it; returns the record."""
+    from cm2optics.io import write_json_atomic
+    from cm2optics.recon.operators import load_operator, model_grid
+    from cm2optics.recon.reconstruct import reconstruct
+    from cm2optics.volume_io import write_volume
+
+    out_path = Path(out_path)
+    if out_path.suffix.lower() not in (".tif", ".tiff", ".npy"):
+        raise UserError(f"--out {out_path}: give a .tif or .npy file name")
+    measurement = read_measurement(measurement_path, dark_level)
+    check_memory(grid or model_grid(model_path), options)  # before the operator allocates anything
+    operator = load_operator(model_path, grid, forward=forward)
+    volume, record = reconstruct(measurement, operator, options, progress=progress)
+    write_volume(out_path, volume, operator.grid.voxel_um)
+    record.update(
+        {"measurement": str(measurement_path), "model": str(model_path), "forward": forward, "volume": str(out_path)}
+    )
+    write_json_atomic(out_path.with_suffix(".json"), record)
+    return record

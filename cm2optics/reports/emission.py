@@ -68,13 +68,11 @@ def psf_numbers(design: SystemDesign, binning: int = 4) -> dict[str, float]:
 
 
 def _z_stack_figure(model: EmissionModel, path: Path, zs: np.ndarray) -> Path:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure
 
     k = analysis.central_lenslet(model)
-    fig, axes = plt.subplots(1, len(zs), figsize=(1.9 * len(zs), 2.2))
+    fig = Figure(figsize=(1.9 * len(zs), 2.2))
+    axes = fig.subplots(1, len(zs))
     for ax, z in zip(np.atleast_1d(axes), zs, strict=True):
         focus = model.foci((0.0, 0.0, float(z)), lenslets=[k])[0]
         r, c = focus.centroid_px()
@@ -88,10 +86,7 @@ def _z_stack_figure(model: EmissionModel, path: Path, zs: np.ndarray) -> Path:
         f"central focus of an on-axis source ({model.grid.pitch_mm * 1000:.1f}-µm pixels, √ intensity)", fontsize=8
     )
     fig.tight_layout()
-    try:
-        return write_atomic(path, lambda tmp: fig.savefig(tmp, dpi=110, format="png"))
-    finally:
-        plt.close(fig)
+    return write_atomic(path, lambda tmp: fig.savefig(tmp, dpi=110, format="png"))
 
 
 def add_psf_section(
