@@ -69,7 +69,3 @@ def main(
 ) -> None:
     """cm2optics command line."""
     set_debug(debug)
-
-
-if __name__ == "__main__":  # pragma: no cover
-    app()

@@ -52,7 +52,7 @@ def cad_export(
     from cm2optics.cli.options import parse_names
     from cm2optics.design import load_preset
 
-    chosen = parse_names(formats, name="--format", allowed=FORMATS)
+    chosen = parse_names(formats, name="--format", allowed=FORMATS, what="formats")
     if not 0.1 <= tolerance_um <= 100:
         raise UserError(f"--tolerance-um = {tolerance_um}: must lie within 0.1–100 µm")
     design = load_preset(preset)

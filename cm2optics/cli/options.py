@@ -13,9 +13,11 @@ from __future__ import annotations
 import functools
 import math
 import os
+import signal
 import socket
 import sys
 import tempfile
+import threading
 import traceback
 from collections.abc import Callable, Iterable
 from pathlib import Path
@@ -150,7 +152,7 @@ def parse_names(
     names = tuple(dict.fromkeys(parts)) if allowed is not None else tuple(parts)
     bad = [x for x in names if (allowed is not None and x not in allowed) or not x]
     if not names or bad or (n is not None and len(names) != n):
-        choices = f"; allowed are {', '.join(allowed)}" if allowed else ""
+        choices = f"; allowed {what} are {', '.join(allowed)}" if allowed else ""
         count = f"{n} " if n is not None else ""
         raise UserError(f"{name} = {text!r}: give {count}{what} separated by commas{choices}")
     return names
@@ -236,10 +238,38 @@ def _user_message(error: BaseException) -> str | None:
     if isinstance(error, (FileNotFoundError, IsADirectoryError, NotADirectoryError, PermissionError, FileExistsError)):
         text = str(error)
         return text if error.filename is None and text else _file_message(error)
+    if _undecodable(error):
+        path = _file_in_traceback(error)
+        if path is not None:
+            return f"{path}: cannot be read: not the expected file format ({type(error).__name__}: {error})"
     if isinstance(error, ValueError) and _raised_on_purpose(error):
         # A plain ValueError raised by a cm2optics validation (not by numpy & co.): a user's bad value.
         return str(error)
     return None
+
+
+def _undecodable(error: BaseException) -> bool:
+    """A reader's complaint about a file's bytes (text encoding, TIFF, HDF5, NumPy, ZIP)."""
+    if isinstance(error, UnicodeDecodeError):
+        return True
+    name = type(error).__name__
+    module = type(error).__module__.split(".")[0]
+    return name in ("TiffFileError", "BadZipFile") or (module in ("tifffile", "h5py", "numpy") and "Error" in name)
+
+
+def _file_in_traceback(error: BaseException) -> Path | None:
+    """The user's file a failing cm2optics reader was reading (a local ``path``-like existing file)."""
+    package = str(Path(__file__).resolve().parents[1])
+    tb = error.__traceback__
+    found = None
+    while tb is not None:
+        frame = tb.tb_frame
+        if frame.f_code.co_filename.startswith(package):
+            for value in frame.f_locals.values():
+                if isinstance(value, Path) and value.is_file():
+                    found = value
+        tb = tb.tb_next
+    return found
 
 
 def _raised_on_purpose(error: BaseException) -> bool:
@@ -270,11 +300,24 @@ def report_internal(error: BaseException) -> int:
     return INTERNAL_EXIT
 
 
+def _terminate_as_interrupt() -> Any:
+    """SIGTERM ends a command the way Ctrl-C does: finished work kept, nothing half-written left.
+    Returns the handler it replaced (None off the main thread)."""
+    if threading.current_thread() is not threading.main_thread():
+        return None
+
+    def interrupt(signum: int, frame: Any) -> None:
+        raise KeyboardInterrupt
+
+    return signal.signal(signal.SIGTERM, interrupt)
+
+
 def user_errors(command: F) -> F:
     """Turn user errors into one line and exit 2, bugs into an internal-error report and exit 3."""
 
     @functools.wraps(command)
     def wrapper(*args: Any, **kwargs: Any) -> Any:
+        previous = _terminate_as_interrupt()
         try:
             return command(*args, **kwargs)
         except (typer.Exit, typer.Abort, SystemExit):
@@ -288,7 +331,11 @@ def user_errors(command: F) -> F:
                 raise typer.Exit(report_internal(error)) from None
             if debugging():
                 err.print("".join(traceback.format_exception(error)), markup=False, highlight=False, end="")
+            message = " ".join(line.strip() for line in message.splitlines() if line.strip())  # one line
             err.print(f"[bold red]error:[/] {escape(message)}", highlight=False)
             raise typer.Exit(USER_EXIT) from None
+        finally:
+            if previous is not None:
+                signal.signal(signal.SIGTERM, previous)
 
     return wrapper  # type: ignore[return-value]

@@ -118,8 +118,8 @@ def fit_filter(
 
     if predict_aoi is not None and not (math.isfinite(predict_aoi) and 0 <= predict_aoi < 90):
         raise UserError(f"--predict-aoi = {predict_aoi}: must lie within 0–90°")
-    table = read_filter_table(curves)
     angles = parse_float_list(fit_aoi, name="--fit-aoi", low=0, high=90, high_open=True, example="0,20")
+    table = read_filter_table(curves)
     result = fit_filter_models(table, angles)
     data = result.to_dict(predict_aoi)
     if as_json:

@@ -76,7 +76,6 @@ def run_illumination(
             np.array(led_axis if led_axis is not None else (0.0, 0.0, 1.0), dtype=float),
         )
         build_scene(design, stl, excitation_filter=not no_filter, housing=not no_housing)  # fits? LED outside?
-    claim_folder(out_dir, "illum run")  # validated: the folder is this command's from here on
     setup: Setup = setup_from_options(
         design,
         led_profile=led_profile,
@@ -90,6 +89,7 @@ def run_illumination(
         seed=seed,
         bin_mm=bin_mm,
     )
+    claim_folder(out_dir, "illum run")  # inputs read and checked: the folder is this command's from here on
     mitsuba()  # choose the variant (and warn once if it is the scalar fallback) before tracing
     configs = configurations(design, stl)
     start = time.perf_counter()

@@ -252,7 +252,7 @@ def read_measurement(path: str | Path, dark_level: float = 0.0):
             data = tifffile.imread(path)
         else:
             raise UserError(f"{path}: unknown measurement format {path.suffix!r} (use .tif or .npy)")
-    except ValueError:
+    except UserError:
         raise
     except Exception as error:  # tifffile/numpy raise many types for corrupt files
         raise UserError(f"{path}: not a readable image ({type(error).__name__}: {error})") from None
@@ -287,8 +287,8 @@ def reconstruct_file(
     out_path = Path(out_path)
     if out_path.suffix.lower() not in (".tif", ".tiff", ".npy"):
         raise UserError(f"--out {out_path}: give a .tif or .npy file name")
+    check_memory(grid or model_grid(model_path), options)  # before anything is read or allocated
     measurement = read_measurement(measurement_path, dark_level)
-    check_memory(grid or model_grid(model_path), options)  # before the operator allocates anything
     operator = load_operator(model_path, grid, forward=forward)
     volume, record = reconstruct(measurement, operator, options, progress=progress)
     write_volume(out_path, volume, operator.grid.voxel_um)
