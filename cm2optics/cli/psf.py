@@ -105,6 +105,7 @@ def simulate(
     from cm2optics.emission.psf import PSFSettings
     from cm2optics.emission.scan import ScanSettings, calibration_grid_mm, read_positions_csv, simulate_scan
     from cm2optics.emission.source import scan_source
+    from cm2optics.formats.outputs import output_lock
 
     if grid is not None and positions is not None:
         raise UserError("give --grid or --positions, not both")
@@ -122,9 +123,10 @@ def simulate(
     )
     start = time.perf_counter()
     try:
-        manifest = simulate_scan(
-            design, points, out_dir, settings, dask_address=dask_address, workers=workers, progress=not as_json
-        )
+        with output_lock(out_dir, "psf simulate"):
+            manifest = simulate_scan(
+                design, points, out_dir, settings, dask_address=dask_address, workers=workers, progress=not as_json
+            )
     except KeyboardInterrupt:
         err.print(
             f"[yellow]interrupted: finished positions are kept; run the same command again to resume into {out_dir}[/]"

@@ -93,6 +93,7 @@ def synth_command(
     from cm2optics.recon.operators import model_grid
     from cm2optics.synth.config import SynthConfig
     from cm2optics.synth.dataset import make_dataset
+    from cm2optics.formats.outputs import output_lock
     from cm2optics.synth.files import export_sample, read_config_file
 
     if preset not in ("paper", "scaled"):
@@ -128,7 +129,7 @@ def synth_command(
     config = SynthConfig.from_dict(values)
     check_dask_address(dask_address)
     output_folder(out_dir, "synth", inputs=[model, config_file], overwrite=overwrite)
-    with Progress(disable=as_json, transient=True, console=Console(stderr=True)) as bar:
+    with output_lock(out_dir, "synth"), Progress(disable=as_json, transient=True, console=Console(stderr=True)) as bar:
         task = bar.add_task("synthesising volumes", total=n_volumes)
         manifest = make_dataset(
             config,

@@ -18,7 +18,8 @@ import json
 import os
 import shutil
 import tempfile
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -26,6 +27,7 @@ from cm2optics.errors import OutputError
 
 __all__ = [
     "MARKER",
+    "output_lock",
     "OutputError",
     "check_output",
     "claim_folder",
@@ -60,6 +62,12 @@ def claim_folder(folder: str | Path, command: str, key: str | None = None) -> Pa
     folder.mkdir(parents=True, exist_ok=True)
     (folder / MARKER).write_text(json.dumps({"command": command, "key": key}) + "\n", encoding="utf-8")
     return folder
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
 
 
 def _visible(folder: Path) -> list[Path]:
@@ -136,6 +144,7 @@ def swap_in_folder(staging: Path, folder: Path, command: str) -> Path:
     staging, folder = Path(staging), Path(folder)
     files = sorted(str(p.relative_to(staging)) for p in staging.rglob("*") if p.is_file() and p.name != MARKER)
     (staging / MARKER).write_text(json.dumps({"command": command, "files": files}) + "\n", encoding="utf-8")
+    os.chmod(staging, 0o777 & ~_umask())  # mkdtemp made it private; the folder gets ordinary permissions
     if not folder.exists():
         os.replace(staging, folder)
         return folder
@@ -161,3 +170,29 @@ def swap_in_folder(staging: Path, folder: Path, command: str) -> Path:
         (folder / name).unlink(missing_ok=True)
     shutil.rmtree(staging, ignore_errors=True)
     return folder
+
+
+@contextmanager
+def output_lock(path: str | Path, command: str) -> Iterator[Path]:
+    """Hold ``.<name>.lock`` beside ``path`` while ``command`` writes it; a second run into the same
+    output is refused at once (:class:`OutputError`) instead of mixing its files with the first's."""
+    import fcntl
+
+    target = _resolved(path)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    lock = target.parent / f".{target.name}.lock"
+    handle = open(lock, "a+")  # noqa: SIM115 - held for the whole block
+    try:
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise OutputError(
+                f"--out {path}: another `cm2 {command}` is writing there now (lock {lock}); "
+                "wait for it to finish or choose another --out"
+            ) from None
+        try:
+            yield lock
+        finally:
+            lock.unlink(missing_ok=True)
+    finally:
+        handle.close()
