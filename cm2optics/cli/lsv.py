@@ -22,6 +22,7 @@ from cm2optics.cli.options import (
     OverwriteOption,
     PresetOption,
     check_output,
+    clamped,
     parse_float_list,
     parse_int_list,
     user_errors,
@@ -157,6 +158,7 @@ def build(
         )
     result.model.save(model_path)
     summary = {"model": str(model_path), **result.summary()}
+    clamped("--rank", rank, min(rank, summary["rank"]), "the scan holds no more independent basis PSFs")
     if not no_report:
         summary["report"] = str(write_build_report(result, folder))
         claim_folder(folder, "lsv build")
@@ -206,18 +208,24 @@ def validate(
 
     if heldout < 1 or max_positions < 1:
         raise UserError("--heldout and --max-positions must be ≥ 1")
+    wanted = parse_int_list(ranks or None, name="--ranks", low=1, example="8,16,32,64")
     model = load_model(model_path)
     with _progress(not as_json) as progress:
         result = validate_model(
             model,
             scan_dir,
-            ranks=parse_int_list(ranks or None, name="--ranks", low=1, example="8,16,32,64"),
+            ranks=wanted,
             n_heldout=heldout,
             max_positions=max_positions,
             subsample=not no_subsample,
             seed=seed,
             progress=progress,
         )
+    if wanted:
+        used = [k for k in wanted if str(k) in result["nmse_heldout_vs_rank"]]
+        clamped("--ranks", ",".join(map(str, wanted)), ",".join(map(str, used)) or "none", f"K ≤ {model.rank} only")
+    if result["method"] == "leave-one-out":
+        clamped("--heldout", heldout, min(heldout, result["n_heldout"]), "the scan has no more nodes to hold out")
     if as_json:
         print(json.dumps(result, indent=2, ensure_ascii=False))
         return

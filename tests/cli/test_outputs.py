@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import ast
 import hashlib
+import json
 import os
 import signal
 import subprocess
@@ -265,3 +266,17 @@ def test_synth_resumes_to_identical_bytes(tmp_path, synth_model, sig):
     resumed = _cm2(*SYNTH, "--model", str(synth_model), "--out", str(out))
     assert resumed.wait(timeout=300) == 0, resumed.stderr.read()
     assert _files(out / "export") == _files(reference / "export")
+
+
+def test_clamped_options_are_said_aloud(tmp_path):
+    from cm2optics.design import load_preset
+    from cm2optics.lsv.analytic import AnalyticCM2, write_analytic_scan
+
+    xs = np.linspace(-1.2, 1.2, 3)
+    scan = write_analytic_scan(
+        tmp_path / "scan", AnalyticCM2.from_design(load_preset("cm2-v2"), binning=8), xs, xs, [-0.1, 0.1], binning=8
+    )
+    result = runner.invoke(app, ["lsv", "build", str(scan), "--rank", "500", "--no-report", "--json"])
+    assert result.exit_code == 0, result.output
+    assert "warning: --rank = 500 is out of range; using" in result.stderr
+    assert json.loads(result.stdout)["rank"] < 500  # stdout stays JSON
