@@ -237,6 +237,9 @@ def _user_message(error: BaseException) -> str | None:
         return str(error)
     if isinstance(error, (FileNotFoundError, IsADirectoryError, NotADirectoryError, PermissionError, FileExistsError)):
         text = str(error)
+        named = Path(text.split(": ")[0]) if error.filename is None and ": " in text else None
+        if isinstance(error, FileNotFoundError) and named is not None and named.is_dir():
+            return f"{named}: is a folder; give a file"  # a reader's "no such file" for a folder
         return text if error.filename is None and text else _file_message(error)
     if _undecodable(error):
         path = _file_in_traceback(error)
