@@ -13,6 +13,7 @@ from __future__ import annotations
 import functools
 import math
 import os
+import re
 import signal
 import socket
 import sys
@@ -233,13 +234,19 @@ def _file_message(error: OSError) -> str:
 
 def _user_message(error: BaseException) -> str | None:
     """The one-line message of a user error, or None for anything else (a bug)."""
+    message = _plain_user_message(error)
+    if message is not None:  # a reader's "no such file" for an existing folder: say what it is
+        found = re.search(r"([^\s'\"=]+)'?: no such[\w ]*", message)
+        if found and Path(found.group(1)).is_dir():
+            message = message[: found.start()] + f"{found.group(1)}: is a folder, not a file" + message[found.end() :]
+    return message
+
+
+def _plain_user_message(error: BaseException) -> str | None:
     if isinstance(error, UserError):
         return str(error)
     if isinstance(error, (FileNotFoundError, IsADirectoryError, NotADirectoryError, PermissionError, FileExistsError)):
         text = str(error)
-        named = Path(text.split(": ")[0]) if error.filename is None and ": " in text else None
-        if isinstance(error, FileNotFoundError) and named is not None and named.is_dir():
-            return f"{named}: is a folder; give a file"  # a reader's "no such file" for a folder
         return text if error.filename is None and text else _file_message(error)
     if _undecodable(error):
         path = _file_in_traceback(error)
