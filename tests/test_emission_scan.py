@@ -11,10 +11,11 @@ import yaml
 from typer.testing import CliRunner
 
 import cm2optics.emission.scan as scan_module
-from cm2optics.emission.cli import psf_app
 from cm2optics.emission.image import render_emitters
+from cm2optics.cli.psf import psf_app
 from cm2optics.emission.psf import EmissionModel, PSFSettings, SensorGrid
-from cm2optics.emission.scan import ScanSettings, calibration_grid_mm, parse_grid, read_positions_csv, simulate_scan
+from cm2optics.cli.options import parse_int_list
+from cm2optics.emission.scan import ScanSettings, calibration_grid_mm, read_positions_csv, simulate_scan
 from cm2optics.emission.source import fluorescent_bead
 from cm2optics.optics import first_order
 from cm2optics.formats.emitters import Emitters, read_emitters
@@ -25,7 +26,7 @@ FAST = ScanSettings(psf=PSFSettings(binning=8), source=fluorescent_bead(5.0))
 
 
 def test_the_papers_calibration_grid(v2):
-    positions = calibration_grid_mm(v2, parse_grid("9x9x11"))
+    positions = calibration_grid_mm(v2, (9, 9, 11))
     assert positions.shape == (891, 3)
     xs, ys, zs = (np.unique(positions[:, k]) for k in range(3))
     assert np.allclose(xs, np.arange(-4, 4.01, 1.0)) and np.allclose(ys, xs)
@@ -53,7 +54,7 @@ def test_bad_chunk_sizes_are_refused(v2, tmp_path):
 @pytest.mark.parametrize("text", ["9x9", "0x9x11", "axbxc", "9x9x200"])
 def test_bad_grids_are_refused(text):
     with pytest.raises(ValueError, match="--grid"):
-        parse_grid(text)
+        parse_int_list(text, 3, name="--grid", sep="x", low=1, high=101)
 
 
 def test_positions_csv(tmp_path):

@@ -13,7 +13,7 @@ import pytest
 import trimesh
 from typer.testing import CliRunner
 
-from cm2optics.illumination.cli import illum_app
+from cm2optics.cli.illum import illum_app
 
 runner = CliRunner()
 KEYS = (

@@ -14,9 +14,9 @@ from typer.testing import CliRunner
 
 from cm2optics.formats.emitters import Emitters, write_emitters
 from cm2optics.formats.volume import write_volume
-from cm2optics.lsv.cli import lsv_app, simulate_command
-from cm2optics.lsv.report import FIGURES
 from cm2optics.lsv.toy import AnalyticCM2, write_analytic_scan
+from cm2optics.cli.lsv import lsv_app, simulate_command
+from cm2optics.reports.lsv import FIGURES
 
 app = typer.Typer()
 app.add_typer(lsv_app, name="lsv")

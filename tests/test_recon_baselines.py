@@ -183,8 +183,8 @@ def test_memory_guard_and_bad_input(op, scene):
 
 
 def _app():
-    from cm2optics.metrics.cli import evaluate_command
-    from cm2optics.recon.cli import reconstruct_command
+    from cm2optics.cli.evaluate import evaluate_command
+    from cm2optics.cli.reconstruct import reconstruct_command
 
     app = typer.Typer()
 
@@ -339,7 +339,7 @@ def test_fft_lsi_operator_agrees_with_the_lsv_packages_lsi_model(lsv_model):
 
 @pytest.mark.slow
 def test_lsv_against_lsi_comparison_end_to_end(lsv_model, tmp_path):
-    """The comparison pipeline on two small volumes (the real run: python -m cm2optics.recon.compare)."""
+    """The comparison pipeline on two small volumes (the real run: cm2 compare-baselines)."""
     from cm2optics.recon.compare import compare_baselines, scaled_test_config
 
     path = lsv_model.save(tmp_path / "model.h5")

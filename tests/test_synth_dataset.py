@@ -139,7 +139,7 @@ def test_dask_workers_make_the_same_data(toy_file, tmp_path):
 
 
 def _app():
-    from cm2optics.synth.cli import synth_command
+    from cm2optics.cli.synth import synth_command
 
     app = typer.Typer()
 
@@ -204,23 +204,23 @@ def _one_line_error(result) -> str:
 def test_cli_synth_errors_are_one_line(toy_file, tmp_path):
     runner = CliRunner()
     line = _one_line_error(
-        runner.invoke(_app(), ["synth", "--model", str(tmp_path / "missing.h5"), "--out", str(tmp_path)])
+        runner.invoke(_app(), ["synth", "--model", str(tmp_path / "missing.h5"), "--out", str(tmp_path / "set")])
     )
     assert "no such model file" in line
     bad = tmp_path / "bad.h5"
     bad.write_text("not hdf5")
     assert "not an HDF5 model" in _one_line_error(
-        runner.invoke(_app(), ["synth", "--model", str(bad), "--out", str(tmp_path)])
+        runner.invoke(_app(), ["synth", "--model", str(bad), "--out", str(tmp_path / "set")])
     )
     line = _one_line_error(
         runner.invoke(
-            _app(), ["synth", "--model", str(toy_file), "--out", str(tmp_path), "--noise", "loud", "--workers", "0"]
+            _app(), ["synth", "--model", str(toy_file), "--out", str(tmp_path / "set"), "--noise", "loud", "--workers", "0"]
         )
     )
     assert "noise" in line
     # a PSF stack is defined on its own grid: a different field is refused with the reason
     line = _one_line_error(
-        runner.invoke(_app(), ["synth", "--model", str(toy_file), "--out", str(tmp_path), "--workers", "0"])
+        runner.invoke(_app(), ["synth", "--model", str(toy_file), "--out", str(tmp_path / "set"), "--workers", "0"])
     )
     assert "grid" in line
 

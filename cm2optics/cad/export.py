@@ -32,8 +32,8 @@ VOLUME_TOLERANCE = 0.005
 
 
 def parse_formats(formats: str | Iterable[str]) -> tuple[str, ...]:
-    """``"stl,step"`` → ``("stl", "step")``; unknown formats raise ``ValueError``."""
-    items = formats.split(",") if isinstance(formats, str) else list(formats)
+    """``("stl", "step")`` (or one name) checked; unknown formats raise ``ValueError``."""
+    items = [formats] if isinstance(formats, str) else list(formats)  # the CLI splits "stl,step"
     parsed = tuple(dict.fromkeys(f.strip().lower() for f in items if f.strip()))
     bad = [f for f in parsed if f not in FORMATS]
     if not parsed or bad:

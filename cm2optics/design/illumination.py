@@ -42,7 +42,7 @@ class LED:
 @dataclass(frozen=True)
 class Collimator:
     """Rotationally symmetric freeform TIR collimator in front of each LED, its focus on the
-    LED's centre; :mod:`cm2optics.collimator` computes its profile from these numbers.
+    LED's centre; :mod:`cm2optics.optics.collimator` computes its profile from these numbers.
 
     material: printed transparent material.
     led_gap_mm: LED emitting surface to the collimator's entry plane (the cavity mouth), mm.
@@ -56,7 +56,7 @@ class Collimator:
     height_mm: entry plane to exit face, mm.
     flange_mm: thickness of the square exit flange, mm.
     lens_spread_deg: output half-angle (in air) of the lens sub-beam's edge ray, degrees;
-        0 collimates it, more spreads it into a flat-top cone (:mod:`cm2optics.collimator_shaping`).
+        0 collimates it, more spreads it into a flat-top cone (:mod:`cm2optics.optics.collimator_shaping`).
     tir_spread_deg: output half-angle of the TIR sub-beam's edge ray, degrees (0: collimated).
     tir_crossing: the TIR sub-beam crosses the axis rather than spreading outwards.
     lens_exponent, tir_exponent: exponent γ of each sub-beam's ray mapping tan ψ ∝ F^γ (F the

@@ -4,13 +4,16 @@ the value and what is allowed.
 
 from __future__ import annotations
 
+
 import math
 from typing import Any
+
+from cm2optics.errors import UserError
 
 __all__ = ["DesignError", "check", "in_range", "non_negative", "positive"]
 
 
-class DesignError(ValueError):
+class DesignError(UserError):
     """A design value that is missing, misspelled, mistyped or physically impossible.
 
     ``field`` is the dotted path of the offending field (``mla.radius_mm``).

@@ -26,7 +26,6 @@ import hashlib
 import json
 import math
 import os
-import re
 import shutil
 import time
 from collections.abc import Callable, Iterable
@@ -47,7 +46,6 @@ from cm2optics.formats.scan import ScanError, ScanMeta, grid_axes_mm, write_scan
 __all__ = [
     "ScanSettings",
     "calibration_grid_mm",
-    "parse_grid",
     "read_positions_csv",
     "simulate_position",
     "simulate_scan",
@@ -96,17 +94,6 @@ class ScanSettings:
 
 
 # ----------------------------------------------------------------------------- positions
-
-
-def parse_grid(text: str) -> tuple[int, int, int]:
-    """``"9x9x11"`` → (nx, ny, nz): positions along x, y and z (each 1–101)."""
-    match = re.fullmatch(r"\s*(\d+)\s*[xX×]\s*(\d+)\s*[xX×]\s*(\d+)\s*", str(text))
-    if not match:
-        raise ValueError(f"--grid {text!r}: must read NXxNYxNZ, e.g. 9x9x11")
-    counts = tuple(int(g) for g in match.groups())
-    if not all(1 <= c <= 101 for c in counts):
-        raise ValueError(f"--grid {text!r}: each count must lie within 1–101")
-    return counts  # type: ignore[return-value]
 
 
 def calibration_grid_mm(
@@ -363,7 +350,7 @@ def simulate_scan(
         raise ValueError(f"chunk_size = {chunk_size!r}: must be an integer within 1–64")
     settings = settings or ScanSettings()
     positions = check_positions(positions_mm)
-    out_dir = Path(out_dir)
+    out_dir = Path(os.path.abspath(out_dir))  # "." has no name: the work folder goes beside the absolute path
     if out_dir.exists() and not out_dir.is_dir():
         raise NotADirectoryError(f"{out_dir}: exists and is not a folder")
     model = EmissionModel(design, settings.source, settings=settings.psf)  # validates before any work
@@ -548,10 +535,7 @@ def write_montage(
     """A PNG of a scan's images (counts per ms above the dark level, square root, each tile
     scaled to its own maximum): at most ``max_tiles`` of them — for a grid, the plane nearest
     the focal plane, laid out row by row as the positions run (x fastest)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure  # no pyplot: a notebook's backend stays as it is
 
     positions_mm = np.asarray(positions_mm, dtype=float)
     xs, ys, zs = grid_axes_mm(positions_mm)
@@ -559,7 +543,8 @@ def write_montage(
     pick = [i for i, p in enumerate(positions_mm) if abs(p[2] - z_mid) < 1e-9][:max_tiles]
     nx = len(xs) if len(pick) == len(xs) * len(ys) else int(math.ceil(math.sqrt(len(pick))))
     ny = int(math.ceil(len(pick) / nx))
-    fig, axes = plt.subplots(ny, nx, figsize=(1.6 * nx + 0.4, 1.1 * ny + 0.6), squeeze=False)
+    fig = Figure(figsize=(1.6 * nx + 0.4, 1.1 * ny + 0.6))
+    axes = fig.subplots(ny, nx, squeeze=False)
     for ax in axes.ravel():
         ax.axis("off")
     for n, i in enumerate(pick):
@@ -579,10 +564,7 @@ def write_montage(
     def write(tmp: Path) -> None:
         fig.savefig(tmp, dpi=110, format="png")
 
-    try:
-        return write_atomic(Path(path), write)
-    finally:
-        plt.close(fig)
+    return write_atomic(Path(path), write)
 
 
 def positions_from_iterable(rows: Iterable[Iterable[float]]) -> np.ndarray:

@@ -8,6 +8,7 @@
 - :mod:`~cm2optics.formats.lsv_model`: the 3D-LSV model file (HDF5 or NPZ).
 - :mod:`~cm2optics.formats.psf_stack`: the depth-wise LSI PSF stack file.
 - :mod:`~cm2optics.formats.models`: :func:`~cm2optics.formats.models.load_forward_model`.
+- :mod:`~cm2optics.formats.outputs`: the output policy (never overwrite what a command did not create).
 - :mod:`~cm2optics.formats.operator`: the :class:`~cm2optics.formats.operator.VolumeOperator` protocol.
 
 Every error a file can cause is a :class:`~cm2optics.formats.errors.FormatError` (a

@@ -97,6 +97,8 @@ def read_sidecar(path: str | Path) -> dict[str, Any] | None:
 def read_measurement(path: str | Path, dark_level: float = 0.0) -> np.ndarray:
     """A measurement image (TIFF or .npy) as float32 (y, x), less ``dark_level`` (counts)."""
     path = Path(path)
+    if path.is_dir():
+        raise MeasurementError(f"{path}: is a folder; give a measurement file (.tif or .npy)")
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such measurement file")
     try:
@@ -109,7 +111,7 @@ def read_measurement(path: str | Path, dark_level: float = 0.0) -> np.ndarray:
     except ValueError:
         raise
     except Exception as error:  # tifffile/numpy raise many types for corrupt files
-        raise MeasurementError(f"{path}: not a readable image ({error})") from None
+        raise MeasurementError(f"{path}: not a readable image ({type(error).__name__}: {error})") from None
     data = np.squeeze(np.asarray(data))
     if data.ndim != 2:
         raise MeasurementError(f"{path}: a measurement is one image (y, x), found shape {data.shape}")

@@ -52,6 +52,7 @@ import yaml
 
 from cm2optics.formats.atomic import write_text_atomic
 from cm2optics.formats.errors import FormatError
+from cm2optics.formats.outputs import swap_in_folder
 
 COLUMNS = ("file", "x_mm", "y_mm", "z_mm", "exposure_ms")
 REQUIRED_META = ("pixel_um", "binning", "bit_depth", "dark_level")
@@ -416,7 +417,7 @@ def write_scan(
     """Write a scan folder (one TIFF per position) atomically: into a staging folder beside
     ``folder``, then renamed into place. ``images`` (N, y, x) must already be uint16 counts;
     each TIFF carries its position and exposure in its ImageDescription (JSON)."""
-    folder = Path(folder)
+    folder = Path(os.path.abspath(folder))
     images = np.asarray(images)
     positions_mm = np.asarray(positions_mm, dtype=float)
     if images.ndim != 3 or images.dtype != np.uint16:
@@ -443,9 +444,7 @@ def write_scan(
             lines.append(f"{name},{x:.6f},{y:.6f},{z:.6f},{exposure:.10g}")
         (staging / "positions.csv").write_text("\n".join(lines) + "\n")
         write_text_atomic(staging / "scan.yaml", yaml.safe_dump(meta.to_dict(), sort_keys=False))
-        if folder.exists():
-            shutil.rmtree(folder)
-        os.replace(staging, folder)
+        swap_in_folder(staging, folder, "psf simulate")  # never removes files it did not write
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
         raise

@@ -60,7 +60,6 @@ __all__ = [
     "collimator_from_design",
     "collimator_from_stl",
     "corner_normals",
-    "parse_vector",
 ]
 
 #: Crease angle of the smooth normals: neighbouring faces meeting at a sharper angle keep a
@@ -244,17 +243,6 @@ def corner_normals(vertices: np.ndarray, faces: np.ndarray, crease_deg: float = 
 
 
 # ----------------------------------------------------------------------------- collimators
-
-
-def parse_vector(text: str, name: str) -> np.ndarray:
-    """``"X,Y,Z"`` → a 3-vector; ValueError naming the option otherwise."""
-    try:
-        values = [float(v) for v in text.split(",")]
-    except ValueError:
-        values = []
-    if len(values) != 3 or not all(math.isfinite(v) for v in values):
-        raise ValueError(f"{name} = {text!r}: must be three numbers X,Y,Z (mm)")
-    return np.array(values)
 
 
 def _rotation_to_z(axis: np.ndarray) -> np.ndarray:

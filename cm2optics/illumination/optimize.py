@@ -5,7 +5,7 @@ Objective: the array's delivered fraction into the field circle, subject to its 
 :data:`PARAMETERS`: the collimator's own fields (lens angle, cavity, LED gap, entry wall,
 height; the filter stays on the exit face: ``led_array.excitation_gap_mm = led_gap_mm +
 height_mm``) and the beam-shaping fields (output spreads and mapping exponents, see
-:mod:`cm2optics.collimator_shaping`; with zero spreads a candidate is exactly the collimating
+:mod:`cm2optics.optics.collimator_shaping`; with zero spreads a candidate is exactly the collimating
 cm2-v2 architecture). Each candidate's section is computed, revolved into a mesh
 (:func:`.revolve.revolve_profile`) and traced with the LED,
 filter, housings and sample plane of the design. Candidates whose optics cannot be built in
@@ -78,7 +78,7 @@ def _changes(values: dict[str, float]) -> dict[str, Any]:
 
 def candidate_collimator(design: SystemDesign, values: dict[str, float], segments: int = SWEEP_SEGMENTS) -> Any:
     """(design with the candidate's fields, its collimator mesh, its profile)."""
-    from cm2optics.collimator import collimator_profile
+    from cm2optics.optics.collimator import collimator_profile
     from cm2optics.illumination.geometry import CollimatorMesh
     from cm2optics.illumination.revolve import revolve_profile
 

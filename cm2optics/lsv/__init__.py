@@ -14,8 +14,8 @@ back with the shear. Modules:
   the naive per-(k, z) evaluation the fast one is checked and timed against;
   :mod:`~cm2optics.lsv.kernels`: the Keys cubic sub-pixel shifts.
 - :mod:`~cm2optics.lsv.lsi`: the depth-wise shift-invariant baseline of the V1 paper (FFT operator).
-- :mod:`~cm2optics.lsv.build`, :mod:`~cm2optics.lsv.validate`, :mod:`~cm2optics.lsv.report`,
-  :mod:`~cm2optics.lsv.cli`: the ``cm2 lsv`` and ``cm2 simulate`` commands.
+- :mod:`~cm2optics.lsv.build`, :mod:`~cm2optics.lsv.validate`, :mod:`~cm2optics.reports.lsv`,
+  :mod:`~cm2optics.cli.lsv`: the ``cm2 lsv`` and ``cm2 simulate`` commands.
 - :mod:`~cm2optics.lsv.toy`: toy models for tests, demos and fast fall-backs (a closed-form
   CM²-like PSF, its scans and LSV models, a Gaussian depth-wise LSI operator).
 """

@@ -6,5 +6,5 @@
   closed-form LSI), Richardson–Lucy with non-negativity, ℓ1 and 3-D TV; stopping rule.
 - :mod:`~cm2optics.recon.reconstruct`: one measurement → one volume, memory checked.
 - :mod:`~cm2optics.recon.compare`: LSV against LSI on a synthetic test set.
-- :mod:`~cm2optics.recon.cli`: ``cm2 reconstruct``; :mod:`~cm2optics.recon.report`: the demo section.
+- :mod:`~cm2optics.cli.reconstruct`: ``cm2 reconstruct``; :mod:`~cm2optics.reports.recon`: the demo section.
 """

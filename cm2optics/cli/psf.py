@@ -1,7 +1,7 @@
 """``cm2 psf``: synthetic PSF calibration scans and brute-force measurements of emitters.
 
 Registered by :mod:`cm2optics.cli` as ``app.add_typer(psf_app, name="psf")``. User errors end in
-one line and exit status 2 (:func:`cm2optics.cli_options.user_errors`).
+one line and exit status 2 (:func:`cm2optics.cli.options.user_errors`).
 """
 
 from __future__ import annotations
@@ -15,7 +15,17 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from cm2optics.cli_options import BinningOption, JsonOption, PresetOption, user_errors
+from cm2optics.cli.options import (
+    BinningOption,
+    JsonOption,
+    OverwriteOption,
+    PresetOption,
+    check_dask_address,
+    check_output,
+    parse_int_list,
+    user_errors,
+)
+from cm2optics.errors import UserError
 
 __all__ = ["psf_app"]
 
@@ -78,6 +88,7 @@ def simulate(
         typer.Option("--half-angle-deg", help="1/e² half-angle of the pinhole's Gaussian emission profile, degrees."),
     ] = 26.0,
     band_nm: Annotated[float, typer.Option("--band-nm", help="Widest wavelength band traced, nm.")] = 10.0,
+    overwrite: OverwriteOption = False,
     as_json: JsonOption = False,
 ) -> None:
     """Simulate a PSF calibration scan: positions.csv, 16-bit TIFFs, scan.yaml (the measured-scan format),
@@ -86,29 +97,36 @@ def simulate(
     Positions are in object space: x_mm, y_mm from the central lenslet's axis, z_mm from the nominal
     focal plane (the plane of best focus), +z towards the device. Images: the sensor frame (column along +x, row along +y),
     binned; scan.yaml's pixel_um is the saved pitch. The positions run on Dask with a progress bar;
-    an interrupted run resumes where it stopped when run again with the same options.
+    an interrupted run resumes where it stopped when run again with the same options (its work
+    folder .OUT.psf-work sits beside --out). --out must be new, empty or an earlier scan of this
+    command; files of other programs in it are never deleted (--overwrite writes beside them).
     """
     from cm2optics.design import load_preset
     from cm2optics.emission.psf import PSFSettings
-    from cm2optics.emission.scan import ScanSettings, calibration_grid_mm, parse_grid, read_positions_csv, simulate_scan
+    from cm2optics.emission.scan import ScanSettings, calibration_grid_mm, read_positions_csv, simulate_scan
     from cm2optics.emission.source import scan_source
+    from cm2optics.formats.outputs import output_lock
 
     if grid is not None and positions is not None:
-        raise ValueError("give --grid or --positions, not both")
+        raise UserError("give --grid or --positions, not both")
+    counts = parse_int_list(grid or "9x9x11", 3, name="--grid", sep="x", low=1, high=101, example="9x9x11")
     design = load_preset(preset)
+    check_output(out_dir, command="psf simulate", kind="folder", inputs=[positions, preset], overwrite=overwrite)
+    check_dask_address(dask_address)
     if positions is not None:
         points = read_positions_csv(positions)
     else:
-        points = calibration_grid_mm(design, parse_grid(grid or "9x9x11"), field_mm, depth_mm)
+        points = calibration_grid_mm(design, counts, field_mm, depth_mm)
     settings = ScanSettings(
         psf=PSFSettings(binning=binning, band_nm=band_nm),
         source=scan_source(profile, pinhole_um, half_angle_deg),
     )
     start = time.perf_counter()
     try:
-        manifest = simulate_scan(
-            design, points, out_dir, settings, dask_address=dask_address, workers=workers, progress=not as_json
-        )
+        with output_lock(out_dir, "psf simulate"):
+            manifest = simulate_scan(
+                design, points, out_dir, settings, dask_address=dask_address, workers=workers, progress=not as_json
+            )
     except KeyboardInterrupt:
         err.print(
             f"[yellow]interrupted: finished positions are kept; run the same command again to resume into {out_dir}[/]"
@@ -146,6 +164,7 @@ def image(
         Path, typer.Option("--out", "-o", help="Measurement TIFF to write (a .yaml sidecar goes beside it).")
     ] = Path("out/psf-image/measurement.tif"),
     fill: Annotated[float, typer.Option("--fill", help="Brightest pixel as a fraction of full scale.")] = 0.8,
+    overwrite: OverwriteOption = False,
     as_json: JsonOption = False,
 ) -> None:
     """Render a measurement of a few emitters by tracing each one through the emission path: the
@@ -157,10 +176,12 @@ def image(
     """
     from cm2optics.design import load_preset
     from cm2optics.emission.image import render_emitters, write_traced_measurement
-    from cm2optics.emission.psf import PSFSettings
     from cm2optics.formats.emitters import read_emitters
+    from cm2optics.emission.psf import PSFSettings
 
     design = load_preset(preset)
+    for path in (out_path, out_path.with_suffix(".yaml")):
+        check_output(path, command="psf image", inputs=[emitters, preset], overwrite=overwrite)
     table = read_emitters(emitters)
     settings = PSFSettings(binning=binning)
     start = time.perf_counter()

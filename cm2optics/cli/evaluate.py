@@ -1,6 +1,6 @@
 """``cm2 evaluate RECON GT``: detection and localisation metrics of a reconstruction.
 
-The lead registers it on the top-level app: ``app.command("evaluate")(evaluate_command)``.
+Registered by :mod:`cm2optics.cli`; the work is :func:`cm2optics.metrics.evaluate.evaluate_files`.
 """
 
 from __future__ import annotations
@@ -11,34 +11,9 @@ from typing import Annotated
 
 import typer
 
-from cm2optics.cli_options import JsonOption, user_errors
+from cm2optics.cli.options import JsonOption, OverwriteOption, check_output, parse_float_list, parse_names, user_errors
 
-__all__ = ["evaluate_command", "parse_triple"]
-
-
-def parse_triple(text: str | None, name: str) -> tuple[float, float, float] | None:
-    """``"10,4.15,4.15"`` → (10.0, 4.15, 4.15); a bad value raises ValueError naming the option."""
-    if text is None:
-        return None
-    try:
-        values = tuple(float(v) for v in text.split(","))
-    except ValueError:
-        raise ValueError(f"{name} = {text!r}: give three numbers z,y,x in µm, e.g. 10,4.15,4.15") from None
-    if len(values) != 3 or not all(v > 0 and v < float("inf") for v in values):
-        raise ValueError(f"{name} = {text!r}: give three numbers > 0 as z,y,x in µm, e.g. 10,4.15,4.15")
-    return values  # type: ignore[return-value]
-
-
-def _pairs(values: list[str] | None) -> list[tuple[str, str]] | None:
-    if not values:
-        return None
-    pairs = []
-    for value in values:
-        parts = value.split(",")
-        if len(parts) != 2 or not all(p.strip() for p in parts):
-            raise ValueError(f"--validation {value!r}: give RECON,GT (two file names separated by a comma)")
-        pairs.append((parts[0].strip(), parts[1].strip()))
-    return pairs
+__all__ = ["evaluate_command"]
 
 
 @user_errors
@@ -86,6 +61,7 @@ def evaluate_command(
         Path | None,
         typer.Option("--out", "-o", help="Folder for metrics.json and the figures (breakdowns, maps, overlay)."),
     ] = None,
+    overwrite: OverwriteOption = False,
     as_json: JsonOption = False,
 ) -> None:
     """Recall, precision, F1, Jaccard and lateral/axial RMSE of RECON against GT.
@@ -100,9 +76,15 @@ def evaluate_command(
     from rich.progress import Progress
     from rich.table import Table
 
+    from cm2optics.formats.outputs import claim_folder
     from cm2optics.metrics.evaluate import evaluate_files
     from cm2optics.metrics.scores import REPORTED_KEYS, MatchOptions
 
+    pairs = [parse_names(v, name="--validation", n=2, what="file names RECON,GT") for v in validation or ()]
+    voxel = parse_float_list(voxel_um, 3, name="--voxel-um", low=0, low_open=True, example="10,4.15,4.15")
+    if out_dir is not None:
+        inputs = [recon, ground_truth, *(p for pair in pairs for p in pair)]
+        check_output(out_dir, command="evaluate", kind="folder", inputs=inputs, overwrite=overwrite)
     options = MatchOptions(gate_factor=gate_factor, min_gate_um=min_gate_um, connectivity=connectivity)
     with Progress(disable=as_json, transient=True, console=Console(stderr=True)) as bar:
         task = bar.add_task("threshold sweep", total=None if threshold is None else 1)
@@ -115,13 +97,15 @@ def evaluate_command(
             ground_truth,
             threshold=threshold,
             options=options,
-            voxel_um=parse_triple(voxel_um, "--voxel-um"),
+            voxel_um=voxel,
             patch_um=patch_um,
             out_dir=out_dir,
             plots=out_dir is not None,
-            validation=_pairs(validation),
+            validation=[tuple(pair) for pair in pairs] or None,
             progress=progress,
         )
+    if out_dir is not None:
+        claim_folder(out_dir, "evaluate")
     if as_json:
         print(json.dumps(result, indent=2, ensure_ascii=False))
         return

@@ -1,7 +1,8 @@
 """``cm2 lsv build``, ``cm2 lsv validate`` and ``cm2 simulate``.
 
 Register with ``app.add_typer(lsv_app, name="lsv")`` and ``app.command("simulate")(simulate_command)``.
-User errors end in one line and exit status 2 (:func:`cm2optics.cli_options.user_errors`).
+The work is :func:`cm2optics.lsv.build.build_model`, :func:`cm2optics.lsv.validate.validate_model` and
+:func:`cm2optics.lsv.simulate.simulate_measurement`; these only check options and format results.
 """
 
 from __future__ import annotations
@@ -16,7 +17,17 @@ from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from cm2optics.cli_options import JsonOption, PresetOption, user_errors
+from cm2optics.cli.options import (
+    JsonOption,
+    OverwriteOption,
+    PresetOption,
+    check_output,
+    clamped,
+    parse_float_list,
+    parse_int_list,
+    user_errors,
+)
+from cm2optics.errors import UserError
 
 __all__ = ["lsv_app", "simulate_command"]
 
@@ -53,16 +64,34 @@ def _progress(enabled: bool):
         yield callback
 
 
-def _parse_ranks(text: str | None) -> tuple[int, ...] | None:
-    if not text:
-        return None
-    try:
-        ranks = tuple(int(v) for v in text.split(","))
-    except ValueError:
-        raise ValueError(f"--ranks = {text!r}: must be comma-separated integers, e.g. 8,16,32,64") from None
-    if any(k < 1 for k in ranks):
-        raise ValueError(f"--ranks = {text!r}: every rank must be ≥ 1")
-    return ranks
+#: Largest default grid a model may carry (voxels; 2³¹ float32 voxels are 8 GiB per volume copy).
+MAX_GRID_VOXELS = 2**31
+
+
+def _check_sizes(scan_dir: Path, patch_px: int | None, lateral_um: float | None, axial_um: float) -> None:
+    """Refuse crops larger than the images and grids beyond :data:`MAX_GRID_VOXELS`, before any allocation."""
+    import math
+
+    from cm2optics.formats.scan import open_scan
+
+    if axial_um <= 0 or not math.isfinite(axial_um):
+        raise UserError(f"--axial-um = {axial_um}: must be a number > 0")
+    if lateral_um is not None and (lateral_um <= 0 or not math.isfinite(lateral_um)):
+        raise UserError(f"--lateral-um = {lateral_um}: must be a number > 0")
+    index = open_scan(scan_dir)
+    side = min(index.image(0).shape[-2:])
+    if patch_px is not None and not 4 <= patch_px <= side:
+        raise UserError(f"--patch-px = {patch_px}: must lie within 4–{side} px (the scan's images are {side} px)")
+    if lateral_um is None:
+        return
+    xs, ys, zs = index.grid_axes_mm()
+    shape = [int(math.floor(float(a[-1] - a[0]) * 1000.0 / step + 1e-9)) + 1 for a, step in
+             ((zs, axial_um), (ys, lateral_um), (xs, lateral_um))]
+    if math.prod(shape) > MAX_GRID_VOXELS:
+        raise UserError(
+            f"--lateral-um = {lateral_um:g}, --axial-um = {axial_um:g}: the default grid would be "
+            f"{' × '.join(map(str, shape))} voxels (> {MAX_GRID_VOXELS:.3g}); choose coarser voxels"
+        )
 
 
 @lsv_app.command("build")
@@ -83,12 +112,16 @@ def build(
     lateral_um: Annotated[
         float | None, typer.Option("--lateral-um", help="Default grid's lateral voxel, µm (default: one sensor pixel).")
     ] = None,
-    axial_um: Annotated[float | None, typer.Option("--axial-um", help="Default grid's axial voxel, µm (default: the design's volume.axial_step_um).")] = None,
+    axial_um: Annotated[
+        float | None,
+        typer.Option("--axial-um", help="Default grid's axial voxel, µm (default: the design's volume.axial_step_um)."),
+    ] = None,
     trim: Annotated[
         float,
         typer.Option("--trim", help="Energy share the crops' dark margins may hold when cut (0: keep the full crops)."),
     ] = 1e-6,
     preset: PresetOption = "cm2-v2",
+    overwrite: OverwriteOption = False,
     as_json: JsonOption = False,
 ) -> None:
     """Build a 3D-LSV model from a PSF scan (measured or synthetic).
@@ -101,14 +134,20 @@ def build(
     """
     from cm2optics.design import load_preset
     from cm2optics.lsv.build import build_model
-    from cm2optics.lsv.report import write_build_report
+    from cm2optics.formats.outputs import claim_folder
+    from cm2optics.reports.lsv import write_build_report
 
     if rank < 1:
-        raise ValueError(f"--rank = {rank}: must be ≥ 1")
+        raise UserError(f"--rank = {rank}: must be ≥ 1")
     if trim < 0 or trim >= 1:
-        raise ValueError(f"--trim = {trim}: must lie within 0 ≤ trim < 1")
+        raise UserError(f"--trim = {trim}: must lie within 0 ≤ trim < 1")
     design = load_preset(preset)
-    model_path = out or scan_dir.with_name(scan_dir.name.rstrip("/") + ".lsv.h5")
+    _check_sizes(scan_dir, patch_px, lateral_um, axial_um or design.volume.axial_step_um)
+    model_path = out or scan_dir.with_name(scan_dir.resolve().name + ".lsv.h5")
+    check_output(model_path, command="lsv build", inputs=[scan_dir, preset], overwrite=overwrite)
+    folder = report_dir or model_path.with_name(model_path.stem.replace(".lsv", "") + "_report")
+    if not no_report:
+        check_output(folder, command="lsv build", kind="folder", inputs=[scan_dir, preset, model_path], overwrite=overwrite)
     with _progress(not as_json) as progress:
         result = build_model(
             scan_dir,
@@ -122,9 +161,10 @@ def build(
         )
     result.model.save(model_path)
     summary = {"model": str(model_path), **result.summary()}
+    clamped("--rank", rank, min(rank, summary["rank"]), "the scan holds no more independent basis PSFs")
     if not no_report:
-        folder = report_dir or model_path.with_name(model_path.stem.replace(".lsv", "") + "_report")
         summary["report"] = str(write_build_report(result, folder))
+        claim_folder(folder, "lsv build")
     if as_json:
         print(json.dumps(summary, indent=2, ensure_ascii=False))
         return
@@ -170,19 +210,25 @@ def validate(
     from cm2optics.lsv.validate import validate_model
 
     if heldout < 1 or max_positions < 1:
-        raise ValueError("--heldout and --max-positions must be ≥ 1")
+        raise UserError("--heldout and --max-positions must be ≥ 1")
+    wanted = parse_int_list(ranks or None, name="--ranks", low=1, example="8,16,32,64")
     model = load_model(model_path)
     with _progress(not as_json) as progress:
         result = validate_model(
             model,
             scan_dir,
-            ranks=_parse_ranks(ranks),
+            ranks=wanted,
             n_heldout=heldout,
             max_positions=max_positions,
             subsample=not no_subsample,
             seed=seed,
             progress=progress,
         )
+    if wanted:
+        used = [k for k in wanted if str(k) in result["nmse_heldout_vs_rank"]]
+        clamped("--ranks", ",".join(map(str, wanted)), ",".join(map(str, used)) or "none", f"K ≤ {model.rank} only")
+    if result["method"] == "leave-one-out":
+        clamped("--heldout", heldout, min(heldout, result["n_heldout"]), "the scan has no more nodes to hold out")
     if as_json:
         print(json.dumps(result, indent=2, ensure_ascii=False))
         return
@@ -239,6 +285,7 @@ def simulate_command(
             "thousands); 0 places every emitter exactly.",
         ),
     ] = 4,
+    overwrite: OverwriteOption = False,
     as_json: JsonOption = False,
 ) -> None:
     """Simulate a CM² measurement of a volume or of emitters through an LSV model.
@@ -249,97 +296,33 @@ def simulate_command(
     model, the scale (counts per model unit) and the noise settings. A .npy volume without
     --voxel-um is taken to be on the model's default grid spacing.
     """
-    import numpy as np
+    from cm2optics.lsv.simulate import simulate_measurement
 
-    import cm2optics
-    from cm2optics.formats.emitters import read_emitters
-    from cm2optics.formats.measurement import write_measurement
-    from cm2optics.formats.volume import read_volume
-    from cm2optics.lsv.model import load_model
-    from cm2optics.synth.noise import poisson_gaussian
-
-    if (volume_path is None) == (emitters_path is None):
-        raise ValueError("give exactly one of --volume and --emitters")
-    if bit_depth not in (8, 10, 12, 14, 16):
-        raise ValueError(f"--bit-depth = {bit_depth}: must be one of 8, 10, 12, 14, 16")
-    if not (peak_photons > 0 and read_noise >= 0 and 0 <= offset < 1):
-        raise ValueError("--peak-photons must be > 0, --read-noise ≥ 0, --offset within [0, 1)")
-    if out.suffix.lower() not in (".tif", ".tiff"):
-        raise ValueError(f"--out {out}: the measurement is written as a TIFF (.tif)")
-    if not 0 <= subpixel_steps <= 64:
-        raise ValueError(f"--subpixel-steps = {subpixel_steps}: must lie within 0–64 (0: exact placement)")
-    model = load_model(model_path)
-    if lsi:
-        from cm2optics.lsv.lsi import lsi_model
-
-        model = lsi_model(model)
-    spacing = None
-    if voxel_um:
-        try:
-            spacing = tuple(float(v) for v in voxel_um.split(","))
-        except ValueError:
-            raise ValueError(f"--voxel-um = {voxel_um!r}: must be three numbers z,y,x in µm") from None
-        if len(spacing) != 3:
-            raise ValueError(f"--voxel-um = {voxel_um!r}: must be three numbers z,y,x in µm")
+    inputs = [model_path, volume_path, emitters_path]
+    for path in (out, out.with_suffix(".yaml")):
+        check_output(path, command="simulate", inputs=inputs, overwrite=overwrite)
     with _progress(not as_json) as progress:
-        if volume_path is not None:
-            from cm2optics.formats.volume import VolumeGrid
-
-            if spacing is None and volume_path.suffix.lower() == ".npy":
-                spacing = model.default_grid.voxel_um
-            volume, grid = read_volume(volume_path, spacing)
-            grid = VolumeGrid(volume.shape, grid.voxel_um)
-            lit = np.nonzero(volume)
-            model.warn_outside_calibration(
-                np.stack([grid.axis_mm(2)[lit[2]], grid.axis_mm(1)[lit[1]], grid.axis_mm(0)[lit[0]]], -1), "lit voxels"
-            )
-            image = model.operator(grid).forward(volume, per_lenslet=per_lenslet, progress=progress)
-            source = {"volume": str(volume_path), "grid": grid.to_dict()}
-        else:
-            emitters = read_emitters(emitters_path)
-            model.warn_outside_calibration(emitters.positions_mm(), "emitters")
-            image = model.forward_sparse(emitters, per_lenslet=per_lenslet, subpixel_steps=subpixel_steps or None)
-            source = {
-                "emitters": str(emitters_path),
-                "count": len(emitters),
-                "subpixel_steps": subpixel_steps or "exact",
-            }
-    image = np.asarray(image, dtype=np.float64)
-    peak = float(image.max())
-    if not peak > 0:
-        raise ValueError("the simulated image is empty (nothing in the volume reaches the sensor)")
-    normalised = np.clip(image / peak, 0, None)
-    rng = np.random.default_rng(seed)
-    if noise:
-        normalised = poisson_gaussian(normalised, peak_photons, offset, read_noise, rng)
-    full = 2**bit_depth - 1
-    counts = np.clip(np.round(normalised * full), 0, full).astype(np.uint16)
-    sidecar = {
-        "pixel_um": model.pixel_um,
-        "bit_depth": bit_depth,
-        "dark_level": round(offset * full, 3) if noise else 0.0,
-        "counts_per_unit": float(full / peak),
-        "noise": {"poisson_peak_photons": peak_photons, "read_noise": read_noise, "offset": offset, "seed": seed}
-        if noise
-        else None,
-        "generator": f"cm2optics {cm2optics.__version__} (cm2 lsv simulate)",
-        "model": str(model_path),
-        "baseline": "lsi" if lsi else "lsv",
-        "source": source,
-        "per_lenslet": per_lenslet,
-    }
-    _, sidecar_path = write_measurement(out, counts, sidecar)
-    summary = {
-        "measurement": str(out),
-        "sidecar": str(sidecar_path),
-        "shape": list(counts.shape),
-        "max_count": int(counts.max()),
-        "mean_count": float(counts.mean()),
-        "counts_per_unit": sidecar["counts_per_unit"],
-    }
+        summary = simulate_measurement(
+            out,
+            model_path,
+            volume_path=volume_path,
+            emitters_path=emitters_path,
+            voxel_um=parse_float_list(voxel_um, 3, name="--voxel-um", low=0, low_open=True, example="10,4.15,4.15"),
+            noise=noise,
+            peak_photons=peak_photons,
+            read_noise=read_noise,
+            offset=offset,
+            bit_depth=bit_depth,
+            per_lenslet=per_lenslet,
+            lsi=lsi,
+            seed=seed,
+            subpixel_steps=subpixel_steps,
+            progress=progress,
+        )
     if as_json:
         print(json.dumps(summary, indent=2))
         return
     _out.print(
-        f"[green]measurement:[/] {out} {tuple(counts.shape)} (max {summary['max_count']} counts; sidecar {sidecar_path})"
+        f"[green]measurement:[/] {out} {tuple(summary['shape'])} (max {summary['max_count']} counts; "
+        f"sidecar {summary['sidecar']})"
     )

@@ -1,7 +1,7 @@
 """``cm2 spectra``: the spectral report of a design, and the filter fitter.
 
-Register with ``app.add_typer(spectra_app, name="spectra")``. User errors end in one line and
-exit status 2 (:func:`cm2optics.cli_options.user_errors`).
+Registered by :mod:`cm2optics.cli`; the work is :func:`cm2optics.reports.spectra.spectra_report` and
+:func:`cm2optics.spectra.fit.fit_filter_models`.
 """
 
 from __future__ import annotations
@@ -15,9 +15,10 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from cm2optics.cli_options import PresetOption, user_errors
 from cm2optics.optics.checks import check_design
 from cm2optics.spectra.library import egfp_emission_band_nm
+from cm2optics.cli.options import JsonOption, OverwriteOption, PresetOption, check_output, parse_float_list, user_errors
+from cm2optics.errors import UserError
 
 __all__ = ["spectra_app"]
 
@@ -35,7 +36,8 @@ _out = Console()
 def report(
     preset: PresetOption = "cm2-v2",
     out_dir: Annotated[Path, typer.Option("--out", "-o", help="Folder for the PNG plots.")] = Path("out/spectra"),
-    as_json: Annotated[bool, typer.Option("--json", help="Print machine-readable JSON on stdout.")] = False,
+    overwrite: OverwriteOption = False,
+    as_json: JsonOption = False,
 ) -> None:
     """SBR of the emission path, interference-only vs hybrid (interference filter + absorption film).
 
@@ -46,12 +48,15 @@ def report(
     sbr_interference_only, sbr_hybrid, sbr_gain, per-angle figures and the film sensitivity.
     """
     from cm2optics.design import load_preset
-    from cm2optics.spectra.report import spectra_report
+    from cm2optics.formats.outputs import claim_folder
+    from cm2optics.reports.spectra import spectra_report
 
     design = load_preset(preset)
     for problem in check_design(design, egfp_emission_band_nm()):
         typer.echo(f"warning: the SBR is implausible for this design: {problem}", err=True)
+    check_output(out_dir, command="spectra report", kind="folder", inputs=[preset], overwrite=overwrite)
     figures = spectra_report(design, out_dir)
+    claim_folder(out_dir, "spectra report")
     if as_json:
         print(json.dumps(figures, indent=2, ensure_ascii=False))
         return
@@ -86,16 +91,6 @@ def report(
     _out.print(f"plots: {', '.join(str(out_dir / name) for name in figures['figures'])}")
 
 
-def _parse_angles(text: str) -> tuple[float, ...]:
-    try:
-        angles = tuple(float(part) for part in text.split(",") if part.strip())
-    except ValueError:
-        raise ValueError(f"--fit-aoi = {text!r}: expected comma-separated angles in degrees, e.g. 0,20") from None
-    if not angles or not all(math.isfinite(a) and 0 <= a < 90 for a in angles):
-        raise ValueError(f"--fit-aoi = {text!r}: angles must lie within 0–90°")
-    return angles
-
-
 @spectra_app.command("fit-filter")
 @user_errors
 def fit_filter(
@@ -115,7 +110,7 @@ def fit_filter(
             "--fit-aoi", help="Comma-separated angles to fit on (degrees); default 0,20 if present, else all."
         ),
     ] = None,
-    as_json: Annotated[bool, typer.Option("--json", help="Print machine-readable JSON on stdout.")] = False,
+    as_json: JsonOption = False,
 ) -> None:
     """Fit the angle-shifted band-pass model λ(θ) = λ₀√(1 − (sin θ/n_eff)²) to a vendor's curves.
 
@@ -126,9 +121,10 @@ def fit_filter(
     from cm2optics.spectra.fit import fit_filter_models, read_filter_table
 
     if predict_aoi is not None and not (math.isfinite(predict_aoi) and 0 <= predict_aoi < 90):
-        raise ValueError(f"--predict-aoi = {predict_aoi}: must lie within 0–90°")
+        raise UserError(f"--predict-aoi = {predict_aoi}: must lie within 0–90°")
+    angles = parse_float_list(fit_aoi, name="--fit-aoi", low=0, high=90, high_open=True, example="0,20")
     table = read_filter_table(curves)
-    result = fit_filter_models(table, _parse_angles(fit_aoi) if fit_aoi is not None else None)
+    result = fit_filter_models(table, angles)
     data = result.to_dict(predict_aoi)
     if as_json:
         print(json.dumps(data, indent=2, ensure_ascii=False))

@@ -3,14 +3,13 @@ model-based baselines (3D-LSV FISTA, and the V1 paper's depth-wise LSI ADMM), an
 
 from __future__ import annotations
 
-import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from cm2optics.design import SystemDesign
-from cm2optics.report import Report
+from cm2optics.reports.document import Report
 
 __all__ = ["add_baseline_section"]
 
@@ -59,84 +58,39 @@ def add_baseline_section(
     model_path: an LSV model (``cm2 lsv build``); None or missing: a small analytic model of
     ``design`` is built into ``out_dir/baseline`` (binned 8×, seconds).
     """
-    import torch
-
-    from cm2optics.lsv.model import load_model
-    from cm2optics.lsv.toy import analytic_lsv_model_file
-    from cm2optics.metrics import evaluate_volume, f1_optimal_threshold
     from cm2optics.metrics.plots import plot_overlay
-    from cm2optics.recon.operators import load_operator
-    from cm2optics.recon.reconstruct import ReconOptions, reconstruct
-    from cm2optics.synth.config import SynthConfig
-    from cm2optics.synth.dataset import make_dataset, read_sample
-    from cm2optics.synth.imaging import Imaging
+    from cm2optics.recon.compare import demo_baselines
 
-    out_dir = Path(out_dir)
-    folder = out_dir / "baseline"
-    folder.mkdir(parents=True, exist_ok=True)
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)  # small tensors: one thread is faster, and kind to a shared machine
-    try:
-        start = time.perf_counter()
-        if model_path is None or not Path(model_path).is_file():
-            model_path = analytic_lsv_model_file(
-                folder / "lsv-analytic-b8.h5", design, binning=8, rank=6, lateral_nodes=7, depth_nodes=3
-            )
-            origin = "a small analytic model of this design (PSF scan of the closed-form CM²-like PSF, binned 8×)"
-        else:
-            origin = f"the LSV model {Path(model_path).name}"
-        model = load_model(model_path)
-        build_s = time.perf_counter() - start
-        config = SynthConfig.scaled(
-            2,
-            voxel_um=model.default_grid.voxel_um,
-            view_px=160,
-            patch_px=64,
-            patches_per_volume=4,
-            density_per_mm2=(30.0, 30.0),
-            fov_mm=(3.5, 3.5),
+    folder = Path(out_dir) / "baseline"
+    demo = demo_baselines(design, folder, model_path, DEMO_RUNS)
+    config, grid, truth, sample = demo["config"], demo["grid"], demo["truth"], demo["sample"]
+    origin, build_s, synth_s = demo["origin"], demo["build_s"], demo["synth_s"]
+    _measurement_figure(sample, demo["chief_rays_px"], config.view_px, folder / "measurement.png")
+    rows = []
+    for name, run in DEMO_RUNS.items():
+        result = demo["runs"][name]
+        m, record = result["evaluation"].metrics, result["record"]
+        plot_overlay(
+            result["volume"],
+            result["evaluation"],
+            folder / f"overlay_{run['forward']}-{run['method']}.png",
+            title=f"{name}: {m['n_tp']} TP, {m['n_fp']} FP, {m['n_fn']} FN",
         )
-        grid = config.grid
-        start = time.perf_counter()
-        manifest = make_dataset(config, Imaging(model, grid), folder / "synth", 1, seed=6, workers=0)
-        synth_s = time.perf_counter() - start
-        sample = read_sample(folder / "synth" / "samples" / manifest["samples"][0]["file"])
-        truth = sample["emitters"]
-        _measurement_figure(
-            sample, np.asarray(model.geometry.focus(0.0, 0.0, 0.0)), config.view_px, folder / "measurement.png"
+        rows.append(
+            [
+                name,
+                record["variant"],
+                f"{m['recall']:.2f}",
+                f"{m['precision']:.2f}",
+                f"{m['f1']:.2f}",
+                f"{m['jaccard']:.2f}",
+                "—" if m["rmse_lateral_um"] is None else f"{m['rmse_lateral_um']:.1f}",
+                "—" if m["rmse_axial_um"] is None else f"{m['rmse_axial_um']:.1f}",
+                record["iterations"],
+                f"{record['seconds']:.1f}",
+                f"{record['memory_estimate']['total_gib']:.2f}",
+            ]
         )
-        rows = []
-        for name, run in DEMO_RUNS.items():
-            operator = load_operator(model_path, grid, forward=run["forward"])
-            options = ReconOptions(**{k: v for k, v in run.items() if k != "forward"})
-            volume, record = reconstruct(sample["measurement"], operator, options)
-            threshold, _ = f1_optimal_threshold([(volume, grid, truth)])
-            evaluation = evaluate_volume(volume, grid, truth, threshold)
-            m = evaluation.metrics
-            slug = run["forward"] + "-" + run["method"]
-            plot_overlay(
-                volume,
-                evaluation,
-                folder / f"overlay_{slug}.png",
-                title=f"{name}: {m['n_tp']} TP, {m['n_fp']} FP, {m['n_fn']} FN",
-            )
-            rows.append(
-                [
-                    name,
-                    record["variant"],
-                    f"{m['recall']:.2f}",
-                    f"{m['precision']:.2f}",
-                    f"{m['f1']:.2f}",
-                    f"{m['jaccard']:.2f}",
-                    "—" if m["rmse_lateral_um"] is None else f"{m['rmse_lateral_um']:.1f}",
-                    "—" if m["rmse_axial_um"] is None else f"{m['rmse_axial_um']:.1f}",
-                    record["iterations"],
-                    f"{record['seconds']:.1f}",
-                    f"{record['memory_estimate']['total_gib']:.2f}",
-                ]
-            )
-    finally:
-        torch.set_num_threads(threads)
     report.heading(title or "Synthetic data and model-based baselines")
     report.paragraph(
         f"One volume made the paper's way at a scaled-down size with {origin} ({build_s:.1f} s): a {config.fov_mm[0]:g}-mm field, "

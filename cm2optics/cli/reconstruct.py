@@ -1,6 +1,6 @@
 """``cm2 reconstruct MEAS.tif --model MODEL --method fista|admm|rl --out VOL.tif``.
 
-The lead registers it on the top-level app: ``app.command("reconstruct")(reconstruct_command)``.
+Registered by :mod:`cm2optics.cli`; the work is :func:`cm2optics.recon.reconstruct.reconstruct_file`.
 """
 
 from __future__ import annotations
@@ -11,42 +11,10 @@ from typing import Annotated
 
 import typer
 
-from cm2optics.cli_options import JsonOption, user_errors
-from cm2optics.metrics.cli import parse_triple
+from cm2optics.cli.options import JsonOption, OverwriteOption, check_output, parse_float_list, parse_int_list, user_errors
+from cm2optics.errors import UserError
 
-__all__ = ["reconstruct_command", "reconstruct_file"]
-
-
-def reconstruct_file(
-    measurement_path: str | Path,
-    model_path: str | Path,
-    out_path: str | Path,
-    options,
-    *,
-    forward: str = "lsv",
-    grid=None,
-    dark_level: float = 0.0,
-    progress=None,
-) -> dict:
-    """Read, reconstruct, write the volume (TIFF/.npy) and ``<out>.json`` beside it; returns the record."""
-    from cm2optics.formats.atomic import write_json_atomic
-    from cm2optics.formats.measurement import read_measurement
-    from cm2optics.formats.volume import write_volume
-    from cm2optics.recon.operators import load_operator
-    from cm2optics.recon.reconstruct import reconstruct
-
-    out_path = Path(out_path)
-    if out_path.suffix.lower() not in (".tif", ".tiff", ".npy"):
-        raise ValueError(f"--out {out_path}: give a .tif or .npy file name")
-    measurement = read_measurement(measurement_path, dark_level)
-    operator = load_operator(model_path, grid, forward=forward)
-    volume, record = reconstruct(measurement, operator, options, progress=progress)
-    write_volume(out_path, volume, operator.grid.voxel_um)
-    record.update(
-        {"measurement": str(measurement_path), "model": str(model_path), "forward": forward, "volume": str(out_path)}
-    )
-    write_json_atomic(out_path.with_suffix(".json"), record)
-    return record
+__all__ = ["reconstruct_command"]
 
 
 @user_errors
@@ -86,6 +54,7 @@ def reconstruct_command(
     max_memory_gib: Annotated[
         float, typer.Option("--max-memory-gib", help="Refuse a run estimated above this.")
     ] = 20.0,
+    overwrite: OverwriteOption = False,
     as_json: JsonOption = False,
 ) -> None:
     """Model-based reconstruction: FISTA, ADMM or Richardson–Lucy with non-negativity, ℓ1 and
@@ -93,9 +62,11 @@ def reconstruct_command(
     from rich.console import Console
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
+    from cm2optics.recon.reconstruct import ReconOptions, reconstruct_file
     from cm2optics.formats.volume import VolumeGrid
-    from cm2optics.recon.reconstruct import ReconOptions
 
+    for path in (out, out.with_suffix(".json")):
+        check_output(path, command="reconstruct", inputs=[measurement, model], overwrite=overwrite)
     options = ReconOptions(
         method=method,
         l1=l1,
@@ -108,11 +79,11 @@ def reconstruct_command(
     )
     grid = None
     if grid_shape is not None or voxel_um is not None:
-        shape = parse_triple(grid_shape, "--grid")
-        voxel = parse_triple(voxel_um, "--voxel-um")
+        shape = parse_int_list(grid_shape, 3, name="--grid", low=1, example="101,480,480")
+        voxel = parse_float_list(voxel_um, 3, name="--voxel-um", low=0, low_open=True, example="10,4.15,4.15")
         if shape is None or voxel is None:
-            raise ValueError("--grid and --voxel-um go together")
-        grid = VolumeGrid(tuple(int(v) for v in shape), voxel)
+            raise UserError("--grid and --voxel-um go together")
+        grid = VolumeGrid(shape, voxel)
     columns = (
         TextColumn("{task.description}"),
         BarColumn(),

@@ -252,11 +252,11 @@ def profile_from_parameters(collimator: Collimator, wavelength_nm: float, sample
     samples: points on each freeform curve (lens and TIR surface).
     Raises :class:`DesignError` when the optics cannot be built in the given envelope.
     A collimator with output spreads (``not collimator.collimates``) is designed by
-    :func:`cm2optics.collimator_shaping.shaped_profile` instead.
+    :func:`cm2optics.optics.collimator_shaping.shaped_profile` instead.
     """
     if not collimator.collimates:
         # Imported here: the shaping module builds on this module's CollimatorProfile.
-        from cm2optics.collimator_shaping import shaped_profile
+        from cm2optics.optics.collimator_shaping import shaped_profile
 
         return shaped_profile(collimator, wavelength_nm, samples)
     n = float(refractive_index(collimator.material, wavelength_nm))

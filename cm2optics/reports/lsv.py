@@ -21,7 +21,7 @@ from cm2optics.design import SystemDesign
 from cm2optics.formats.atomic import write_atomic, write_json_atomic
 from cm2optics.lsv.build import BuildResult
 from cm2optics.lsv.model import LSVModel
-from cm2optics.report import Report
+from cm2optics.reports.document import Report
 
 __all__ = ["FIGURES", "add_lsv_section", "write_build_figures", "write_build_report"]
 

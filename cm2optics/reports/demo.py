@@ -16,19 +16,19 @@ from pathlib import Path
 from rich.console import Console
 
 from cm2optics.design import SystemDesign
-from cm2optics.emission.report import add_psf_section
-from cm2optics.illumination.report import add_illumination_section
-from cm2optics.lsv.report import add_lsv_section
-from cm2optics.recon.report import add_baseline_section
-from cm2optics.report import Report
-from cm2optics.spectra.report import add_spectra_section
+from cm2optics.reports.emission import add_psf_section
+from cm2optics.reports.illumination import add_illumination_section
+from cm2optics.reports.lsv import add_lsv_section
+from cm2optics.reports.recon import add_baseline_section
+from cm2optics.reports.document import Report
+from cm2optics.reports.spectra import add_spectra_section
 
 #: Where the original device's reference data sits in a developer checkout (absent for users).
-REFERENCE_DIR = Path(__file__).resolve().parents[2] / "shared" / "reference" / "cm2-v2"
+REFERENCE_DIR = Path(__file__).resolve().parents[3] / "shared" / "reference" / "cm2-v2"
 
 
 def _design_section(report: Report, design: SystemDesign) -> None:
-    from cm2optics.cli import design_summary
+    from cm2optics.reports.design import design_summary
 
     report.heading("1. Design: first-order optics")
     report.paragraph(

@@ -9,16 +9,16 @@ Per excitation photon delivered to the sample, in photoelectrons summed over the
   angle, and the sensor's quantum efficiency.
 * background: the excitation light itself, along two paths. (1) Scattered back by the sample
   (``diffuse_reflectance``) as a Lambertian glow wherever the LED beams land
-  (:func:`~cm2optics.spectra.geometry.excitation_footprint`: four tilted beams of finite width
+  (:func:`~cm2optics.emission.filter_angles.excitation_footprint`: four tilted beams of finite width
   and étendue-limited spread reach beyond the imaged field). (2) Reflected specularly by the
   sample's flat surface (Fresnel, index ``surface_index``;
-  :func:`~cm2optics.spectra.geometry.specular_rays`): the shallow edge of each 45° beam
+  :func:`~cm2optics.emission.filter_angles.specular_rays`): the shallow edge of each 45° beam
   bounces back across the axis into the mask opening. Both meet the filter far more
   obliquely than the fluorescence (up to ≈ 45° against ≈ 27°), where its passband has slid
   onto the excitation band: that is the leakage the hybrid filter exists to stop.
 
 Both are computed from one ray trace per source distribution
-(:func:`~cm2optics.spectra.geometry.trace_emission_rays`), binned by angle of incidence at
+(:func:`~cm2optics.emission.filter_angles.trace_emission_rays`), binned by angle of incidence at
 the filter and at the film, with spectra on 380–780 nm (photon units: power × λ).
 
 The absolute SBR depends on the sample (absorption, yield, scattering); the gain of the
@@ -37,7 +37,7 @@ import numpy as np
 
 from cm2optics.design import SystemDesign
 from cm2optics.spectra.chain import EmissionChain, emission_chain, excitation_spectrum
-from cm2optics.spectra.geometry import (
+from cm2optics.emission.filter_angles import (
     EmissionRays,
     Emitter,
     Sources,

@@ -11,7 +11,7 @@ import pytest
 from cm2optics.optics import first_order
 from cm2optics.spectra.absorption import fresnel_transmittance
 from cm2optics.spectra.chain import emission_chain, excitation_spectrum
-from cm2optics.spectra.geometry import (
+from cm2optics.emission.filter_angles import (
     Emitter,
     Sources,
     excitation_footprint,
@@ -20,7 +20,7 @@ from cm2optics.spectra.geometry import (
     trace_from_sources,
 )
 from cm2optics.spectra.library import led_spectrum
-from cm2optics.spectra.sbr import Sample, signal_and_background
+from cm2optics.emission.sbr import Sample, signal_and_background
 
 COARSE = {"field_step_mm": 0.5, "pupil_samples": 16, "beam_samples": 8}
 
@@ -152,7 +152,7 @@ def test_diced_array_partial_cells_count_as_in_the_psf_tracer(v2):
     from cm2optics.emission.optics import emission_optics
     from cm2optics.emission.trace import RayBatch
     from cm2optics.emission.trace import trace_rays as trace_emission
-    from cm2optics.spectra.geometry import trace_rays
+    from cm2optics.emission.filter_angles import trace_rays
 
     diced = v2.with_changes({"mla.partial_border_mm": 0.3, "mla.partial_sides": ["+x", "-x", "+y", "-y"]})
     source = np.array([1.2, 0.4, first_order.object_plane_z_mm(diced)])

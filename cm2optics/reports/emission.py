@@ -22,7 +22,7 @@ from cm2optics.emission.scan import ScanSettings, calibration_grid_mm, simulate_
 from cm2optics.emission.source import calibration_pinhole
 from cm2optics.optics import first_order
 from cm2optics.formats.atomic import write_atomic
-from cm2optics.report import Report
+from cm2optics.reports.document import Report
 
 __all__ = ["add_psf_section", "psf_numbers"]
 
@@ -69,13 +69,11 @@ def psf_numbers(design: SystemDesign, binning: int = 4) -> dict[str, float]:
 
 
 def _z_stack_figure(model: EmissionModel, path: Path, zs: np.ndarray) -> Path:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure
 
     k = analysis.central_lenslet(model)
-    fig, axes = plt.subplots(1, len(zs), figsize=(1.9 * len(zs), 2.2))
+    fig = Figure(figsize=(1.9 * len(zs), 2.2))
+    axes = fig.subplots(1, len(zs))
     for ax, z in zip(np.atleast_1d(axes), zs, strict=True):
         focus = model.foci((0.0, 0.0, float(z)), lenslets=[k])[0]
         r, c = focus.centroid_px()
@@ -89,10 +87,7 @@ def _z_stack_figure(model: EmissionModel, path: Path, zs: np.ndarray) -> Path:
         f"central focus of an on-axis source ({model.grid.pitch_mm * 1000:.1f}-µm pixels, √ intensity)", fontsize=8
     )
     fig.tight_layout()
-    try:
-        return write_atomic(path, lambda tmp: fig.savefig(tmp, dpi=110, format="png"))
-    finally:
-        plt.close(fig)
+    return write_atomic(path, lambda tmp: fig.savefig(tmp, dpi=110, format="png"))
 
 
 def add_psf_section(

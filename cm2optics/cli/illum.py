@@ -7,8 +7,6 @@ from __future__ import annotations
 
 import json
 import math
-import re
-import time
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -16,9 +14,18 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from cm2optics.cli_options import JsonOption, PresetOption, user_errors
+from cm2optics.cli.options import (
+    JsonOption,
+    OverwriteOption,
+    PresetOption,
+    check_dask_address,
+    check_output,
+    output_folder,
+    parse_float_list,
+    user_errors,
+)
+from cm2optics.errors import UserError
 from cm2optics.illumination.metrics import DEFINITIONS, IlluminationFigures
-from cm2optics.optics import first_order
 
 __all__ = ["illum_app"]
 
@@ -33,10 +40,6 @@ illum_app = typer.Typer(
     no_args_is_help=True,
     context_settings={"help_option_names": ["-h", "--help"]},
 )
-
-
-def _slug(label: str) -> str:
-    return re.sub(r"[^A-Za-z0-9]+", "_", label).strip("_").lower() or "design"
 
 
 def _format(estimate: Any, percent: bool = False, digits: int = 3) -> str:
@@ -73,14 +76,6 @@ def figures_table(results: list[IlluminationFigures], title: str) -> Table:
     for name, cell in rows:
         table.add_row(name, *[cell(r) for r in results])
     return table
-
-
-def _vector(text: str | None, name: str, default: tuple[float, float, float]) -> Any:
-    import numpy as np
-
-    from cm2optics.illumination.geometry import parse_vector
-
-    return np.array(default, dtype=float) if text is None else parse_vector(text, name)
 
 
 @illum_app.command("run")
@@ -145,6 +140,7 @@ def run(
     out_dir: Annotated[
         Path, typer.Option("--out", "-o", help="Folder for the irradiance maps (PNG) and illumination.json.")
     ] = Path("out/illum"),
+    overwrite: OverwriteOption = False,
     as_json: JsonOption = False,
 ) -> None:
     """Trace the V1 baseline (bare LED + filter), the design's collimator (CAD part) and
@@ -159,80 +155,36 @@ def run(
     --collimator CM2_V2_freeform_illuminator.stl --led-position 0,0,1 --led-axis 0,0,-1.
     """
     from cm2optics.design import load_preset
-    from cm2optics.optics.backend import mitsuba, variant
-    from cm2optics.illumination.compare import (
-        Setup,
-        compare_designs,
-        configurations,
-        setup_from_options,
-        stl_collimator,
-    )
-    from cm2optics.formats.atomic import write_json_atomic
-    from cm2optics.illumination.geometry import build_scene
-    from cm2optics.illumination.metrics import write_maps_png
+    from cm2optics.optics.backend import variant
+    from cm2optics.illumination.run import run_illumination
 
-    if rays < 1000 or rays > 100_000_000:
-        raise ValueError(f"--rays = {rays}: must lie within 1000–100000000")
-    if collimator is None and (led_position is not None or led_axis is not None):
-        raise ValueError("--led-position/--led-axis place the LED in an STL: give the STL with --collimator")
-    if led_flux_mw is not None and not (math.isfinite(led_flux_mw) and led_flux_mw > 0):
-        raise ValueError(f"--led-flux-mw = {led_flux_mw}: must be a number > 0")
     design = load_preset(preset)
-    if not 0 < bin_mm <= design.volume.field_mm / 2:
-        raise ValueError(f"--bin-mm = {bin_mm}: must lie within 0–{design.volume.field_mm / 2} mm")
-    stl = None
-    if collimator is not None:
-        stl = stl_collimator(
-            design,
-            collimator,
-            _vector(led_position, "--led-position", (0, 0, 0)),
-            _vector(led_axis, "--led-axis", (0, 0, 1)),
-        )
-        build_scene(design, stl, excitation_filter=not no_filter, housing=not no_housing)  # fits? LED outside?
-    setup: Setup = setup_from_options(
-        design,
-        led_profile=led_profile,
-        led_spectrum=led_spectrum,
-        filter_table=filter_table,
-        excitation_filter=not no_filter,
-        led_flux_mw=led_flux_mw,
-        housing=not no_housing,
-        smooth_normals=not flat_normals,
-        rays=rays,
-        seed=seed,
-        bin_mm=bin_mm,
-    )
-    mitsuba()  # choose the variant (and warn once if it is the scalar fallback) before tracing
-    configs = configurations(design, stl)
-    start = time.perf_counter()
+    inputs = [preset, collimator, led_profile, led_spectrum, filter_table]
+    check_output(out_dir, command="illum run", kind="folder", inputs=inputs, overwrite=overwrite)
+    vector = {"n": 3, "example": "0,0,1"}
 
     def progress(label: str) -> None:
         if not as_json:
             err.print(f"tracing [bold]{label}[/] ({rays:,} rays on {variant().variant})")
 
-    results = compare_designs(design, setup, configs, progress)
-    primary = results[-1]
-    document = primary.to_json()
-    document["designs"] = {r.label: r.summary() for r in results}
-    document["setup"] = {
-        "preset": design.name,
-        "parameter_hash": design.parameter_hash(),
-        "excitation_filter": setup.notes["excitation_filter"],
-        "led_profile": setup.notes["led_profile"],
-        "led_spectrum": setup.notes["led_spectrum"],
-        "housing": setup.housing,
-        "smooth_normals": setup.smooth_normals,
-        "seed": seed,
-        "sample_plane_z_mm": round(first_order.object_plane_z_mm(design), 4),
-        "backend": variant().variant,
-        "elapsed_s": round(time.perf_counter() - start, 2),
-    }
-    document["definitions"] = DEFINITIONS
-    maps = {}
-    for result in results:
-        maps[result.label] = str(write_maps_png(result, Path(out_dir) / f"irradiance_{_slug(result.label)}.png"))
-    document["maps"] = maps
-    write_json_atomic(Path(out_dir) / "illumination.json", document)
+    document, results = run_illumination(
+        design,
+        out_dir,
+        collimator=collimator,
+        led_position=parse_float_list(led_position, name="--led-position", **vector),
+        led_axis=parse_float_list(led_axis, name="--led-axis", **vector),
+        rays=rays,
+        led_profile=led_profile,
+        led_spectrum=led_spectrum,
+        filter_table=filter_table,
+        no_filter=no_filter,
+        no_housing=no_housing,
+        flat_normals=flat_normals,
+        led_flux_mw=led_flux_mw,
+        bin_mm=bin_mm,
+        seed=seed,
+        progress=progress,
+    )
     if as_json:
         print(json.dumps(document, indent=2, ensure_ascii=False))
         return
@@ -259,6 +211,7 @@ def optimize(
     out_dir: Annotated[
         Path, typer.Option("--out", "-o", help="Folder for the improved design YAML, its STL and the sweep table.")
     ] = Path("out/illum-opt"),
+    overwrite: OverwriteOption = False,
     as_json: JsonOption = False,
 ) -> None:
     """Search the collimator's parameters for the largest delivered fraction whose array
@@ -274,12 +227,14 @@ def optimize(
     from cm2optics.illumination.optimize import optimize_collimator
 
     if not 0 < max_cv < 1:
-        raise ValueError(f"--max-cv = {max_cv}: must lie within 0–1")
+        raise UserError(f"--max-cv = {max_cv}: must lie within 0–1")
     if rays < 1000:
-        raise ValueError(f"--rays = {rays}: must be ≥ 1000")
+        raise UserError(f"--rays = {rays}: must be ≥ 1000")
     if samples < 2 or rounds < 0 or workers < 1:
-        raise ValueError("--samples must be ≥ 2, --rounds ≥ 0, --workers ≥ 1")
+        raise UserError("--samples must be ≥ 2, --rounds ≥ 0, --workers ≥ 1")
     design = load_preset(preset)
+    check_dask_address(dask_address)
+    output_folder(out_dir, "illum optimize", inputs=[preset], overwrite=overwrite)
     result = optimize_collimator(
         design,
         out_dir,

@@ -1,6 +1,6 @@
 """Beam-shaping TIR collimators: the cm2-v2 architecture, designed for a flat-top beam.
 
-:mod:`cm2optics.collimator` designs both optical surfaces to send every ray from the LED's
+:mod:`cm2optics.optics.collimator` designs both optical surfaces to send every ray from the LED's
 centre parallel to the axis. A collimated beam lights a spot the size of the exit face; the
 field of view is twice as wide, so the array's irradiance peaks in the middle. Here the same
 two surfaces — the lens on the cavity floor and the freeform TIR wall — are designed for a
@@ -20,7 +20,7 @@ Surfaces from the mapping (meridional plane, LED at the origin, (r, z)):
 
 * lens: P = ρ(θ) (sin θ, cos θ); its normal is parallel to e − n w (vector Snell, e the ray,
   w = (sin φ, cos φ)), which gives ``ρ'/ρ = n sin(θ − φ) / (n cos(θ − φ) − 1)``
-  (with φ ≡ 0 the hyperbola of :mod:`cm2optics.collimator`); scaled so that its edge meets the
+  (with φ ≡ 0 the hyperbola of :mod:`cm2optics.optics.collimator`); scaled so that its edge meets the
   cavity wall on the ray θ_L;
 * TIR wall: P = W + s u (W on the cavity wall, u the ray refracted there); the mirror normal is
   parallel to w − u, which gives ``s' = −(ẑ·N + s u'·N) / (u·N)`` along the wall height, started
@@ -29,7 +29,7 @@ Surfaces from the mapping (meridional plane, LED at the origin, (r, z)):
 With α = 0 both reduce exactly to the collimating design. The mapping's parameters are fields
 of :class:`cm2optics.design.Collimator` (``lens_spread_deg``, ``tir_spread_deg``,
 ``tir_crossing``, ``lens_exponent``, ``tir_exponent``), so a design YAML rebuilds the shaped
-part; :func:`cm2optics.collimator.profile_from_parameters` calls :func:`shaped_profile` for them.
+part; :func:`cm2optics.optics.collimator.profile_from_parameters` calls :func:`shaped_profile` for them.
 """
 
 from __future__ import annotations
@@ -39,7 +39,7 @@ import math
 import numpy as np
 from scipy.integrate import solve_ivp
 
-from cm2optics.collimator import CollimatorProfile, enclosed_profile
+from cm2optics.optics.collimator import CollimatorProfile, enclosed_profile
 from cm2optics.design import Collimator, DesignError
 from cm2optics.design.materials import refractive_index
 

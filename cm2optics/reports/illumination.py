@@ -7,7 +7,7 @@ from pathlib import Path
 
 from cm2optics.design import SystemDesign
 from cm2optics.optics import first_order
-from cm2optics.report import Report
+from cm2optics.reports.document import Report
 
 __all__ = ["DEMO_RAYS", "REFERENCE_DIR", "add_illumination_section"]
 

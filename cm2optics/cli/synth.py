@@ -1,6 +1,6 @@
 """``cm2 synth``: a synthetic training/test set made the paper's way from a forward model.
 
-The lead registers it on the top-level app: ``app.command("synth")(synth_command)``.
+Registered by :mod:`cm2optics.cli`; the work is :func:`cm2optics.synth.dataset.make_dataset`.
 """
 
 from __future__ import annotations
@@ -11,63 +11,17 @@ from typing import Annotated, Any
 
 import typer
 
-from cm2optics.cli_options import JsonOption, user_errors
-from cm2optics.metrics.cli import parse_triple
+from cm2optics.cli.options import (
+    JsonOption,
+    OverwriteOption,
+    check_dask_address,
+    output_folder,
+    parse_float_list,
+    user_errors,
+)
+from cm2optics.errors import UserError
 
-__all__ = ["export_sample", "synth_command"]
-
-
-def _pair(text: str | None, name: str) -> tuple[float, float] | None:
-    if text is None:
-        return None
-    try:
-        values = tuple(float(v) for v in text.split(","))
-    except ValueError:
-        raise ValueError(f"{name} = {text!r}: give low,high (two numbers)") from None
-    if len(values) == 1:
-        values = (values[0], values[0])
-    if len(values) != 2:
-        raise ValueError(f"{name} = {text!r}: give low,high (two numbers)")
-    return values  # type: ignore[return-value]
-
-
-def _read_config_file(path: Path) -> dict[str, Any]:
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: no such config file")
-    text = path.read_text(encoding="utf-8")
-    if path.suffix.lower() in (".yaml", ".yml"):
-        import yaml
-
-        data = yaml.safe_load(text)
-    else:
-        data = json.loads(text)
-    if not isinstance(data, dict):
-        raise ValueError(f"{path}: a synth config is a mapping of SynthConfig fields")
-    return data.get("config", data)
-
-
-def export_sample(sample_path: str | Path, out_dir: str | Path) -> dict[str, str]:
-    """Write a sample's measurement (float32 TIFF), volume (ImageJ TIFF) and emitters (CSV) for
-    ``cm2 reconstruct`` and ``cm2 evaluate``; returns the paths."""
-    import numpy as np
-    import tifffile
-
-    from cm2optics.formats.atomic import write_atomic
-    from cm2optics.formats.emitters import write_emitters
-    from cm2optics.formats.volume import write_volume
-    from cm2optics.synth.dataset import read_sample
-
-    data = read_sample(sample_path)
-    out_dir = Path(out_dir)
-    stem = Path(sample_path).stem
-    paths = {"measurement": out_dir / f"{stem}_measurement.tif", "emitters": out_dir / f"{stem}_emitters.csv"}
-    measurement = np.ascontiguousarray(data["measurement"], dtype=np.float32)
-    write_atomic(paths["measurement"], lambda tmp: tifffile.imwrite(tmp, measurement))
-    write_emitters(paths["emitters"], data["emitters"])
-    if "volume" in data:
-        paths["volume"] = out_dir / f"{stem}_volume.tif"
-        write_volume(paths["volume"], data["volume"], tuple(data["grid"]["voxel_um"]))
-    return {k: str(v) for k, v in paths.items()}
+__all__ = ["synth_command"]
 
 
 @user_errors
@@ -122,6 +76,7 @@ def synth_command(
         int,
         typer.Option("--export", help="Also write the first N samples as TIFF/CSV (for cm2 reconstruct / evaluate)."),
     ] = 0,
+    overwrite: OverwriteOption = False,
     as_json: JsonOption = False,
 ) -> None:
     """Synthesise volumes of spherical emitters, their noisy measurements through the model,
@@ -138,24 +93,31 @@ def synth_command(
     from cm2optics.formats.models import model_grid
     from cm2optics.synth.config import SynthConfig
     from cm2optics.synth.dataset import make_dataset
+    from cm2optics.formats.outputs import output_lock
+    from cm2optics.synth.files import export_sample, read_config_file
 
     if preset not in ("paper", "scaled"):
-        raise ValueError(f"--size = {preset!r}: must be paper or scaled")
-    defined_on = model_grid(model)
-    model_voxel = defined_on.voxel_um if defined_on is not None else None
-    voxel = parse_triple(voxel_um, "--voxel-um") or model_voxel
+        raise UserError(f"--size = {preset!r}: must be paper or scaled")
+    if n_volumes < 1 or export < 0:
+        raise UserError(f"--n-volumes = {n_volumes} must be ≥ 1 and --export = {export} ≥ 0")
+    pair = {"n": 2, "repeat_single": True, "low": 0, "example": "6.5,7.5"}
+    given = (("--fov-mm", fov_mm), ("--diameter-um", diameter_um), ("--density", density))
+    ranges = {name: parse_float_list(text, name=name, **pair) for name, text in given}
+    voxel_given = parse_float_list(voxel_um, 3, name="--voxel-um", low=0, low_open=True, example="10,4.15,4.15")
+    grid = model_grid(model)
+    voxel = voxel_given or (grid.voxel_um if grid is not None else None)
     base = SynthConfig.paper() if preset == "paper" else SynthConfig.scaled(scale)
     values: dict[str, Any] = base.to_dict()
     if voxel is not None:
         values["voxel_um"] = list(voxel)
     if config_file is not None:
-        values.update(_read_config_file(config_file))
+        values.update(read_config_file(config_file))
     overrides = {
-        "fov_mm": _pair(fov_mm, "--fov-mm"),
+        "fov_mm": ranges["--fov-mm"],
         "depth_um": depth_um,
-        "voxel_um": parse_triple(voxel_um, "--voxel-um"),
-        "diameter_um": _pair(diameter_um, "--diameter-um"),
-        "density_per_mm2": _pair(density, "--density"),
+        "voxel_um": voxel_given,
+        "diameter_um": ranges["--diameter-um"],
+        "density_per_mm2": ranges["--density"],
         "noise": noise,
         "render": render,
         "view_px": view_px,
@@ -165,7 +127,9 @@ def synth_command(
     }
     values.update({k: list(v) if isinstance(v, tuple) else v for k, v in overrides.items() if v is not None})
     config = SynthConfig.from_dict(values)
-    with Progress(disable=as_json, transient=True, console=Console(stderr=True)) as bar:
+    check_dask_address(dask_address)
+    output_folder(out_dir, "synth", inputs=[model, config_file], overwrite=overwrite)
+    with output_lock(out_dir, "synth"), Progress(disable=as_json, transient=True, console=Console(stderr=True)) as bar:
         task = bar.add_task("synthesising volumes", total=n_volumes)
         manifest = make_dataset(
             config,
