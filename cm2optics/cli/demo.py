@@ -9,7 +9,14 @@ from typing import Annotated
 import typer
 from rich.console import Console
 
-from cm2optics.cli.options import OverwriteOption, PresetOption, check_dask_address, check_output, output_folder, user_errors
+from cm2optics.cli.options import (
+    OverwriteOption,
+    PresetOption,
+    check_dask_address,
+    check_output,
+    output_folder,
+    user_errors,
+)
 
 __all__ = ["compare_baselines_command", "demo_command"]
 
@@ -68,7 +75,8 @@ def compare_baselines_command(
     from cm2optics.design import load_preset
     from cm2optics.errors import UserError
     from cm2optics.lsv.model import load_model
-    from cm2optics.recon.compare import analytic_model, compare_baselines, scaled_test_config
+    from cm2optics.lsv.toy import analytic_lsv_model_file
+    from cm2optics.recon.compare import compare_baselines, scaled_test_config
 
     if n_volumes < 1 or factor <= 0 or threads < 1 or workers < 0:
         raise UserError("--n-volumes and --threads must be ≥ 1, --factor > 0, --workers ≥ 0")
@@ -80,7 +88,7 @@ def compare_baselines_command(
     output_folder(out_dir, "compare-baselines", inputs=[model], overwrite=overwrite)
     if not model.is_file():
         check_output(model, command="compare-baselines", option="MODEL")
-        analytic_model(model, load_preset("cm2-v2"), binning=build_binning)
+        analytic_lsv_model_file(model, load_preset("cm2-v2"), binning=build_binning)
     config = scaled_test_config(load_model(model), factor)
     compare_baselines(
         model,

@@ -36,7 +36,7 @@ def inputs(tmp_path_factory) -> dict[str, Path]:
     """Inputs shared by every case (read-only by contract: their checksums are checked)."""
     from cm2optics.design import load_preset
     from cm2optics.lsv.toy import AnalyticCM2, write_analytic_scan
-    from cm2optics.recon.compare import analytic_model
+    from cm2optics.lsv.toy import analytic_lsv_model_file as analytic_model
 
     root = tmp_path_factory.mktemp("inputs")
     design = load_preset("cm2-v2")

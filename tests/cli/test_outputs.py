@@ -132,7 +132,7 @@ def test_check_output_rules(tmp_path):
 
 def test_overwrite_replaces_an_earlier_file(tmp_path):
     from cm2optics.design import load_preset
-    from cm2optics.recon.compare import analytic_model
+    from cm2optics.lsv.toy import analytic_lsv_model_file as analytic_model
 
     model = analytic_model(tmp_path / "m.lsv.h5", load_preset("cm2-v2"), binning=8, rank=4, lateral_nodes=7, depth_nodes=3)
     emitters = tmp_path / "e.csv"
@@ -243,7 +243,7 @@ SYNTH = ["synth", "-n", "4", "--workers", "0", "--size", "scaled", "--seed", "3"
 @pytest.fixture(scope="module")
 def synth_model(tmp_path_factory) -> Path:
     from cm2optics.design import load_preset
-    from cm2optics.recon.compare import analytic_model
+    from cm2optics.lsv.toy import analytic_lsv_model_file as analytic_model
 
     root = tmp_path_factory.mktemp("synth-model")
     model = analytic_model(root / "m.lsv.h5", load_preset("cm2-v2"), binning=8, rank=4, lateral_nodes=7, depth_nodes=3)
