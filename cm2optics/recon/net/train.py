@@ -38,6 +38,7 @@ from torch.utils.data import DataLoader
 
 from cm2optics.formats.atomic import write_atomic
 from cm2optics.formats.volume import VolumeGrid
+from cm2optics.progress import progress_bar
 from cm2optics.recon.net.checkpoint import load_checkpoint, save_checkpoint, set_rng_state
 from cm2optics.recon.net.config import NetConfig, load_config
 from cm2optics.recon.net.data import (
@@ -103,25 +104,9 @@ def _mean_over_ranks(value: torch.Tensor) -> float:
 
 
 def _progress(enabled: bool):
-    from rich.progress import (
-        BarColumn,
-        MofNCompleteColumn,
-        Progress,
-        TextColumn,
-        TimeElapsedColumn,
-        TimeRemainingColumn,
-    )
+    from rich.progress import TextColumn
 
-    return Progress(
-        TextColumn("{task.description}"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TimeElapsedColumn(),
-        TimeRemainingColumn(),
-        TextColumn("{task.fields[info]}"),
-        disable=not enabled,
-        transient=False,
-    )
+    return progress_bar("{task.description}", TextColumn("{task.fields[info]}"), enabled=enabled)
 
 
 # ----------------------------------------------------------------------------- epoch
