@@ -95,28 +95,24 @@ def part_specs(design: SystemDesign) -> list[PartSpec]:
             "interference excitation filter",
         ),
     ]
-    if design.absorption_filter is not None:
-        specs.insert(
-            3,
-            PartSpec(
-                "absorption_filter",
-                components.build_absorption_filter,
-                False,
-                design.absorption_filter.material.value,
-                "absorbing long-pass film",
-            ),
-        )
-    if design.collimator is not None:
-        specs.append(
-            PartSpec(
-                "collimator",
-                collimator.build_collimator,
-                True,
-                design.collimator.material.value,
-                "freeform TIR LED collimator",
-            )
-        )
+    specs[3:3] = _if_present(
+        design.absorption_filter,
+        "absorption_filter",
+        components.build_absorption_filter,
+        False,
+        "absorbing long-pass film",
+    )
+    specs += _if_present(
+        design.collimator, "collimator", collimator.build_collimator, True, "freeform TIR LED collimator"
+    )
     return specs
+
+
+def _if_present(
+    part: object | None, name: str, build: Callable[[SystemDesign], cq.Workplane], printed: bool, description: str
+) -> list[PartSpec]:
+    """The spec of an optional part (made of ``part.material``) in a list; empty when the design has none."""
+    return [] if part is None else [PartSpec(name, build, printed, part.material.value, description)]
 
 
 def _imaging_heights(design: SystemDesign) -> dict[str, float]:

@@ -111,6 +111,35 @@ def export_design(
     return manifest
 
 
+def _build_part(
+    design: SystemDesign, spec: Any, folder: Path, formats: tuple[str, ...], tolerance_mm: float
+) -> tuple[cq.Workplane, Any]:
+    """Build one part, export it (STL at ``tolerance_mm``, STEP when asked) and load its mesh
+    from the STL (which is removed again when STL is not among ``formats``)."""
+    workplane = spec.build(design)
+    stl = folder / f"{spec.name}.stl"
+    export_stl(workplane.val(), stl, tolerance_mm)
+    mesh = trimesh.load(stl, force="mesh")
+    if "stl" not in formats:
+        stl.unlink()
+    if "step" in formats:
+        cq.exporters.export(workplane, str(folder / f"{spec.name}.step"))
+    return workplane, mesh
+
+
+def _render_pictures(design: SystemDesign, specs: list, meshes: dict, assembly_meshes: list, folder: Path) -> None:
+    """A PNG of every part, of the assembly and of its section at y = 0."""
+    for spec in specs:
+        render_part(meshes[spec.name], spec.material, folder / f"{spec.name}.png", f"{spec.name} — {spec.description}")
+    render_meshes(assembly_meshes, folder / "assembly.png", title=f"{design.name} assembly")
+    render_meshes(
+        assembly_meshes,
+        folder / "assembly_section.png",
+        title=f"{design.name} section y = 0",
+        section_normal=(0.0, 1.0, 0.0),
+    )
+
+
 def _export_into(
     design: SystemDesign,
     folder: Path,
@@ -128,14 +157,7 @@ def _export_into(
         task = progress.add_task("building and exporting parts", total=len(specs) + 2)
         for spec in specs:
             start = time.perf_counter()
-            built[spec.name] = spec.build(design)
-            stl = folder / f"{spec.name}.stl"
-            export_stl(built[spec.name].val(), stl, tolerance_mm)
-            meshes[spec.name] = trimesh.load(stl, force="mesh")
-            if "stl" not in formats:
-                stl.unlink()
-            if "step" in formats:
-                cq.exporters.export(built[spec.name], str(folder / f"{spec.name}.step"))
+            built[spec.name], meshes[spec.name] = _build_part(design, spec, folder, formats, tolerance_mm)
             timings[spec.name] = time.perf_counter() - start
             progress.advance(task)
         placed = place_parts(design, built)
@@ -156,17 +178,7 @@ def _export_into(
         if pictures:
             progress.update(task, description="rendering pictures")
             start = time.perf_counter()
-            for spec in specs:
-                render_part(
-                    meshes[spec.name], spec.material, folder / f"{spec.name}.png", f"{spec.name} — {spec.description}"
-                )
-            render_meshes(assembly_meshes, folder / "assembly.png", title=f"{design.name} assembly")
-            render_meshes(
-                assembly_meshes,
-                folder / "assembly_section.png",
-                title=f"{design.name} section y = 0",
-                section_normal=(0.0, 1.0, 0.0),
-            )
+            _render_pictures(design, specs, meshes, assembly_meshes, folder)
             timings["pictures"] = time.perf_counter() - start
         progress.advance(task)
     manifest = {

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 
@@ -73,12 +73,9 @@ def evaluate_command(
     recall/precision maps are included in the JSON and drawn with --out.
     """
     from rich.console import Console
-    from rich.progress import Progress
-    from rich.table import Table
 
     from cm2optics.formats.outputs import claim_folder
-    from cm2optics.metrics.evaluate import evaluate_files
-    from cm2optics.metrics.scores import REPORTED_KEYS, MatchOptions
+    from cm2optics.metrics.scores import MatchOptions
 
     pairs = [parse_names(v, name="--validation", n=2, what="file names RECON,GT") for v in validation or ()]
     voxel = parse_float_list(voxel_um, 3, name="--voxel-um", low=0, low_open=True, example="10,4.15,4.15")
@@ -86,30 +83,51 @@ def evaluate_command(
         inputs = [recon, ground_truth, *(p for pair in pairs for p in pair)]
         check_output(out_dir, command="evaluate", kind="folder", inputs=inputs, overwrite=overwrite)
     options = MatchOptions(gate_factor=gate_factor, min_gate_um=min_gate_um, connectivity=connectivity)
-    with Progress(disable=as_json, transient=True, console=Console(stderr=True)) as bar:
-        task = bar.add_task("threshold sweep", total=None if threshold is None else 1)
-
-        def progress(done: int, total: int) -> None:
-            bar.update(task, completed=done, total=total)
-
-        result = evaluate_files(
-            recon,
-            ground_truth,
-            threshold=threshold,
-            options=options,
-            voxel_um=voxel,
-            patch_um=patch_um,
-            out_dir=out_dir,
-            plots=out_dir is not None,
-            validation=[tuple(pair) for pair in pairs] or None,
-            progress=progress,
-        )
+    result = _evaluate_with_progress(
+        recon,
+        ground_truth,
+        threshold=threshold,
+        options=options,
+        voxel_um=voxel,
+        patch_um=patch_um,
+        out_dir=out_dir,
+        plots=out_dir is not None,
+        validation=[tuple(pair) for pair in pairs] or None,
+        quiet=as_json,
+    )
     if out_dir is not None:
         claim_folder(out_dir, "evaluate")
     if as_json:
         print(json.dumps(result, indent=2, ensure_ascii=False))
         return
     console = Console()
+    console.print(_scores_table(recon, ground_truth, result))
+    if out_dir is not None:
+        console.print(f"[green]written[/]: {Path(out_dir) / 'metrics.json'} and figures")
+
+
+def _evaluate_with_progress(recon: Path, ground_truth: Path, *, threshold: float | None, quiet: bool, **kwargs: Any):
+    """evaluate_files with a progress bar of the threshold sweep on stderr unless ``quiet``."""
+    from rich.console import Console
+    from rich.progress import Progress
+
+    from cm2optics.metrics.evaluate import evaluate_files
+
+    with Progress(disable=quiet, transient=True, console=Console(stderr=True)) as bar:
+        task = bar.add_task("threshold sweep", total=None if threshold is None else 1)
+
+        def progress(done: int, total: int) -> None:
+            bar.update(task, completed=done, total=total)
+
+        return evaluate_files(recon, ground_truth, threshold=threshold, progress=progress, **kwargs)
+
+
+def _scores_table(recon: Path, ground_truth: Path, result: dict[str, Any]) -> Any:
+    """The reported scores of ``result`` as a rich table (— for a score that is undefined)."""
+    from rich.table import Table
+
+    from cm2optics.metrics.scores import REPORTED_KEYS
+
     table = Table(
         title=f"{recon.name} against {ground_truth.name} (threshold {result['threshold']:.4g}, {result['threshold_source']})"
     )
@@ -118,6 +136,4 @@ def evaluate_command(
     for key in REPORTED_KEYS:
         value = result[key]
         table.add_row(key, "—" if value is None else (f"{value:.4f}" if isinstance(value, float) else str(value)))
-    console.print(table)
-    if out_dir is not None:
-        console.print(f"[green]written[/]: {Path(out_dir) / 'metrics.json'} and figures")
+    return table

@@ -168,6 +168,13 @@ def build(
     if as_json:
         print(json.dumps(summary, indent=2, ensure_ascii=False))
         return
+    _out.print(_build_table(model_path, summary))
+    if "report" in summary:
+        _out.print(f"report: {summary['report']}")
+
+
+def _build_table(model_path: Path, summary: dict[str, Any]) -> Table:
+    """The built model's rank, calibration errors, positions, crop (px) and default grid (µm)."""
     table = Table(title=f"LSV model {model_path}")
     table.add_column("quantity")
     table.add_column("value", justify="right")
@@ -176,9 +183,7 @@ def build(
         table.add_row(key, f"{value:.4g}" if isinstance(value, float) else str(value))
     grid = summary["default_grid"]
     table.add_row("default grid", f"{grid['shape']} × {[round(v, 3) for v in grid['voxel_um']]} µm")
-    _out.print(table)
-    if "report" in summary:
-        _out.print(f"report: {summary['report']}")
+    return table
 
 
 @lsv_app.command("validate")

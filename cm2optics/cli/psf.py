@@ -9,7 +9,7 @@ from __future__ import annotations
 import json
 import time
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 from rich.console import Console
@@ -103,9 +103,8 @@ def simulate(
     """
     from cm2optics.design import load_preset
     from cm2optics.emission.psf import PSFSettings
-    from cm2optics.emission.scan import ScanSettings, calibration_grid_mm, read_positions_csv, simulate_scan
+    from cm2optics.emission.scan import ScanSettings, calibration_grid_mm, read_positions_csv
     from cm2optics.emission.source import scan_source
-    from cm2optics.formats.outputs import output_lock
 
     if grid is not None and positions is not None:
         raise UserError("give --grid or --positions, not both")
@@ -121,11 +120,33 @@ def simulate(
         psf=PSFSettings(binning=binning, band_nm=band_nm),
         source=scan_source(profile, pinhole_um, half_angle_deg),
     )
+    manifest = _run_scan(design, points, out_dir, settings, dask_address, workers, progress=not as_json)
+    if as_json:
+        print(json.dumps({"out": str(out_dir), **manifest}, indent=2, ensure_ascii=False))
+        return
+    out.print(_scan_table(design, manifest, binning, out_dir))
+
+
+def _run_scan(
+    design: Any,
+    points: Any,
+    out_dir: Path,
+    settings: Any,
+    dask_address: str | None,
+    workers: int | None,
+    *,
+    progress: bool,
+) -> dict[str, Any]:
+    """simulate_scan under the output folder's lock; its manifest with the total wall time (s).
+    An interruption keeps the finished positions and exits with 130."""
+    from cm2optics.emission.scan import simulate_scan
+    from cm2optics.formats.outputs import output_lock
+
     start = time.perf_counter()
     try:
         with output_lock(out_dir, "psf simulate"):
             manifest = simulate_scan(
-                design, points, out_dir, settings, dask_address=dask_address, workers=workers, progress=not as_json
+                design, points, out_dir, settings, dask_address=dask_address, workers=workers, progress=progress
             )
     except KeyboardInterrupt:
         err.print(
@@ -133,9 +154,11 @@ def simulate(
         )
         raise typer.Exit(130) from None
     manifest["timings"]["total_s"] = round(time.perf_counter() - start, 2)
-    if as_json:
-        print(json.dumps({"out": str(out_dir), **manifest}, indent=2, ensure_ascii=False))
-        return
+    return manifest
+
+
+def _scan_table(design: Any, manifest: dict[str, Any], binning: int, out_dir: Path) -> Table:
+    """The scan's summary: positions, grid, pixel (µm), wall and per-position time (s), exposure (ms)."""
     table = Table(title=f"{design.name}: PSF scan in {out_dir}")
     table.add_column("quantity")
     table.add_column("value", justify="right")
@@ -149,7 +172,7 @@ def simulate(
     ]
     for key, value in rows:
         table.add_row(key, str(value))
-    out.print(table)
+    return table
 
 
 @psf_app.command("image")

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 
@@ -60,10 +60,8 @@ def reconstruct_command(
     """Model-based reconstruction: FISTA, ADMM or Richardson–Lucy with non-negativity, ℓ1 and
     3-D TV. With --forward lsi and --method admm this is the V1 paper's depth-wise LSI ADMM."""
     from rich.console import Console
-    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
     from cm2optics.recon.reconstruct import ReconOptions, reconstruct_file
-    from cm2optics.formats.volume import VolumeGrid
 
     for path in (out, out.with_suffix(".json")):
         check_output(path, command="reconstruct", inputs=[measurement, model], overwrite=overwrite)
@@ -77,20 +75,8 @@ def reconstruct_command(
         background=background,
         max_memory_gib=max_memory_gib,
     )
-    grid = None
-    if grid_shape is not None or voxel_um is not None:
-        shape = parse_int_list(grid_shape, 3, name="--grid", low=1, example="101,480,480")
-        voxel = parse_float_list(voxel_um, 3, name="--voxel-um", low=0, low_open=True, example="10,4.15,4.15")
-        if shape is None or voxel is None:
-            raise UserError("--grid and --voxel-um go together")
-        grid = VolumeGrid(shape, voxel)
-    columns = (
-        TextColumn("{task.description}"),
-        BarColumn(),
-        TextColumn("{task.completed}/{task.total} Δ={task.fields[change]}"),
-        TimeElapsedColumn(),
-    )
-    with Progress(*columns, disable=as_json, transient=True, console=Console(stderr=True)) as bar:
+    grid = _grid_option(grid_shape, voxel_um)
+    with _iteration_bar(quiet=as_json) as bar:
         task = bar.add_task(f"{method} ({forward})", total=iterations, change="–")
 
         def progress(k: int, total: int, info: dict) -> None:
@@ -106,3 +92,30 @@ def reconstruct_command(
     Console().print(
         f"[green]{out}[/]: {record['variant']}, {record['iterations']} iterations ({state}), {record['seconds']:.1f} s"
     )
+
+
+def _grid_option(grid_shape: str | None, voxel_um: str | None) -> Any:
+    """The VolumeGrid of --grid z,y,x and --voxel-um z,y,x (µm), given together; None when neither is."""
+    from cm2optics.formats.volume import VolumeGrid
+
+    if grid_shape is None and voxel_um is None:
+        return None
+    shape = parse_int_list(grid_shape, 3, name="--grid", low=1, example="101,480,480")
+    voxel = parse_float_list(voxel_um, 3, name="--voxel-um", low=0, low_open=True, example="10,4.15,4.15")
+    if shape is None or voxel is None:
+        raise UserError("--grid and --voxel-um go together")
+    return VolumeGrid(shape, voxel)
+
+
+def _iteration_bar(*, quiet: bool) -> Any:
+    """A transient progress bar on stderr with the iteration count and the relative change Δ."""
+    from rich.console import Console
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    columns = (
+        TextColumn("{task.description}"),
+        BarColumn(),
+        TextColumn("{task.completed}/{task.total} Δ={task.fields[change]}"),
+        TimeElapsedColumn(),
+    )
+    return Progress(*columns, disable=quiet, transient=True, console=Console(stderr=True))

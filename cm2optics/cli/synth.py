@@ -88,59 +88,31 @@ def synth_command(
     Gaussian noise (mean 0.048, sd 0.017). Volumes are made in parallel on Dask.
     """
     from rich.console import Console
-    from rich.progress import Progress
 
-    from cm2optics.formats.models import model_grid
-    from cm2optics.synth.config import SynthConfig
-    from cm2optics.synth.dataset import make_dataset
-    from cm2optics.formats.outputs import output_lock
-    from cm2optics.synth.files import export_sample, read_config_file
+    from cm2optics.synth.files import export_sample
 
-    if preset not in ("paper", "scaled"):
-        raise UserError(f"--size = {preset!r}: must be paper or scaled")
-    if n_volumes < 1 or export < 0:
-        raise UserError(f"--n-volumes = {n_volumes} must be ≥ 1 and --export = {export} ≥ 0")
-    pair = {"n": 2, "repeat_single": True, "low": 0, "example": "6.5,7.5"}
-    given = (("--fov-mm", fov_mm), ("--diameter-um", diameter_um), ("--density", density))
-    ranges = {name: parse_float_list(text, name=name, **pair) for name, text in given}
-    voxel_given = parse_float_list(voxel_um, 3, name="--voxel-um", low=0, low_open=True, example="10,4.15,4.15")
-    grid = model_grid(model)
-    voxel = voxel_given or (grid.voxel_um if grid is not None else None)
-    base = SynthConfig.paper() if preset == "paper" else SynthConfig.scaled(scale)
-    values: dict[str, Any] = base.to_dict()
-    if voxel is not None:
-        values["voxel_um"] = list(voxel)
-    if config_file is not None:
-        values.update(read_config_file(config_file))
-    overrides = {
-        "fov_mm": ranges["--fov-mm"],
-        "depth_um": depth_um,
-        "voxel_um": voxel_given,
-        "diameter_um": ranges["--diameter-um"],
-        "density_per_mm2": ranges["--density"],
-        "noise": noise,
-        "render": render,
-        "view_px": view_px,
-        "patch_px": patch_px,
-        "patches_per_volume": patches,
-        "store_volume": store_volume,
-    }
-    values.update({k: list(v) if isinstance(v, tuple) else v for k, v in overrides.items() if v is not None})
-    config = SynthConfig.from_dict(values)
+    config = _synth_config(
+        model,
+        preset,
+        scale,
+        config_file,
+        n_volumes,
+        export,
+        fov_mm=fov_mm,
+        depth_um=depth_um,
+        voxel_um=voxel_um,
+        diameter_um=diameter_um,
+        density=density,
+        noise=noise,
+        render=render,
+        view_px=view_px,
+        patch_px=patch_px,
+        patches=patches,
+        store_volume=store_volume,
+    )
     check_dask_address(dask_address)
     output_folder(out_dir, "synth", inputs=[model, config_file], overwrite=overwrite)
-    with output_lock(out_dir, "synth"), Progress(disable=as_json, transient=True, console=Console(stderr=True)) as bar:
-        task = bar.add_task("synthesising volumes", total=n_volumes)
-        manifest = make_dataset(
-            config,
-            model,
-            out_dir,
-            n_volumes,
-            seed,
-            dask_address=dask_address,
-            workers=workers,
-            progress=lambda done, total: bar.update(task, completed=done, total=total),
-        )
+    manifest = _make_with_progress(config, model, out_dir, n_volumes, seed, dask_address, workers, quiet=as_json)
     if export:
         manifest["exported"] = [
             export_sample(out_dir / "samples" / s["file"], out_dir / "export") for s in manifest["samples"][:export]
@@ -154,9 +126,94 @@ def synth_command(
             )
         )
         return
-    console = Console()
     grid = config.grid
-    console.print(
+    Console().print(
         f"[green]{n_volumes} volumes[/] ({'×'.join(map(str, grid.shape))} voxels of {'×'.join(f'{v:g}' for v in grid.voxel_um)} µm, "
         f"{manifest['n_emitters']} emitters, {manifest['n_patches']} patches) in {manifest['seconds']:.1f} s → {out_dir}"
     )
+
+
+def _synth_config(
+    model: Path,
+    preset: str,
+    scale: float,
+    config_file: Path | None,
+    n_volumes: int,
+    export: int,
+    **options: Any,
+) -> Any:
+    """The SynthConfig of the command's options: the --size recipe on the model's grid pitch, then
+    the config file, then every option given (ranges and the voxel parsed from their text)."""
+    from cm2optics.formats.models import model_grid
+    from cm2optics.synth.config import SynthConfig
+    from cm2optics.synth.files import read_config_file
+
+    if preset not in ("paper", "scaled"):
+        raise UserError(f"--size = {preset!r}: must be paper or scaled")
+    if n_volumes < 1 or export < 0:
+        raise UserError(f"--n-volumes = {n_volumes} must be ≥ 1 and --export = {export} ≥ 0")
+    pair = {"n": 2, "repeat_single": True, "low": 0, "example": "6.5,7.5"}
+    given = (
+        ("--fov-mm", options["fov_mm"]),
+        ("--diameter-um", options["diameter_um"]),
+        ("--density", options["density"]),
+    )
+    ranges = {name: parse_float_list(text, name=name, **pair) for name, text in given}
+    voxel_given = parse_float_list(
+        options["voxel_um"], 3, name="--voxel-um", low=0, low_open=True, example="10,4.15,4.15"
+    )
+    grid = model_grid(model)
+    voxel = voxel_given or (grid.voxel_um if grid is not None else None)
+    base = SynthConfig.paper() if preset == "paper" else SynthConfig.scaled(scale)
+    values: dict[str, Any] = base.to_dict()
+    if voxel is not None:
+        values["voxel_um"] = list(voxel)
+    if config_file is not None:
+        values.update(read_config_file(config_file))
+    overrides = {
+        "fov_mm": ranges["--fov-mm"],
+        "depth_um": options["depth_um"],
+        "voxel_um": voxel_given,
+        "diameter_um": ranges["--diameter-um"],
+        "density_per_mm2": ranges["--density"],
+        "noise": options["noise"],
+        "render": options["render"],
+        "view_px": options["view_px"],
+        "patch_px": options["patch_px"],
+        "patches_per_volume": options["patches"],
+        "store_volume": options["store_volume"],
+    }
+    values.update({k: list(v) if isinstance(v, tuple) else v for k, v in overrides.items() if v is not None})
+    return SynthConfig.from_dict(values)
+
+
+def _make_with_progress(
+    config: Any,
+    model: Path,
+    out_dir: Path,
+    n_volumes: int,
+    seed: int,
+    dask_address: str | None,
+    workers: int,
+    *,
+    quiet: bool,
+) -> dict[str, Any]:
+    """make_dataset under the output folder's lock, with a progress bar on stderr unless ``quiet``."""
+    from rich.console import Console
+    from rich.progress import Progress
+
+    from cm2optics.formats.outputs import output_lock
+    from cm2optics.synth.dataset import make_dataset
+
+    with output_lock(out_dir, "synth"), Progress(disable=quiet, transient=True, console=Console(stderr=True)) as bar:
+        task = bar.add_task("synthesising volumes", total=n_volumes)
+        return make_dataset(
+            config,
+            model,
+            out_dir,
+            n_volumes,
+            seed,
+            dask_address=dask_address,
+            workers=workers,
+            progress=lambda done, total: bar.update(task, completed=done, total=total),
+        )

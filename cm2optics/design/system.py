@@ -56,8 +56,21 @@ class SystemDesign:
     base_plate: BasePlate
 
     def __post_init__(self) -> None:
-        mla, lay, mech = self.mla, self.imaging, self.mechanics
-        sensor = self.sensor
+        self._check_mla_on_sensor()
+        self._check_filter_bands()
+        self._check_film()
+        self._check_mla_housing()
+        self._check_led_housing()
+        check(
+            "imaging.mla_to_sensor_mm",
+            self.imaging.mla_to_sensor_mm,
+            paraxial.has_real_image(self),
+            "the sensor must lie beyond the lenslets' back focus (no real image of the sample otherwise)",
+        )
+
+    def _check_mla_on_sensor(self) -> None:
+        """The MLA fits the sensor's active area."""
+        mla, sensor = self.mla, self.sensor
         check(
             "mla.pitch_mm",
             mla.pitch_mm,
@@ -65,6 +78,9 @@ class SystemDesign:
             f"the MLA ({mla.width_mm:.3f} × {mla.length_mm:.3f} mm) must fit the sensor's active area "
             f"({sensor.active_width_mm:.3f} × {sensor.active_length_mm:.3f} mm)",
         )
+
+    def _check_filter_bands(self) -> None:
+        """The emission passband lies above the excitation band; the film cuts on below its top (nm)."""
         emission, excitation = self.emission_filter, self.excitation_filter
         emission_low = emission.center_nm - emission.bandwidth_nm / 2
         emission_high = emission.center_nm + emission.bandwidth_nm / 2
@@ -83,6 +99,10 @@ class SystemDesign:
                 f"the film must cut on below the top of the emission passband ({emission_high:g} nm), "
                 "or it absorbs all the signal",
             )
+
+    def _check_film(self) -> None:
+        """The absorption film lies below the MLA and exceeds it enough to pass it through its ledge (mm)."""
+        mla, lay, mech = self.mla, self.imaging, self.mechanics
         if self.absorption_filter is not None:
             film_top = lay.film_to_sensor_mm + self.absorption_filter.thickness_mm
             check(
@@ -102,6 +122,10 @@ class SystemDesign:
                 f"exceed the MLA by 2 × (mla_housing.lip_mm + mechanics.clearance_mm) = "
                 f"{2 * (self.mla_housing.lip_mm + mech.clearance_mm):.2f} mm along x and y",
             )
+
+    def _check_mla_housing(self) -> None:
+        """The MLA housing is printable: corner tabs, mask opening, tower seat and walls, screw holes (mm)."""
+        mla, lay, mech = self.mla, self.imaging, self.mechanics
         # The corner tabs that hold the MLA from above reach lip_mm over its corners: they span the
         # mask gap plus the depth below the vertices of the lens under the tab's inner edge, at its
         # point nearest a (full) corner lenslet's vertex, or of the land outside the aperture.
@@ -142,6 +166,10 @@ class SystemDesign:
             < self.sensor_board.hole_spacing_mm - self.sensor_board.hole_diameter_mm - 2 * mech.wall_mm,
             "the tower must leave room for the board's screw holes",
         )
+
+    def _check_led_housing(self) -> None:
+        """The collimator, excitation filter and LED package fit the LED housing; the filter rests on the collimator (mm)."""
+        mech = self.mechanics
         if self.collimator is not None:
             pocket = self.collimator.footprint_mm + 2 * (mech.clearance_mm + mech.min_wall_mm)
             check(
@@ -171,12 +199,6 @@ class SystemDesign:
                 size + 2 * (mech.clearance_mm + mech.min_wall_mm) <= self.led_housing.outer_mm,
                 f"the {part} must fit its housing (led_housing.outer_mm = {self.led_housing.outer_mm})",
             )
-        check(
-            "imaging.mla_to_sensor_mm",
-            lay.mla_to_sensor_mm,
-            paraxial.has_real_image(self),
-            "the sensor must lie beyond the lenslets' back focus (no real image of the sample otherwise)",
-        )
 
     # -- heights in the device frame (mm) -------------------------------------------------
     @property

@@ -451,6 +451,49 @@ def _check_fit(collimator: CollimatorMesh, lay: _UnitLayout, design: SystemDesig
         )
 
 
+def _filter_parts(design: SystemDesign, lay: _UnitLayout, matrix: np.ndarray, unit: int) -> list[Part]:
+    """The excitation filter of one unit (pose ``matrix``, mm) as a closed plate with outward
+    normals: coated face towards the LED (−z), bare back face (+z), absorbing edges."""
+    f = design.excitation_filter
+    v, fc = _box(f.width_mm / 2, f.length_mm / 2, lay.filter_z0, lay.filter_z1)
+    nz = np.cross(v[fc[:, 1]] - v[fc[:, 0]], v[fc[:, 2]] - v[fc[:, 0]])[:, 2]
+    scale = np.abs(nz).max()
+    return [
+        Part(f"{name}_{unit}", _place(matrix, v), fc[pick], role, Medium.FILTER, absorber, unit=unit)
+        for name, pick, role, absorber in (
+            ("filter_coated", nz < -0.5 * scale, Role.COATED, Absorber.HOUSING),
+            ("filter_back", nz > 0.5 * scale, Role.GLASS, Absorber.HOUSING),
+            ("filter_edge", np.abs(nz) <= 0.5 * scale, Role.ABSORBER, Absorber.FILTER_EDGE),
+        )
+    ]
+
+
+def _housing_part(lay: _UnitLayout, matrix: np.ndarray, unit: int) -> Part:
+    """One unit's absorbing LED housing (tube, seat, bore, lip, back; mm) at its pose."""
+    quads = _walls(lay.tube_x, lay.tube_y, BOARD_Z_MM, lay.seat_z)
+    quads += _walls(lay.bore_x, lay.bore_y, lay.seat_z, lay.lip_z0)
+    if (lay.tube_x, lay.tube_y) != (lay.bore_x, lay.bore_y):
+        quads += _frame(lay.tube_x, lay.tube_y, lay.bore_x, lay.bore_y, lay.seat_z)
+    quads += _frame(lay.aperture_x, lay.aperture_y, lay.bore_x, lay.bore_y, lay.lip_z0)
+    quads += _walls(lay.aperture_x, lay.aperture_y, lay.lip_z0, lay.lip_z1)
+    quads += _frame(lay.aperture_x, lay.aperture_y, lay.outer, lay.outer, lay.lip_z1)
+    quads += _walls(lay.outer, lay.outer, lay.back_z, lay.lip_z1)
+    quads += [_rect(-lay.outer, lay.outer, -lay.outer, lay.outer, lay.back_z)]
+    v, fc = _quads(quads)
+    return Part(f"housing_{unit}", _place(matrix, v), fc, Role.ABSORBER, absorber=Absorber.HOUSING, unit=unit)
+
+
+def _imaging_tower_parts(design: SystemDesign) -> list[Part]:
+    """The MLA housing's tower and flange in the device frame, as absorbers."""
+    env = mla_housing_envelope(design)
+    half = env.tower_side_mm / 2
+    v, fc = _box(half, half, env.flange_top_z_mm, env.tower_top_z_mm)
+    tower = Part("imaging_tower", v, fc, Role.ABSORBER, absorber=Absorber.IMAGING_TOWER)
+    flange = env.flange_side_mm / 2
+    v, fc = _quads(_frame(half, half, flange, flange, env.flange_top_z_mm))
+    return [tower, Part("imaging_flange", v, fc, Role.ABSORBER, absorber=Absorber.IMAGING_TOWER)]
+
+
 def build_scene(
     design: SystemDesign,
     collimator: CollimatorMesh | None,
@@ -495,20 +538,7 @@ def build_scene(
                 )
             )
         if excitation_filter:
-            # A closed plate with outward normals: coated face towards the LED (−z), bare
-            # back face (+z), absorbing edges.
-            f = design.excitation_filter
-            v, fc = _box(f.width_mm / 2, f.length_mm / 2, lay.filter_z0, lay.filter_z1)
-            nz = np.cross(v[fc[:, 1]] - v[fc[:, 0]], v[fc[:, 2]] - v[fc[:, 0]])[:, 2]
-            scale = np.abs(nz).max()
-            for name, pick, role, absorber in (
-                ("filter_coated", nz < -0.5 * scale, Role.COATED, Absorber.HOUSING),
-                ("filter_back", nz > 0.5 * scale, Role.GLASS, Absorber.HOUSING),
-                ("filter_edge", np.abs(nz) <= 0.5 * scale, Role.ABSORBER, Absorber.FILTER_EDGE),
-            ):
-                parts.append(
-                    Part(f"{name}_{unit}", _place(matrix, v), fc[pick], role, Medium.FILTER, absorber, unit=unit)
-                )
+            parts += _filter_parts(design, lay, matrix, unit)
         board_half = lay.outer if housing else max(lay.outer, 10.0)
         v, fc = _quads([_rect(-board_half, board_half, -board_half, board_half, BOARD_Z_MM)])
         parts.append(
@@ -519,27 +549,9 @@ def build_scene(
             v, fc = _quads([_rect(-portal_x, portal_x, -portal_y, portal_y, portal_z)])
             parts.append(Part(f"portal_{unit}", _place(matrix, v), fc, Role.PORTAL, unit=unit))
         if housing:
-            quads = _walls(lay.tube_x, lay.tube_y, BOARD_Z_MM, lay.seat_z)
-            quads += _walls(lay.bore_x, lay.bore_y, lay.seat_z, lay.lip_z0)
-            if (lay.tube_x, lay.tube_y) != (lay.bore_x, lay.bore_y):
-                quads += _frame(lay.tube_x, lay.tube_y, lay.bore_x, lay.bore_y, lay.seat_z)
-            quads += _frame(lay.aperture_x, lay.aperture_y, lay.bore_x, lay.bore_y, lay.lip_z0)
-            quads += _walls(lay.aperture_x, lay.aperture_y, lay.lip_z0, lay.lip_z1)
-            quads += _frame(lay.aperture_x, lay.aperture_y, lay.outer, lay.outer, lay.lip_z1)
-            quads += _walls(lay.outer, lay.outer, lay.back_z, lay.lip_z1)
-            quads += [_rect(-lay.outer, lay.outer, -lay.outer, lay.outer, lay.back_z)]
-            v, fc = _quads(quads)
-            parts.append(
-                Part(f"housing_{unit}", _place(matrix, v), fc, Role.ABSORBER, absorber=Absorber.HOUSING, unit=unit)
-            )
+            parts.append(_housing_part(lay, matrix, unit))
     if housing:
-        env = mla_housing_envelope(design)
-        half = env.tower_side_mm / 2
-        v, fc = _box(half, half, env.flange_top_z_mm, env.tower_top_z_mm)
-        parts.append(Part("imaging_tower", v, fc, Role.ABSORBER, absorber=Absorber.IMAGING_TOWER))
-        flange = env.flange_side_mm / 2
-        v, fc = _quads(_frame(half, half, flange, flange, env.flange_top_z_mm))
-        parts.append(Part("imaging_flange", v, fc, Role.ABSORBER, absorber=Absorber.IMAGING_TOWER))
+        parts += _imaging_tower_parts(design)
     z = first_order.object_plane_z_mm(design)
     v, fc = _quads([_rect(-SAMPLE_HALF_MM, SAMPLE_HALF_MM, -SAMPLE_HALF_MM, SAMPLE_HALF_MM, z)])
     parts.append(Part("sample_plane", v, fc, Role.SAMPLE))

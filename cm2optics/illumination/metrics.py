@@ -207,6 +207,77 @@ def _bins_in_circle(half: float, bin_mm: float, radius: float) -> np.ndarray:
     return np.hypot(centres[None, :], centres[:, None]) <= radius
 
 
+def _uniformity(
+    record: RayRecord, on_sample: np.ndarray, bin_mm: float, radius: float
+) -> tuple[Estimate, Estimate, float]:
+    """Uniformity over the field's circle (radius, mm) on bin_mm bins: the CV and min/max of the
+    rays per bin (every ray carries the same power) with jackknife errors, and the mean count."""
+    groups = np.arange(record.rays) % JACKKNIFE_GROUPS
+    half_u = bin_mm * math.ceil(radius / bin_mm)
+    inside_bins = _bins_in_circle(half_u, bin_mm, radius)
+    hits = record.hit_mm
+    n_side = int(round(2 * half_u / bin_mm))
+    ij = np.floor((hits[on_sample] + half_u) / bin_mm).astype(np.int64)
+    ok = np.all((ij >= 0) & (ij < n_side), axis=1)
+    flat = ij[ok, 1] * n_side + ij[ok, 0]
+    group_of = groups[on_sample][ok]
+    per_group = np.bincount(group_of * n_side * n_side + flat, minlength=JACKKNIFE_GROUPS * n_side * n_side)
+    per_group = per_group.reshape(JACKKNIFE_GROUPS, n_side * n_side)[:, inside_bins.ravel()].astype(float)
+    counts = per_group.sum(axis=0)
+    uniformity_cv = _jackknife_bins(counts, per_group, lambda c: c.std() / c.mean() if c.mean() > 0 else math.nan)
+    uniformity_min_max = _jackknife_bins(counts, per_group, lambda c: c.min() / c.max() if c.max() > 0 else math.nan)
+    mean_count = float(counts.mean()) if counts.size else 0.0
+    return uniformity_cv, uniformity_min_max, mean_count
+
+
+def _ledger(status: np.ndarray, on_sample: np.ndarray, delivered: np.ndarray) -> dict[str, Estimate]:
+    """Where the rays went, as fractions of all rays: delivered, absorbed (by absorber, trapped),
+    escaped (outside the field, out of the scene), unaccounted, and the closure of the sum."""
+    ledger = {"delivered": _fraction(delivered)}
+    absorbed_total = np.zeros(status.size, dtype=bool)
+    for group in Absorber:
+        mask = status == int(Status.ABSORBED) + int(group)
+        absorbed_total |= mask
+        ledger[f"absorbed_{group.name.lower()}"] = _fraction(mask)
+    trapped = status == int(Status.TRUNCATED)
+    absorbed_total |= trapped
+    ledger["absorbed_trapped"] = _fraction(trapped)
+    ledger["absorbed"] = _fraction(absorbed_total)
+    outside = on_sample & ~delivered
+    left = status == int(Status.ESCAPED)
+    ledger["escaped_outside_field"] = _fraction(outside)
+    ledger["escaped_left_scene"] = _fraction(left)
+    ledger["escaped"] = _fraction(outside | left)
+    accounted = delivered | absorbed_total | outside | left
+    ledger["unaccounted"] = _fraction(~accounted)
+    total = ledger["delivered"].value + ledger["absorbed"].value + ledger["escaped"].value
+    ledger["closure"] = Estimate(total - 1.0, 0.0)
+
+    return ledger
+
+
+def _per_led(record: RayRecord, delivered: np.ndarray, flux: float) -> list[dict[str, Any]]:
+    """Each LED's throughput, delivered fraction and power (mW; flux in mW) with their errors."""
+    units = record.units
+    per_led = []
+    for unit in range(units):
+        mine = record.unit == unit
+        t = _fraction(record.passed[mine])
+        f = _fraction(delivered[mine])
+        per_led.append(
+            {
+                "led": unit,
+                "throughput": _round(t.value),
+                "throughput_stderr": _round(t.stderr),
+                "delivered_fraction": _round(f.value),
+                "delivered_fraction_stderr": _round(f.stderr),
+                "power_mw": _round(f.value * flux),
+                "power_mw_stderr": _round(f.stderr * flux),
+            }
+        )
+    return per_led
+
+
 def figures_of_merit(
     record: RayRecord,
     scene: IlluminationScene,
@@ -231,7 +302,6 @@ def figures_of_merit(
     cos_axis = np.einsum("ij,ij->i", np.nan_to_num(record.exit_direction), axes)
     angle = np.degrees(np.arccos(np.clip(cos_axis, -1.0, 1.0)))
     within30 = record.passed & (angle <= 30.0)
-    groups = np.arange(record.rays) % JACKKNIFE_GROUPS
 
     flux = float(record.power_mw * record.rays_per_unit)
     units = record.units
@@ -239,61 +309,15 @@ def figures_of_merit(
     delivered_fraction = _fraction(delivered)
     power = Estimate(delivered_fraction.value * units * flux, delivered_fraction.stderr * units * flux)
 
-    # Uniformity on bin_mm bins (rays per bin: every ray carries the same power).
-    half_u = bin_mm * math.ceil(radius / bin_mm)
-    inside_bins = _bins_in_circle(half_u, bin_mm, radius)
-    hits = record.hit_mm
-    n_side = int(round(2 * half_u / bin_mm))
-    ij = np.floor((hits[on_sample] + half_u) / bin_mm).astype(np.int64)
-    ok = np.all((ij >= 0) & (ij < n_side), axis=1)
-    flat = ij[ok, 1] * n_side + ij[ok, 0]
-    group_of = groups[on_sample][ok]
-    per_group = np.bincount(group_of * n_side * n_side + flat, minlength=JACKKNIFE_GROUPS * n_side * n_side)
-    per_group = per_group.reshape(JACKKNIFE_GROUPS, n_side * n_side)[:, inside_bins.ravel()].astype(float)
-    counts = per_group.sum(axis=0)
-    uniformity_cv = _jackknife_bins(counts, per_group, lambda c: c.std() / c.mean() if c.mean() > 0 else math.nan)
-    uniformity_min_max = _jackknife_bins(counts, per_group, lambda c: c.min() / c.max() if c.max() > 0 else math.nan)
-    mean_count = float(counts.mean()) if counts.size else 0.0
+    uniformity_cv, uniformity_min_max, mean_count = _uniformity(record, on_sample, bin_mm, radius)
     passed_angles = angle[record.passed]
 
-    ledger = {"delivered": delivered_fraction}
-    absorbed_total = np.zeros(record.rays, dtype=bool)
-    for group in Absorber:
-        mask = status == int(Status.ABSORBED) + int(group)
-        absorbed_total |= mask
-        ledger[f"absorbed_{group.name.lower()}"] = _fraction(mask)
-    trapped = status == int(Status.TRUNCATED)
-    absorbed_total |= trapped
-    ledger["absorbed_trapped"] = _fraction(trapped)
-    ledger["absorbed"] = _fraction(absorbed_total)
-    outside = on_sample & ~delivered
-    left = status == int(Status.ESCAPED)
-    ledger["escaped_outside_field"] = _fraction(outside)
-    ledger["escaped_left_scene"] = _fraction(left)
-    ledger["escaped"] = _fraction(outside | left)
-    accounted = delivered | absorbed_total | outside | left
-    ledger["unaccounted"] = _fraction(~accounted)
-    total = ledger["delivered"].value + ledger["absorbed"].value + ledger["escaped"].value
-    ledger["closure"] = Estimate(total - 1.0, 0.0)
+    ledger = _ledger(status, on_sample, delivered)
 
-    per_led = []
-    for unit in range(units):
-        mine = record.unit == unit
-        t = _fraction(record.passed[mine])
-        f = _fraction(delivered[mine])
-        per_led.append(
-            {
-                "led": unit,
-                "throughput": _round(t.value),
-                "throughput_stderr": _round(t.stderr),
-                "delivered_fraction": _round(f.value),
-                "delivered_fraction_stderr": _round(f.stderr),
-                "power_mw": _round(f.value * flux),
-                "power_mw_stderr": _round(f.stderr * flux),
-            }
-        )
+    per_led = _per_led(record, delivered, flux)
 
     map_half = map_bin_mm * math.ceil((radius + map_margin_mm) / map_bin_mm)
+    hits = record.hit_mm
     unit_map = _histogram(hits[on_sample & (record.unit == 0)], record.power_mw, map_half, map_bin_mm)
     array_map = _histogram(hits[on_sample], record.power_mw, map_half, map_bin_mm)
     return IlluminationFigures(

@@ -186,8 +186,6 @@ def optimize_collimator(
     candidates of the first sweep. rounds: refinement sweeps. dask_address: an existing
     scheduler, or None for a local cluster of ``workers`` processes. seed: sweep and trace seed.
     """
-    from rich.progress import Progress
-
     from cm2optics.formats.atomic import write_json_atomic
 
     if design.collimator is None:
@@ -198,52 +196,10 @@ def optimize_collimator(
     candidates: list[dict[str, Any]] = []
     start = time.perf_counter()
     try:
-        box = dict(PARAMETERS)
-        batches = [_sobol(box, samples, seed)]
-        with Progress(disable=not show_progress, transient=True) as progress:
-            task = progress.add_task("collimator sweep", total=samples + rounds * max(samples // 2, 1))
-            for round_index in range(rounds + 1):
-                points = batches[-1]
-                futures = [
-                    client.submit(evaluate_candidate, base, p, rays, seed + 1, max_cv, threads, pure=False)
-                    for p in points
-                ]
-                for future in futures:
-                    candidates.append(future.result())
-                    progress.advance(task)
-                if round_index == rounds:
-                    break
-                ranked = [c for c in candidates if c["feasible"]]
-                if not ranked:
-                    break
-                best = max(ranked, key=lambda c: c["score"])
-                span = 0.5 ** (round_index + 1)
-                box = {}
-                for name, (low, high) in PARAMETERS.items():
-                    centre, half = best["parameters"][name], span * (high - low) / 2
-                    box[name] = (max(low, centre - half), min(high, centre + half))
-                batches.append(_sobol(box, max(samples // 2, 1), seed + round_index + 1))
+        _sweep(client, base, candidates, rays, max_cv, samples, rounds, seed, threads, show_progress)
         feasible = [c for c in candidates if c["feasible"]]
         meeting = [c for c in feasible if c["meets_uniformity"]]
-        pool = meeting or feasible
-        if not pool:
-            raise ValueError(
-                "no candidate could be built: every parameter set was rejected by the profile construction"
-            )
-        ranked = sorted(pool, key=lambda c: c["delivered_fraction"] if meeting else c["score"], reverse=True)
-        finalists = ranked[:CONFIRMED]
-        confirmations = [
-            f.result()
-            for f in [
-                client.submit(
-                    evaluate_candidate, base, c["parameters"], 4 * rays, seed + 2, max_cv, threads, pure=False
-                )
-                for c in finalists
-            ]
-        ]
-        passing = [i for i, c in enumerate(confirmations) if c.get("feasible") and c["uniformity_cv"] <= max_cv]
-        chosen = max(passing, key=lambda i: confirmations[i]["delivered_fraction"]) if passing else 0
-        best, confirm = finalists[chosen], confirmations[chosen]
+        best, confirm = _confirm_finalists(client, base, feasible, meeting, rays, max_cv, seed, threads)
     finally:
         client.close()
         if cluster is not None:
@@ -280,6 +236,79 @@ def optimize_collimator(
     write_json_atomic(out_dir / "result.json", result)
     result["candidates"] = candidates
     return result
+
+
+def _sweep(
+    client: Any,
+    base: dict[str, Any],
+    candidates: list[dict[str, Any]],
+    rays: int,
+    max_cv: float,
+    samples: int,
+    rounds: int,
+    seed: int,
+    threads: int | None,
+    show_progress: bool,
+) -> None:
+    """A Sobol sweep of the parameter box, then ``rounds`` sweeps of a box halved each round
+    around the best feasible candidate so far; every evaluated candidate is appended to
+    ``candidates`` (as it comes, so that a failure keeps those done)."""
+    from rich.progress import Progress
+
+    box = dict(PARAMETERS)
+    batches = [_sobol(box, samples, seed)]
+    with Progress(disable=not show_progress, transient=True) as progress:
+        task = progress.add_task("collimator sweep", total=samples + rounds * max(samples // 2, 1))
+        for round_index in range(rounds + 1):
+            points = batches[-1]
+            futures = [
+                client.submit(evaluate_candidate, base, p, rays, seed + 1, max_cv, threads, pure=False)
+                for p in points
+            ]
+            for future in futures:
+                candidates.append(future.result())
+                progress.advance(task)
+            if round_index == rounds:
+                break
+            ranked = [c for c in candidates if c["feasible"]]
+            if not ranked:
+                break
+            best = max(ranked, key=lambda c: c["score"])
+            span = 0.5 ** (round_index + 1)
+            box = {}
+            for name, (low, high) in PARAMETERS.items():
+                centre, half = best["parameters"][name], span * (high - low) / 2
+                box[name] = (max(low, centre - half), min(high, centre + half))
+            batches.append(_sobol(box, max(samples // 2, 1), seed + round_index + 1))
+
+
+def _confirm_finalists(
+    client: Any,
+    base: dict[str, Any],
+    feasible: list[dict[str, Any]],
+    meeting: list[dict[str, Any]],
+    rays: int,
+    max_cv: float,
+    seed: int,
+    threads: int | None,
+) -> tuple[dict[str, Any], dict[str, Any]]:
+    """Re-trace the best ``CONFIRMED`` candidates with 4 × ``rays``; returns the chosen candidate
+    (the most light among those confirmed uniform, else the first) and its confirmation."""
+    pool = meeting or feasible
+    if not pool:
+        raise ValueError("no candidate could be built: every parameter set was rejected by the profile construction")
+    ranked = sorted(pool, key=lambda c: c["delivered_fraction"] if meeting else c["score"], reverse=True)
+    finalists = ranked[:CONFIRMED]
+    confirmations = [
+        f.result()
+        for f in [
+            client.submit(evaluate_candidate, base, c["parameters"], 4 * rays, seed + 2, max_cv, threads, pure=False)
+            for c in finalists
+        ]
+    ]
+    passing = [i for i, c in enumerate(confirmations) if c.get("feasible") and c["uniformity_cv"] <= max_cv]
+    chosen = max(passing, key=lambda i: confirmations[i]["delivered_fraction"]) if passing else 0
+    return finalists[chosen], confirmations[chosen]
 
 
 def _export(design: SystemDesign, out_dir: Path) -> tuple[Path, dict[str, Any]]:

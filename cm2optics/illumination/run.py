@@ -23,6 +23,48 @@ def _slug(label: str) -> str:
     return re.sub(r"[^A-Za-z0-9]+", "_", label).strip("_").lower() or "design"
 
 
+def _check_options(
+    design: SystemDesign,
+    collimator: Path | None,
+    led_position: tuple[float, float, float] | None,
+    led_axis: tuple[float, float, float] | None,
+    rays: int,
+    led_flux_mw: float | None,
+    bin_mm: float,
+) -> None:
+    """A UserError for a ray count, LED flux (mW) or bin (mm) out of range, or an LED pose without an STL."""
+    import math
+
+    if rays < 1000 or rays > 100_000_000:
+        raise UserError(f"--rays = {rays}: must lie within 1000–100000000")
+    if collimator is None and (led_position is not None or led_axis is not None):
+        raise UserError("--led-position/--led-axis place the LED in an STL: give the STL with --collimator")
+    if led_flux_mw is not None and not (math.isfinite(led_flux_mw) and led_flux_mw > 0):
+        raise UserError(f"--led-flux-mw = {led_flux_mw}: must be a number > 0")
+    if not 0 < bin_mm <= design.volume.field_mm / 2:
+        raise UserError(f"--bin-mm = {bin_mm}: must lie within 0–{design.volume.field_mm / 2} mm")
+
+
+def _setup_record(design: SystemDesign, setup: Any, seed: int, start: float) -> dict[str, Any]:
+    """The document's ``setup``: the design, the options the trace ran with, the backend and the
+    seconds since ``start`` (a ``perf_counter`` reading)."""
+    from cm2optics.optics.backend import variant
+
+    return {
+        "preset": design.name,
+        "parameter_hash": design.parameter_hash(),
+        "excitation_filter": setup.notes["excitation_filter"],
+        "led_profile": setup.notes["led_profile"],
+        "led_spectrum": setup.notes["led_spectrum"],
+        "housing": setup.housing,
+        "smooth_normals": setup.smooth_normals,
+        "seed": seed,
+        "sample_plane_z_mm": round(first_order.object_plane_z_mm(design), 4),
+        "backend": variant().variant,
+        "elapsed_s": round(time.perf_counter() - start, 2),
+    }
+
+
 def run_illumination(
     design: SystemDesign,
     out_dir: str | Path,
@@ -45,9 +87,7 @@ def run_illumination(
     """Returns the document (figures of the last design, ``designs``, ``setup``, ``definitions``,
     ``maps``) and the per-design results. led_position (mm) and led_axis place the LED in the
     STL's frame (defaults 0,0,0 and 0,0,1)."""
-    import math
-
-    from cm2optics.optics.backend import mitsuba, variant
+    from cm2optics.optics.backend import mitsuba
     from cm2optics.illumination.compare import (
         Setup,
         compare_designs,
@@ -60,14 +100,7 @@ def run_illumination(
     from cm2optics.formats.outputs import claim_folder
     from cm2optics.formats.atomic import write_json_atomic
 
-    if rays < 1000 or rays > 100_000_000:
-        raise UserError(f"--rays = {rays}: must lie within 1000–100000000")
-    if collimator is None and (led_position is not None or led_axis is not None):
-        raise UserError("--led-position/--led-axis place the LED in an STL: give the STL with --collimator")
-    if led_flux_mw is not None and not (math.isfinite(led_flux_mw) and led_flux_mw > 0):
-        raise UserError(f"--led-flux-mw = {led_flux_mw}: must be a number > 0")
-    if not 0 < bin_mm <= design.volume.field_mm / 2:
-        raise UserError(f"--bin-mm = {bin_mm}: must lie within 0–{design.volume.field_mm / 2} mm")
+    _check_options(design, collimator, led_position, led_axis, rays, led_flux_mw, bin_mm)
     stl = None
     if collimator is not None:
         stl = stl_collimator(
@@ -99,19 +132,7 @@ def run_illumination(
     primary = results[-1]
     document = primary.to_json()
     document["designs"] = {r.label: r.summary() for r in results}
-    document["setup"] = {
-        "preset": design.name,
-        "parameter_hash": design.parameter_hash(),
-        "excitation_filter": setup.notes["excitation_filter"],
-        "led_profile": setup.notes["led_profile"],
-        "led_spectrum": setup.notes["led_spectrum"],
-        "housing": setup.housing,
-        "smooth_normals": setup.smooth_normals,
-        "seed": seed,
-        "sample_plane_z_mm": round(first_order.object_plane_z_mm(design), 4),
-        "backend": variant().variant,
-        "elapsed_s": round(time.perf_counter() - start, 2),
-    }
+    document["setup"] = _setup_record(design, setup, seed, start)
     document["definitions"] = DEFINITIONS
     maps = {}
     for result in results:

@@ -33,21 +33,11 @@ def simulate_measurement(
     returns the summary (measurement, sidecar, shape, max_count, mean_count, counts_per_unit).
     A .npy volume without ``voxel_um`` is taken to be on the model's default grid spacing.
     """
-    import numpy as np
-
     import cm2optics
-    from cm2optics.formats.emitters import read_emitters
     from cm2optics.formats.measurement import write_measurement
-    from cm2optics.formats.volume import VolumeGrid, read_volume
     from cm2optics.lsv.model import load_model
-    from cm2optics.synth.noise import poisson_gaussian
 
-    if (volume_path is None) == (emitters_path is None):
-        raise UserError("give exactly one of --volume and --emitters")
-    if bit_depth not in (8, 10, 12, 14, 16):
-        raise UserError(f"--bit-depth = {bit_depth}: must be one of 8, 10, 12, 14, 16")
-    if not (peak_photons > 0 and read_noise >= 0 and 0 <= offset < 1):
-        raise UserError("--peak-photons must be > 0, --read-noise ≥ 0, --offset within [0, 1)")
+    _check_options(volume_path, emitters_path, bit_depth, peak_photons, read_noise, offset, subpixel_steps)
     out = Path(out)
     if out.suffix.lower() not in (".tif", ".tiff"):
         raise UserError(f"--out {out}: the measurement is written as a TIFF (.tif)")
@@ -58,37 +48,11 @@ def simulate_measurement(
         from cm2optics.lsv.lsi import lsi_model
 
         model = lsi_model(model)
-    spacing = voxel_um
     if volume_path is not None:
-        if spacing is None and volume_path.suffix.lower() == ".npy":
-            spacing = model.default_grid.voxel_um
-        volume, grid = read_volume(volume_path, spacing)
-        grid = VolumeGrid(volume.shape, grid.voxel_um)
-        lit = np.nonzero(volume)
-        model.warn_outside_calibration(
-            np.stack([grid.axis_mm(2)[lit[2]], grid.axis_mm(1)[lit[1]], grid.axis_mm(0)[lit[0]]], -1), "lit voxels"
-        )
-        image = model.operator(grid).forward(volume, per_lenslet=per_lenslet, progress=progress)
-        source = {"volume": str(volume_path), "grid": grid.to_dict()}
+        image, source = _render_volume(model, volume_path, voxel_um, per_lenslet, progress)
     else:
-        emitters = read_emitters(emitters_path)
-        model.warn_outside_calibration(emitters.positions_mm(), "emitters")
-        image = model.forward_sparse(emitters, per_lenslet=per_lenslet, subpixel_steps=subpixel_steps or None)
-        source = {
-            "emitters": str(emitters_path),
-            "count": len(emitters),
-            "subpixel_steps": subpixel_steps or "exact",
-        }
-    image = np.asarray(image, dtype=np.float64)
-    peak = float(image.max())
-    if not peak > 0:
-        raise UserError("the simulated image is empty (nothing in the volume reaches the sensor)")
-    normalised = np.clip(image / peak, 0, None)
-    rng = np.random.default_rng(seed)
-    if noise:
-        normalised = poisson_gaussian(normalised, peak_photons, offset, read_noise, rng)
-    full = 2**bit_depth - 1
-    counts = np.clip(np.round(normalised * full), 0, full).astype(np.uint16)
+        image, source = _render_emitters(model, emitters_path, per_lenslet, subpixel_steps)
+    counts, peak, full = _to_counts(image, noise, peak_photons, offset, read_noise, bit_depth, seed)
     sidecar = {
         "pixel_um": model.pixel_um,
         "bit_depth": bit_depth,
@@ -113,3 +77,87 @@ def simulate_measurement(
         "counts_per_unit": sidecar["counts_per_unit"],
     }
     return summary
+
+
+def _check_options(
+    volume_path: Any,
+    emitters_path: Any,
+    bit_depth: int,
+    peak_photons: float,
+    read_noise: float,
+    offset: float,
+    subpixel_steps: int,
+) -> None:
+    """A UserError for a missing or doubled source, or a noise or camera setting out of range."""
+    if (volume_path is None) == (emitters_path is None):
+        raise UserError("give exactly one of --volume and --emitters")
+    if bit_depth not in (8, 10, 12, 14, 16):
+        raise UserError(f"--bit-depth = {bit_depth}: must be one of 8, 10, 12, 14, 16")
+    if not (peak_photons > 0 and read_noise >= 0 and 0 <= offset < 1):
+        raise UserError("--peak-photons must be > 0, --read-noise ≥ 0, --offset within [0, 1)")
+
+
+def _render_volume(
+    model: Any, volume_path: Any, voxel_um: tuple[float, float, float] | None, per_lenslet: bool, progress: Any
+) -> tuple[Any, dict[str, Any]]:
+    """The noise-free image of a volume file (a .npy without ``voxel_um`` is on the model's
+    default spacing, µm) and the sidecar's description of the source."""
+    import numpy as np
+
+    from cm2optics.formats.volume import VolumeGrid, read_volume
+
+    spacing = voxel_um
+    if spacing is None and volume_path.suffix.lower() == ".npy":
+        spacing = model.default_grid.voxel_um
+    volume, grid = read_volume(volume_path, spacing)
+    grid = VolumeGrid(volume.shape, grid.voxel_um)
+    lit = np.nonzero(volume)
+    model.warn_outside_calibration(
+        np.stack([grid.axis_mm(2)[lit[2]], grid.axis_mm(1)[lit[1]], grid.axis_mm(0)[lit[0]]], -1), "lit voxels"
+    )
+    image = model.operator(grid).forward(volume, per_lenslet=per_lenslet, progress=progress)
+    return image, {"volume": str(volume_path), "grid": grid.to_dict()}
+
+
+def _render_emitters(
+    model: Any, emitters_path: Any, per_lenslet: bool, subpixel_steps: int
+) -> tuple[Any, dict[str, Any]]:
+    """The noise-free image of an emitter list and the sidecar's description of the source."""
+    from cm2optics.formats.emitters import read_emitters
+
+    emitters = read_emitters(emitters_path)
+    model.warn_outside_calibration(emitters.positions_mm(), "emitters")
+    image = model.forward_sparse(emitters, per_lenslet=per_lenslet, subpixel_steps=subpixel_steps or None)
+    return image, {
+        "emitters": str(emitters_path),
+        "count": len(emitters),
+        "subpixel_steps": subpixel_steps or "exact",
+    }
+
+
+def _to_counts(
+    image: Any,
+    noise: bool,
+    peak_photons: float,
+    offset: float,
+    read_noise: float,
+    bit_depth: int,
+    seed: int,
+) -> tuple[Any, float, int]:
+    """The image scaled so that its brightest pixel is full scale, with the paper's mixed noise
+    if asked, as ``bit_depth``-bit counts in uint16; also the image's peak and the full scale."""
+    import numpy as np
+
+    from cm2optics.synth.noise import poisson_gaussian
+
+    image = np.asarray(image, dtype=np.float64)
+    peak = float(image.max())
+    if not peak > 0:
+        raise UserError("the simulated image is empty (nothing in the volume reaches the sensor)")
+    normalised = np.clip(image / peak, 0, None)
+    rng = np.random.default_rng(seed)
+    if noise:
+        normalised = poisson_gaussian(normalised, peak_photons, offset, read_noise, rng)
+    full = 2**bit_depth - 1
+    counts = np.clip(np.round(normalised * full), 0, full).astype(np.uint16)
+    return counts, peak, full

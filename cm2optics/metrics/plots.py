@@ -142,24 +142,10 @@ def plot_overlay(recon: np.ndarray, evaluation: Evaluation, path: str | Path, *,
         recon.max(axis=1), extent=extent_xz, cmap="magma", aspect="auto", origin="lower", interpolation="nearest"
     )
     for ax, tv, dv in ((axes[0], t.y_um / 1000.0, d.y_um / 1000.0), (axes[1], t.z_um, d.z_um)):
-        ax.scatter(
-            t.x_um[found] / 1000.0,
-            tv[found],
-            s=28,
-            facecolors="none",
-            edgecolors="white",
-            linewidths=0.8,
-            label="true positive",
-        )
-        ax.scatter(
-            t.x_um[~found] / 1000.0,
-            tv[~found],
-            s=28,
-            facecolors="none",
-            edgecolors="red",
-            linewidths=0.8,
-            label="missed",
-        )
+        for pick, colour, label in ((found, "white", "true positive"), (~found, "red", "missed")):
+            ax.scatter(
+                t.x_um[pick] / 1000.0, tv[pick], s=28, facecolors="none", edgecolors=colour, linewidths=0.8, label=label
+            )
         ax.scatter(
             d.x_um[~true_det] / 1000.0,
             dv[~true_det],

@@ -67,9 +67,18 @@ def shaped_profile(collimator: Collimator, wavelength_nm: float, samples: int = 
             collimator.lens_half_angle_deg,
             "must be below the cavity mouth's ray angle",
         )
+    lens_r, lens_z = _lens_curve(collimator, n, theta_l, samples)
+    tir_r, tir_z, tir_theta, margin = _tir_wall_curve(collimator, n, theta_l, theta_max, float(lens_z[-1]), samples)
+    return enclosed_profile(
+        collimator, n, wavelength_nm, (lens_r, lens_z), (tir_r, tir_z), tir_theta, theta_max, margin
+    )
+
+
+def _lens_curve(collimator: Collimator, n: float, theta_l: float, samples: int) -> tuple[np.ndarray, np.ndarray]:
+    """The lens on the cavity floor, (r, z) in mm from the LED, for the lens rays 0 ≤ θ ≤ θ_L
+    (rad; material index n); its edge meets the cavity wall on the ray θ_L."""
+    a, g = collimator.cavity_radius_mm, collimator.led_gap_mm
     tan_lens = math.tan(math.radians(collimator.lens_spread_deg))
-    tan_tir = math.tan(math.radians(collimator.tir_spread_deg))
-    sign = -1.0 if collimator.tir_crossing else 1.0
 
     # Lens: ρ'/ρ = n sin(θ − φ)/(n cos(θ − φ) − 1), integrated as log ρ.
     def phi_lens(theta):
@@ -106,6 +115,17 @@ def shaped_profile(collimator: Collimator, wavelength_nm: float, samples: int = 
         )
     if np.any(np.diff(lens_r) <= 0):
         raise DesignError("collimator", "lens", "the lens profile folds back on itself for this spread")
+    return lens_r, lens_z
+
+
+def _tir_wall_curve(
+    collimator: Collimator, n: float, theta_l: float, theta_max: float, lens_edge: float, samples: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The freeform TIR wall, (r, z) in mm, for the TIR rays θ_L < θ ≤ θ_max (rad), up to the lens
+    edge's height (mm); also the rays' angles (rad) and the TIR margin along it (degrees)."""
+    a, g = collimator.cavity_radius_mm, collimator.led_gap_mm
+    tan_tir = math.tan(math.radians(collimator.tir_spread_deg))
+    sign = -1.0 if collimator.tir_crossing else 1.0
 
     # TIR wall along the cavity wall height z_w (mouth ray at z_w = g up to the lens-edge ray).
     sin2_max, sin2_l = math.sin(theta_max) ** 2, math.sin(theta_l) ** 2
@@ -155,7 +175,4 @@ def shaped_profile(collimator: Collimator, wavelength_nm: float, samples: int = 
         )
     if np.any(s <= 0) or np.any(np.diff(tir_z) <= 0):
         raise DesignError("collimator", "TIR wall", "the TIR wall folds back on itself for this spread")
-
-    return enclosed_profile(
-        collimator, n, wavelength_nm, (lens_r, lens_z), (tir_r, tir_z), tir_theta, theta_max, margin
-    )
+    return tir_r, tir_z, tir_theta, margin

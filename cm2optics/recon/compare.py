@@ -114,21 +114,9 @@ def compare_baselines(
     log: Callable[[str], None] | None = print,
 ) -> dict[str, Any]:
     """Make the test set, run every run, evaluate; returns the summary (also ``comparison.json``)."""
-    from dask.distributed import Client, LocalCluster
-
     from cm2optics.formats.atomic import write_json_atomic, write_text_atomic
     from cm2optics.lsv.model import load_model
-    from cm2optics.metrics import (
-        density_breakdown,
-        evaluate_volume,
-        f1_optimal_threshold,
-        merge_evaluations,
-        pooled_scores,
-    )
-    from cm2optics.metrics.breakdown import BREAKDOWNS, breakdown, detection_maps
-    from cm2optics.metrics.plots import plot_breakdowns, plot_maps, plot_overlay
-    from cm2optics.metrics.scores import REPORTED_KEYS
-    from cm2optics.synth.dataset import make_dataset, read_sample
+    from cm2optics.metrics.plots import plot_breakdowns
 
     say = log or (lambda _: None)
     out_dir = Path(out_dir)
@@ -138,59 +126,12 @@ def compare_baselines(
     config = config or scaled_test_config(model)
     grid = config.grid
     say(f"test set: {n_volumes} volumes, grid {grid.shape} of {'×'.join(f'{v:.3g}' for v in grid.voxel_um)} µm")
-    manifest = _reusable_testset(out_dir / "testset", config, seed, n_volumes, model_path)
-    if manifest is None:
-        manifest = make_dataset(
-            config, model_path, out_dir / "testset", n_volumes, seed, workers=workers, dask_address=dask_address
-        )
-    else:
-        say("reusing the test set already in " + str(out_dir / "testset"))
-    synth_s = float(manifest["seconds"])
-    samples = [str(out_dir / "testset" / "samples" / s["file"]) for s in manifest["samples"]]
-    truths = [read_sample(p)["emitters"] for p in samples]
-    densities = [s["density_per_mm2"] for s in manifest["samples"]]
-
-    results: dict[str, Any] = {}
-    todo = {}
-    for name, run in runs.items():
-        previous = _reusable_run(out_dir / name, run, samples) if reuse else None
-        if previous is None:
-            todo[name] = run
-        else:
-            results[name] = previous
-            say(f"reusing the reconstructions in {out_dir / name}")
-    if todo:
-        say(f"reconstructing with {', '.join(todo)} (one Dask worker process each)")
-        cluster = None
-        client = Client(dask_address) if dask_address else None
-        if client is None:
-            cluster = LocalCluster(n_workers=len(todo), threads_per_worker=1, processes=True, dashboard_address=":0")
-            client = Client(cluster)
-        try:
-            addresses = sorted(client.scheduler_info()["workers"])
-            futures = {
-                name: client.submit(
-                    _run,
-                    str(model_path),
-                    grid.to_dict(),
-                    run,
-                    samples,
-                    str(out_dir / name),
-                    threads,
-                    workers=[addresses[i % len(addresses)]],
-                    allow_other_workers=False,
-                    pure=False,
-                )
-                for i, (name, run) in enumerate(todo.items())
-            }
-            for name, future in futures.items():
-                results[name] = future.result()
-                write_json_atomic(out_dir / name / "run.json", {"run": todo[name], "result": results[name]})
-        finally:
-            client.close()
-            if cluster is not None:
-                cluster.close()
-    results = {name: results[name] for name in runs}
+    manifest, samples, truths, densities = _test_set(
+        config, model_path, out_dir, n_volumes, seed, workers=workers, dask_address=dask_address, say=say
+    )
+    results = _reconstruct_runs(
+        model_path, grid, runs, samples, out_dir, threads=threads, dask_address=dask_address, reuse=reuse, say=say
+    )
 
     summary: dict[str, Any] = {
         "model": str(model_path),
@@ -200,54 +141,16 @@ def compare_baselines(
         "grid": grid.to_dict(),
         "n_voxels": int(np.prod(grid.shape)),
         "n_emitters": int(sum(len(t) for t in truths)),
-        "synth_s": round(synth_s, 2),
+        "synth_s": round(float(manifest["seconds"]), 2),
         "runs": {},
     }
     breakdowns: dict[str, list] = {name: [] for name in ("lateral_mm", "depth_um", "size_um", "density")}
     for name, result in results.items():
-        volumes = [np.load(r["volume"]) for r in result["records"]]
-        pairs = list(zip(volumes, [grid] * len(volumes), truths, strict=True))
-        threshold, _ = f1_optimal_threshold(pairs)
-        evaluations = [evaluate_volume(v, grid, t, threshold) for v, _, t in pairs]
-        pooled = pooled_scores(evaluations)
-        per_volume = [e.metrics for e in evaluations]
-        seconds = [r["seconds"] for r in result["records"]]
-        entry = {
-            "run": runs[name],
-            "variant": result["records"][0]["variant"],
-            "threshold": threshold,
-            **{k: pooled[k] for k in REPORTED_KEYS},
-            "per_volume_mean": {
-                k: _mean([m[k] for m in per_volume])
-                for k in ("recall", "precision", "f1", "jaccard", "rmse_lateral_um", "rmse_axial_um")
-            },
-            "per_volume_sd": {
-                k: _sd([m[k] for m in per_volume])
-                for k in ("recall", "precision", "f1", "jaccard", "rmse_lateral_um", "rmse_axial_um")
-            },
-            "seconds_per_volume": round(float(np.mean(seconds)), 2),
-            "seconds_total": round(float(np.sum(seconds)), 1),
-            "setup_s": result["setup_s"],
-            "iterations_mean": round(float(np.mean([r["iterations"] for r in result["records"]])), 1),
-            "converged": int(sum(r["converged"] for r in result["records"])),
-            "peak_rss_gib": result["peak_rss_gib"],
-            "memory_estimate_gib": result["memory_estimate"],
-            "threads": result["threads"],
-            "breakdowns": {b: breakdown(evaluations, b) for b in BREAKDOWNS},
-            "density": density_breakdown(evaluations, densities),
-        }
+        entry = _evaluate_run(name, runs[name], result, grid, truths, densities, out_dir, n_volumes)
         summary["runs"][name] = entry
         for b in ("lateral_mm", "depth_um", "size_um"):
             breakdowns[b].append(entry["breakdowns"][b])
         breakdowns["density"].append(entry["density"])
-        merged = merge_evaluations(evaluations)
-        plot_maps(detection_maps(merged, 250.0), out_dir / f"maps_{name}.png", title=f"{name}: {n_volumes} volumes")
-        plot_overlay(
-            volumes[0],
-            evaluations[0],
-            out_dir / f"overlay_{name}.png",
-            title=f"{name}, volume 0 (threshold {threshold:.3g})",
-        )
         if not keep_volumes:
             shutil.rmtree(out_dir / name, ignore_errors=True)
     plot_breakdowns(
@@ -260,6 +163,174 @@ def compare_baselines(
     write_text_atomic(out_dir / "comparison.md", comparison_table(summary))
     say(comparison_table(summary))
     return summary
+
+
+def _test_set(
+    config: SynthConfig,
+    model_path: Path,
+    out_dir: Path,
+    n_volumes: int,
+    seed: int,
+    *,
+    workers: int,
+    dask_address: str | None,
+    say: Callable[[str], None],
+) -> tuple[dict[str, Any], list[str], list, list[float]]:
+    """The test set in ``out_dir/testset`` (made, or reused when it matches): its manifest, the
+    sample paths, the true emitters of each sample and each sample's density (per mm²)."""
+    from cm2optics.synth.dataset import make_dataset, read_sample
+
+    manifest = _reusable_testset(out_dir / "testset", config, seed, n_volumes, model_path)
+    if manifest is None:
+        manifest = make_dataset(
+            config, model_path, out_dir / "testset", n_volumes, seed, workers=workers, dask_address=dask_address
+        )
+    else:
+        say("reusing the test set already in " + str(out_dir / "testset"))
+    samples = [str(out_dir / "testset" / "samples" / s["file"]) for s in manifest["samples"]]
+    truths = [read_sample(p)["emitters"] for p in samples]
+    densities = [s["density_per_mm2"] for s in manifest["samples"]]
+    return manifest, samples, truths, densities
+
+
+def _reconstruct_runs(
+    model_path: Path,
+    grid: Any,
+    runs: dict[str, dict[str, Any]],
+    samples: list[str],
+    out_dir: Path,
+    *,
+    threads: int,
+    dask_address: str | None,
+    reuse: bool,
+    say: Callable[[str], None],
+) -> dict[str, Any]:
+    """Every run's result (see :func:`_run`), reused from ``out_dir/<run>`` when allowed, else
+    computed in one Dask worker process per run; in the order of ``runs``."""
+    results: dict[str, Any] = {}
+    todo = {}
+    for name, run in runs.items():
+        previous = _reusable_run(out_dir / name, run, samples) if reuse else None
+        if previous is None:
+            todo[name] = run
+        else:
+            results[name] = previous
+            say(f"reusing the reconstructions in {out_dir / name}")
+    if todo:
+        say(f"reconstructing with {', '.join(todo)} (one Dask worker process each)")
+        results.update(_submit_runs(model_path, grid, todo, samples, out_dir, threads, dask_address))
+    return {name: results[name] for name in runs}
+
+
+def _submit_runs(
+    model_path: Path,
+    grid: Any,
+    todo: dict[str, dict[str, Any]],
+    samples: list[str],
+    out_dir: Path,
+    threads: int,
+    dask_address: str | None,
+) -> dict[str, Any]:
+    """Run each of ``todo`` on its own Dask worker (a local cluster unless ``dask_address``);
+    each result is also written to ``out_dir/<run>/run.json``."""
+    from dask.distributed import Client, LocalCluster
+
+    from cm2optics.formats.atomic import write_json_atomic
+
+    results: dict[str, Any] = {}
+    cluster = None
+    client = Client(dask_address) if dask_address else None
+    if client is None:
+        cluster = LocalCluster(n_workers=len(todo), threads_per_worker=1, processes=True, dashboard_address=":0")
+        client = Client(cluster)
+    try:
+        addresses = sorted(client.scheduler_info()["workers"])
+        futures = {
+            name: client.submit(
+                _run,
+                str(model_path),
+                grid.to_dict(),
+                run,
+                samples,
+                str(out_dir / name),
+                threads,
+                workers=[addresses[i % len(addresses)]],
+                allow_other_workers=False,
+                pure=False,
+            )
+            for i, (name, run) in enumerate(todo.items())
+        }
+        for name, future in futures.items():
+            results[name] = future.result()
+            write_json_atomic(out_dir / name / "run.json", {"run": todo[name], "result": results[name]})
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+    return results
+
+
+#: the per-volume scores averaged (and their spread) in each run's entry
+_PER_VOLUME_KEYS = ("recall", "precision", "f1", "jaccard", "rmse_lateral_um", "rmse_axial_um")
+
+
+def _evaluate_run(
+    name: str,
+    run: dict[str, Any],
+    result: dict[str, Any],
+    grid: Any,
+    truths: list,
+    densities: list[float],
+    out_dir: Path,
+    n_volumes: int,
+) -> dict[str, Any]:
+    """One run's entry of the summary: thresholded at its own F1-optimal threshold, scored volume
+    by volume and pooled, broken down; draws its detection maps and its overlay of volume 0."""
+    from cm2optics.metrics import (
+        density_breakdown,
+        evaluate_volume,
+        f1_optimal_threshold,
+        merge_evaluations,
+        pooled_scores,
+    )
+    from cm2optics.metrics.breakdown import BREAKDOWNS, breakdown, detection_maps
+    from cm2optics.metrics.plots import plot_maps, plot_overlay
+    from cm2optics.metrics.scores import REPORTED_KEYS
+
+    volumes = [np.load(r["volume"]) for r in result["records"]]
+    pairs = list(zip(volumes, [grid] * len(volumes), truths, strict=True))
+    threshold, _ = f1_optimal_threshold(pairs)
+    evaluations = [evaluate_volume(v, grid, t, threshold) for v, _, t in pairs]
+    pooled = pooled_scores(evaluations)
+    per_volume = [e.metrics for e in evaluations]
+    seconds = [r["seconds"] for r in result["records"]]
+    entry = {
+        "run": run,
+        "variant": result["records"][0]["variant"],
+        "threshold": threshold,
+        **{k: pooled[k] for k in REPORTED_KEYS},
+        "per_volume_mean": {k: _mean([m[k] for m in per_volume]) for k in _PER_VOLUME_KEYS},
+        "per_volume_sd": {k: _sd([m[k] for m in per_volume]) for k in _PER_VOLUME_KEYS},
+        "seconds_per_volume": round(float(np.mean(seconds)), 2),
+        "seconds_total": round(float(np.sum(seconds)), 1),
+        "setup_s": result["setup_s"],
+        "iterations_mean": round(float(np.mean([r["iterations"] for r in result["records"]])), 1),
+        "converged": int(sum(r["converged"] for r in result["records"])),
+        "peak_rss_gib": result["peak_rss_gib"],
+        "memory_estimate_gib": result["memory_estimate"],
+        "threads": result["threads"],
+        "breakdowns": {b: breakdown(evaluations, b) for b in BREAKDOWNS},
+        "density": density_breakdown(evaluations, densities),
+    }
+    merged = merge_evaluations(evaluations)
+    plot_maps(detection_maps(merged, 250.0), out_dir / f"maps_{name}.png", title=f"{name}: {n_volumes} volumes")
+    plot_overlay(
+        volumes[0],
+        evaluations[0],
+        out_dir / f"overlay_{name}.png",
+        title=f"{name}, volume 0 (threshold {threshold:.3g})",
+    )
+    return entry
 
 
 def _reusable_run(folder: Path, run: dict[str, Any], samples: list[str]) -> dict[str, Any] | None:

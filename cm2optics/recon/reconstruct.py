@@ -134,15 +134,8 @@ def _background(measurement: np.ndarray, background: str | float) -> float:
     return float(background)
 
 
-def reconstruct(
-    measurement: np.ndarray,
-    operator: VolumeOperator,
-    options: ReconOptions = ReconOptions(),
-    *,
-    progress: Progress | None = None,
-) -> tuple[np.ndarray, dict[str, Any]]:
-    """Reconstruct ``measurement`` (y, x) with ``operator``; returns the (z, y, x) float32 volume
-    and a record (options, background, scale, iterations, convergence, memory, seconds)."""
+def _checked_measurement(measurement: Any, operator: VolumeOperator) -> np.ndarray:
+    """The measurement as a float32 image; a ValueError unless it is one finite image of the sensor's shape."""
     measurement = np.asarray(measurement, dtype=np.float32)
     if measurement.ndim != 2:
         raise ValueError(f"a measurement must be one image (y, x), got shape {measurement.shape}")
@@ -153,19 +146,14 @@ def reconstruct(
         )
     if not np.all(np.isfinite(measurement)):
         raise ValueError(f"the measurement contains {int(np.sum(~np.isfinite(measurement)))} NaN or infinite pixels")
-    memory = memory_estimate(operator, options)
-    if memory["total_gib"] > options.max_memory_gib:
-        raise ValueError(
-            f"{options.method} on a {'×'.join(map(str, operator.grid.shape))} grid needs ≈ {memory['total_gib']:.1f} GiB "
-            f"(> --max-memory-gib {options.max_memory_gib:g}): use a coarser or smaller grid, drop --tv, or use rl/fista"
-        )
-    start = time.perf_counter()
-    background = _background(measurement, options.background)
-    signal = measurement - background
-    scale = float(signal.max())
-    if not scale > 0:
-        raise ValueError("the measurement has no signal above its background")
-    b = torch.as_tensor(measurement / scale if options.method == "rl" else signal / scale)
+    return measurement
+
+
+def _solve(
+    operator: VolumeOperator, b: torch.Tensor, options: ReconOptions, background: float, progress: Progress | None
+) -> tuple[SolverResult, str]:
+    """Run the options' method on the scaled measurement ``b`` (``background`` in b's units, for
+    rl); returns the result and the variant that ran."""
     stopping = options.stopping
     result: SolverResult
     variant = options.method
@@ -206,12 +194,39 @@ def reconstruct(
         result = richardson_lucy(
             operator,
             b,
-            background=background / scale,
+            background=background,
             l1=options.l1,
             tv=options.tv,
             stopping=stopping,
             progress=progress,
         )
+    return result, variant
+
+
+def reconstruct(
+    measurement: np.ndarray,
+    operator: VolumeOperator,
+    options: ReconOptions = ReconOptions(),
+    *,
+    progress: Progress | None = None,
+) -> tuple[np.ndarray, dict[str, Any]]:
+    """Reconstruct ``measurement`` (y, x) with ``operator``; returns the (z, y, x) float32 volume
+    and a record (options, background, scale, iterations, convergence, memory, seconds)."""
+    measurement = _checked_measurement(measurement, operator)
+    memory = memory_estimate(operator, options)
+    if memory["total_gib"] > options.max_memory_gib:
+        raise ValueError(
+            f"{options.method} on a {'×'.join(map(str, operator.grid.shape))} grid needs ≈ {memory['total_gib']:.1f} GiB "
+            f"(> --max-memory-gib {options.max_memory_gib:g}): use a coarser or smaller grid, drop --tv, or use rl/fista"
+        )
+    start = time.perf_counter()
+    background = _background(measurement, options.background)
+    signal = measurement - background
+    scale = float(signal.max())
+    if not scale > 0:
+        raise ValueError("the measurement has no signal above its background")
+    b = torch.as_tensor(measurement / scale if options.method == "rl" else signal / scale)
+    result, variant = _solve(operator, b, options, background / scale, progress)
     volume = (result.volume * scale).cpu().numpy().astype(np.float32)
     record = {
         "method": options.method,

@@ -323,6 +323,45 @@ def _lsi_setup(operator: DepthwiseConvOperator, nzp: int, mu: tuple[float, float
     return value
 
 
+def _lsi_canvas(
+    operator: DepthwiseConvOperator, b: torch.Tensor, K: torch.Tensor, nzp: int
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, float]:
+    """The closed-form ADMM's canvas pieces: the sensor mask, Cᵀb, the volume's support on the
+    z-padded canvas, and the scale of Aᵀb (its maximum, 1 when none) that the weights refer to."""
+    nz = operator.grid.shape[0]
+    Hc, Wc = operator.canvas_shape
+    mask = operator.sensor_mask_canvas()
+    Ctb = operator.sensor_to_canvas(b)
+    support = torch.zeros((nzp, Hc, Wc), dtype=torch.float32)
+    ny, nx = operator.grid.shape[1:]
+    support[:nz, :ny, :nx] = 1.0
+    Atb_scale = (
+        float(torch.fft.irfft2(torch.fft.rfft2(Ctb)[None] * torch.conj(K[:nz]), s=(Hc, Wc))[:, :ny, :nx].max()) or 1.0
+    )
+    return mask, Ctb, support, Atb_scale
+
+
+def _periodic_gradient(weights: tuple) -> tuple[Callable, Callable]:
+    """D (weighted forward differences along z, y, x with periodic wrap, stacked) and its adjoint Dᵀ."""
+
+    def D(x: torch.Tensor) -> torch.Tensor:
+        return torch.stack([wgt * (torch.roll(x, -1, dims=axis) - x) for axis, wgt in enumerate(weights)])
+
+    def Dt(p: torch.Tensor) -> torch.Tensor:
+        return sum(wgt * (torch.roll(p[axis], 1, dims=axis) - p[axis]) for axis, wgt in enumerate(weights))
+
+    return D, Dt
+
+
+def _lsi_residual(
+    operator: DepthwiseConvOperator, w: torch.Tensor, K: torch.Tensor, b: torch.Tensor, b_norm: float
+) -> float:
+    """‖A w − b‖ / ‖b‖ for a z-padded canvas volume ``w`` (K̂ its kernel spectra)."""
+    Hc, Wc = operator.canvas_shape
+    model_image = torch.fft.irfft2((torch.fft.rfft2(w) * K).sum(0), s=(Hc, Wc))
+    return float(torch.linalg.vector_norm(operator.canvas_to_sensor(model_image) - b)) / b_norm
+
+
 @torch.no_grad()
 def admm_lsi(
     operator: DepthwiseConvOperator,
@@ -347,28 +386,12 @@ def admm_lsi(
     weights = tuple(tv_weights if tv_weights is not None else axis_weights(operator.grid.voxel_um))
     use_tv = tv > 0
     K, a, lam, a_over, denom, norm_sq = _lsi_setup(operator, nzp, tuple(float(m) for m in mu), weights, use_tv)
-    mu_v = float(mu[0])
-    mu_u, mu_w = float(mu[1]) * norm_sq, float(mu[2]) * norm_sq
-
-    mask = operator.sensor_mask_canvas()
-    Ctb = operator.sensor_to_canvas(b)
-    support = torch.zeros((nzp, Hc, Wc), dtype=torch.float32)
-    ny, nx = operator.grid.shape[1:]
-    support[:nz, :ny, :nx] = 1.0
-    Atb_scale = (
-        float(torch.fft.irfft2(torch.fft.rfft2(Ctb)[None] * torch.conj(K[:nz]), s=(Hc, Wc))[:, :ny, :nx].max()) or 1.0
-    )
+    mu_v, mu_u, mu_w = float(mu[0]), float(mu[1]) * norm_sq, float(mu[2]) * norm_sq
+    mask, Ctb, support, Atb_scale = _lsi_canvas(operator, b, K, nzp)
     lam1, lamtv = l1 * Atb_scale, tv * Atb_scale
-
-    def D(x: torch.Tensor) -> torch.Tensor:
-        return torch.stack([wgt * (torch.roll(x, -1, dims=axis) - x) for axis, wgt in enumerate(weights)])
-
-    def Dt(p: torch.Tensor) -> torch.Tensor:
-        return sum(wgt * (torch.roll(p[axis], 1, dims=axis) - p[axis]) for axis, wgt in enumerate(weights))
-
+    D, Dt = _periodic_gradient(weights)
     x = torch.zeros((nzp, Hc, Wc), dtype=torch.float32)
-    w = x.clone()
-    rho = x.clone()
+    w, rho = x.clone(), x.clone()
     Hx = torch.zeros((Hc, Wc), dtype=torch.float32)
     xi = torch.zeros_like(Hx)
     Dx = torch.zeros((3, nzp, Hc, Wc), dtype=torch.float32) if use_tv else None
@@ -401,10 +424,8 @@ def admm_lsi(
         if use_tv:
             Dx = D(x)
             eta += mu_u * (Dx - u)
-        residual = None
-        if k % 10 == 9 or k == stopping.max_iter - 1:
-            model_image = torch.fft.irfft2((torch.fft.rfft2(w_new) * K).sum(0), s=(Hc, Wc))
-            residual = float(torch.linalg.vector_norm(operator.canvas_to_sensor(model_image) - b)) / b_norm
+        last = k == stopping.max_iter - 1
+        residual = _lsi_residual(operator, w_new, K, b, b_norm) if k % 10 == 9 or last else None
         done = monitor.step(k, w, w_new, residual)
         w = w_new
         if done:

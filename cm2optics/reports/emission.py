@@ -90,6 +90,50 @@ def _z_stack_figure(model: EmissionModel, path: Path, zs: np.ndarray) -> Path:
     return write_atomic(path, lambda tmp: fig.savefig(tmp, dpi=110, format="png"))
 
 
+def _numbers_rows(n: dict) -> list[list[str]]:
+    """The PSF section's table: the model's magnification, pixel, shear, FWHMs (µm), focus and
+    vignetting (mm), edge energy and speed, each against its reference."""
+    return [
+        ["magnification |m| at z = 0", f"{n['magnification']:.4f}", f"{n['magnification_design']:.4f} (design)"],
+        [
+            "object pixel (µm)",
+            f"{n['object_pixel_um']:.3f}",
+            f"{n['object_pixel_um_design']:.3f} (design), 4.15 (paper)",
+        ],
+        [
+            "axial shear of a side focus (mm/mm)",
+            f"{n['shear_side_focus']:.4f}",
+            f"{n['shear_paraxial']:.4f} (paraxial)",
+        ],
+        [
+            f"on-axis FWHM at the paraxial plane, z = {n['paraxial_plane_z_mm']:+.2f} mm (µm, sensor)",
+            f"{n['fwhm_paraxial_um']:.2f}",
+            f"Strehl {n['strehl_paraxial']:.3f}",
+        ],
+        [
+            "best focus of the model (mm from the focal plane)",
+            f"{n['best_focus_z_mm']:+.2f}",
+            "0: the design's focal plane is the least RMS wavefront error",
+        ],
+        [
+            "on-axis FWHM at z = 0, best focus (µm, sensor)",
+            f"{n['fwhm_best_um']:.2f}",
+            f"{n['fwhm_diffraction_um']:.2f} (diffraction limit, NA' {n['image_na']:.3f})",
+        ],
+        [
+            "vignetting radius (mm; x, y)",
+            f"{n['vignetting_radius_x_mm']:.1f}, {n['vignetting_radius_y_mm']:.1f}",
+            "≈ 1.7 (paper: side foci missing beyond)",
+        ],
+        [
+            "central-focus energy at the field edge",
+            f"{n['edge_energy'] * 100:.0f} %",
+            "≈ 15 % (paper: drops ≈ 85 %)",
+        ],
+        ["one position, full sensor (s)", f"{n['seconds_per_position_b1']:.2f}", "≤ 1 s target"],
+    ]
+
+
 def add_psf_section(
     report: Report, design: SystemDesign, out_dir: str | Path, title: str = "PSFs and calibration scans"
 ) -> None:
@@ -108,7 +152,6 @@ def add_psf_section(
     _z_stack_figure(
         model, out_dir / "psf_focus_through_z.png", np.array([-0.5, 0.0, 0.5, numbers["paraxial_plane_z_mm"]])
     )
-    n = numbers
     report.heading(title)
     report.paragraph(
         "Point sources traced through the emission filter (angle-shifted passband per ray), mask, housing bore, "
@@ -124,48 +167,7 @@ def add_psf_section(
         "TIFFs, scan.yaml (cm2optics.formats.scan), read back with read_scan. The full 9 × 9 × 11 calibration: "
         "`cm2 psf simulate --preset cm2-v2 --grid 9x9x11 --binning 2`."
     )
-    report.table(
-        ["quantity", "model", "reference"],
-        [
-            ["magnification |m| at z = 0", f"{n['magnification']:.4f}", f"{n['magnification_design']:.4f} (design)"],
-            [
-                "object pixel (µm)",
-                f"{n['object_pixel_um']:.3f}",
-                f"{n['object_pixel_um_design']:.3f} (design), 4.15 (paper)",
-            ],
-            [
-                "axial shear of a side focus (mm/mm)",
-                f"{n['shear_side_focus']:.4f}",
-                f"{n['shear_paraxial']:.4f} (paraxial)",
-            ],
-            [
-                f"on-axis FWHM at the paraxial plane, z = {n['paraxial_plane_z_mm']:+.2f} mm (µm, sensor)",
-                f"{n['fwhm_paraxial_um']:.2f}",
-                f"Strehl {n['strehl_paraxial']:.3f}",
-            ],
-            [
-                "best focus of the model (mm from the focal plane)",
-                f"{n['best_focus_z_mm']:+.2f}",
-                "0: the design's focal plane is the least RMS wavefront error",
-            ],
-            [
-                "on-axis FWHM at z = 0, best focus (µm, sensor)",
-                f"{n['fwhm_best_um']:.2f}",
-                f"{n['fwhm_diffraction_um']:.2f} (diffraction limit, NA' {n['image_na']:.3f})",
-            ],
-            [
-                "vignetting radius (mm; x, y)",
-                f"{n['vignetting_radius_x_mm']:.1f}, {n['vignetting_radius_y_mm']:.1f}",
-                "≈ 1.7 (paper: side foci missing beyond)",
-            ],
-            [
-                "central-focus energy at the field edge",
-                f"{n['edge_energy'] * 100:.0f} %",
-                "≈ 15 % (paper: drops ≈ 85 %)",
-            ],
-            ["one position, full sensor (s)", f"{n['seconds_per_position_b1']:.2f}", "≤ 1 s target"],
-        ],
-    )
+    report.table(["quantity", "model", "reference"], _numbers_rows(numbers))
     report.figure("psf-scan/montage.png", "Synthetic PSF scan, focal plane: each tile one source position (x, y in mm)")
     report.figure(
         "psf_focus_through_z.png",

@@ -21,6 +21,50 @@ def _pct(estimate) -> str:
     return f"{100 * estimate.value:.1f} ± {100 * estimate.stderr:.2f} %"
 
 
+def _figure_rows(design: SystemDesign, results: list) -> list[list[str]]:
+    """The comparison table's rows: one figure of merit a row, one design a column."""
+    rows = [
+        ["throughput", *[_pct(r.throughput) for r in results]],
+        [f"delivered fraction (Ø{design.volume.field_mm:g} mm)", *[_pct(r.delivered_fraction) for r in results]],
+        [
+            f"power (mW, {design.led_array.count} × {results[0].led_flux_mw:g} mW LEDs)",
+            *[f"{r.power_mw.value:.0f} ± {r.power_mw.stderr:.1f}" for r in results],
+        ],
+        [
+            "uniformity CV (MC noise floor)",
+            *[f"{_pct(r.uniformity_cv)} ({100 * r.uniformity_cv_noise:.1f} %)" for r in results],
+        ],
+        ["uniformity min/max", *[f"{r.uniformity_min_max.value:.2f}" for r in results]],
+        ["passing within 30° of the axis", *[_pct(r.fraction_within_30deg) for r in results]],
+        [
+            "beam half-angle 50 % / 90 % (°)",
+            *[f"{r.beam_half_angle_50_deg.value:.1f} / {r.beam_half_angle_90_deg.value:.1f}" for r in results],
+        ],
+    ]
+    return rows
+
+
+def _add_bounds(report: Report, design: SystemDesign) -> tuple[dict, dict]:
+    """Add the étendue and uniform-beam bounds to ``report``; returns both bounds."""
+    from cm2optics.illumination.bounds import etendue_bound, uniform_beam_bound
+
+    bound = etendue_bound(design)
+    report.paragraph(
+        f"Étendue: a 1-mm² Lambertian emitter has G = {bound['g_source_mm2sr']:.2f} mm²·sr; one unit's clear aperture and the "
+        f"field circle span G = {bound['g_target_mm2sr']:.2f} mm²·sr, so étendue allows {100 * bound['geometric_bound']:.0f} % "
+        f"onto the circle; the filter passes at most {100 * bound['spectral_ceiling']:.1f} % of the LED's spectrum (all rays at "
+        f"normal incidence): the delivered fraction cannot exceed {100 * bound['delivered_bound']:.1f} %."
+    )
+    uniform = uniform_beam_bound(design)
+    report.paragraph(
+        f"Uniformity: the best rotationally symmetric beam aimed along each unit's axis (any revolved collimator, ideal "
+        f"point-like source) puts at most {100 * uniform['output_bound']:.1f} % of a unit's output inside the circle with "
+        f"the array's CV ≤ {100 * uniform['max_cv']:.0f} %, i.e. ≤ {100 * uniform['delivered_bound']:.1f} % of the LED's power "
+        "after the filter (linear programme over the beam's radial profile, `cm2optics.illumination.bounds`)."
+    )
+    return bound, uniform
+
+
 def add_illumination_section(
     report: Report, design: SystemDesign, out_dir: str | Path, rays: int = DEMO_RAYS, heading: str = "Illumination"
 ) -> dict:
@@ -32,7 +76,6 @@ def add_illumination_section(
     """
     from cm2optics.optics.backend import mitsuba, variant
     from cm2optics.formats.atomic import write_json_atomic
-    from cm2optics.illumination.bounds import etendue_bound, uniform_beam_bound
     from cm2optics.illumination.compare import compare_designs, configurations, setup_from_options, stl_collimator
     from cm2optics.illumination.metrics import DEFINITIONS, write_maps_png
 
@@ -56,24 +99,7 @@ def add_illumination_section(
         f"{elapsed:.1f} s in all. LED: {setup.notes['led_profile']}; spectrum: {setup.notes['led_spectrum']}. "
         f"Filter: {setup.notes['excitation_filter']}. Each figure ± its Monte Carlo standard error."
     )
-    rows = [
-        ["throughput", *[_pct(r.throughput) for r in results]],
-        [f"delivered fraction (Ø{design.volume.field_mm:g} mm)", *[_pct(r.delivered_fraction) for r in results]],
-        [
-            f"power (mW, {design.led_array.count} × {results[0].led_flux_mw:g} mW LEDs)",
-            *[f"{r.power_mw.value:.0f} ± {r.power_mw.stderr:.1f}" for r in results],
-        ],
-        [
-            "uniformity CV (MC noise floor)",
-            *[f"{_pct(r.uniformity_cv)} ({100 * r.uniformity_cv_noise:.1f} %)" for r in results],
-        ],
-        ["uniformity min/max", *[f"{r.uniformity_min_max.value:.2f}" for r in results]],
-        ["passing within 30° of the axis", *[_pct(r.fraction_within_30deg) for r in results]],
-        [
-            "beam half-angle 50 % / 90 % (°)",
-            *[f"{r.beam_half_angle_50_deg.value:.1f} / {r.beam_half_angle_90_deg.value:.1f}" for r in results],
-        ],
-    ]
+    rows = _figure_rows(design, results)
     report.table(["figure", *[r.label for r in results]], rows)
     ledger_keys = [k for k in results[0].ledger if k not in ("closure", "unaccounted")]
     report.paragraph("Energy ledger (fractions of the emitted power; delivered + absorbed + escaped = 1):")
@@ -81,20 +107,7 @@ def add_illumination_section(
         ["entry", *[r.label for r in results]],
         [[k, *[f"{r.ledger[k].value:.4f}" for r in results]] for k in ledger_keys],
     )
-    bound = etendue_bound(design)
-    report.paragraph(
-        f"Étendue: a 1-mm² Lambertian emitter has G = {bound['g_source_mm2sr']:.2f} mm²·sr; one unit's clear aperture and the "
-        f"field circle span G = {bound['g_target_mm2sr']:.2f} mm²·sr, so étendue allows {100 * bound['geometric_bound']:.0f} % "
-        f"onto the circle; the filter passes at most {100 * bound['spectral_ceiling']:.1f} % of the LED's spectrum (all rays at "
-        f"normal incidence): the delivered fraction cannot exceed {100 * bound['delivered_bound']:.1f} %."
-    )
-    uniform = uniform_beam_bound(design)
-    report.paragraph(
-        f"Uniformity: the best rotationally symmetric beam aimed along each unit's axis (any revolved collimator, ideal "
-        f"point-like source) puts at most {100 * uniform['output_bound']:.1f} % of a unit's output inside the circle with "
-        f"the array's CV ≤ {100 * uniform['max_cv']:.0f} %, i.e. ≤ {100 * uniform['delivered_bound']:.1f} % of the LED's power "
-        "after the filter (linear programme over the beam's radial profile, `cm2optics.illumination.bounds`)."
-    )
+    bound, uniform = _add_bounds(report, design)
     report.paragraph("Definitions: " + " ".join(f"{k}: {v}." for k, v in DEFINITIONS.items()))
     data = {
         "rays": rays,

@@ -45,6 +45,39 @@ def _measurement_figure(sample: dict[str, Any], rays: np.ndarray, view_px: int, 
     return save_figure(figure, path)
 
 
+#: the columns of the baselines' table
+_RUN_COLUMNS = [
+    "model · method",
+    "variant",
+    "recall",
+    "precision",
+    "F1",
+    "Jaccard",
+    "lateral RMSE µm",
+    "axial RMSE µm",
+    "iterations",
+    "time s",
+    "memory est. GiB",
+]
+
+
+def _run_row(name: str, m: dict, record: dict) -> list:
+    """One run's row of the baselines' table: its scores (µm), iterations, seconds and memory (GiB)."""
+    return [
+        name,
+        record["variant"],
+        f"{m['recall']:.2f}",
+        f"{m['precision']:.2f}",
+        f"{m['f1']:.2f}",
+        f"{m['jaccard']:.2f}",
+        "—" if m["rmse_lateral_um"] is None else f"{m['rmse_lateral_um']:.1f}",
+        "—" if m["rmse_axial_um"] is None else f"{m['rmse_axial_um']:.1f}",
+        record["iterations"],
+        f"{record['seconds']:.1f}",
+        f"{record['memory_estimate']['total_gib']:.2f}",
+    ]
+
+
 def add_baseline_section(
     report: Report,
     design: SystemDesign,
@@ -76,21 +109,7 @@ def add_baseline_section(
             folder / f"overlay_{run['forward']}-{run['method']}.png",
             title=f"{name}: {m['n_tp']} TP, {m['n_fp']} FP, {m['n_fn']} FN",
         )
-        rows.append(
-            [
-                name,
-                record["variant"],
-                f"{m['recall']:.2f}",
-                f"{m['precision']:.2f}",
-                f"{m['f1']:.2f}",
-                f"{m['jaccard']:.2f}",
-                "—" if m["rmse_lateral_um"] is None else f"{m['rmse_lateral_um']:.1f}",
-                "—" if m["rmse_axial_um"] is None else f"{m['rmse_axial_um']:.1f}",
-                record["iterations"],
-                f"{record['seconds']:.1f}",
-                f"{record['memory_estimate']['total_gib']:.2f}",
-            ]
-        )
+        rows.append(_run_row(name, m, record))
     report.heading(title or "Synthetic data and model-based baselines")
     report.paragraph(
         f"One volume made the paper's way at a scaled-down size with {origin} ({build_s:.1f} s): a {config.fov_mm[0]:g}-mm field, "
@@ -109,22 +128,7 @@ def add_baseline_section(
         "(its closed-form ADMM), each binarised at its own F1-optimal threshold, connected components matched to the true "
         "emitters by the Hungarian algorithm within 2× their diameter (`cm2 reconstruct`, `cm2 evaluate`)."
     )
-    report.table(
-        [
-            "model · method",
-            "variant",
-            "recall",
-            "precision",
-            "F1",
-            "Jaccard",
-            "lateral RMSE µm",
-            "axial RMSE µm",
-            "iterations",
-            "time s",
-            "memory est. GiB",
-        ],
-        rows,
-    )
+    report.table(_RUN_COLUMNS, rows)
     for name, run in DEMO_RUNS.items():
         report.figure(
             f"baseline/overlay_{run['forward']}-{run['method']}.png",

@@ -231,6 +231,69 @@ def _client(dask_address: str | None, workers: int) -> tuple[Any, Any]:
     return Client(cluster), cluster
 
 
+def _check_arguments(
+    n_volumes: int, seed: int, workers: int, model: str | Path | Imaging, dask_address: str | None
+) -> None:
+    """A ValueError for a count, seed or worker number out of range, or an in-process model on Dask."""
+    if n_volumes < 1:
+        raise ValueError(f"n_volumes = {n_volumes}: must be ≥ 1")
+    if seed < 0:
+        raise ValueError(f"seed = {seed}: must be ≥ 0")
+    if workers < 0:
+        raise ValueError(f"workers = {workers}: must be ≥ 0")
+    if isinstance(model, Imaging) and (workers or dask_address):
+        raise ValueError("an in-process model runs with workers = 0; give a model file to use Dask workers")
+
+
+def _model_reference(model: str | Path | Imaging, config: SynthConfig) -> tuple[str | Imaging, dict[str, Any]]:
+    """What the workers load (the model file's absolute path, or the in-process model) and the
+    manifest's description of it; a model file is loaded once here, to fail early."""
+    if isinstance(model, Imaging):
+        return model, {"path": None, "kind": type(model.source).__name__}
+    model_path = Path(model).resolve()
+    imaging = load_imaging(model_path, config.grid, config.render)  # fail early, in this process
+    return str(model_path), {
+        "path": str(model_path),
+        "sha256": _file_sha256(model_path),
+        "kind": type(imaging.source).__name__,
+        "render": imaging.render,
+        "sensor_shape": list(imaging.sensor_shape),
+        "n_lenslets": imaging.n_lenslets,
+    }
+
+
+def _make_on_dask(
+    summaries: list[dict[str, Any] | None],
+    config_dict: dict[str, Any],
+    model_ref: str | Imaging,
+    paths: list[Path],
+    seed: int,
+    dask_address: str | None,
+    workers: int,
+    progress: Callable[[int, int], None] | None,
+) -> None:
+    """Make every sample on Dask workers, filling ``summaries`` (by sample index) as they finish."""
+    from dask.distributed import as_completed
+
+    client, cluster = _client(dask_address, workers)
+    try:
+        threads = 1 if cluster is not None else None
+        futures = {
+            client.submit(_make_one, config_dict, model_ref, i, seed, str(p), threads, pure=False): i
+            for i, p in enumerate(paths)
+        }
+        done = 0
+        for future in as_completed(futures):
+            summaries[futures[future]] = future.result()
+            done += 1
+            if progress:
+                progress(done, len(paths))
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+
+
 def make_dataset(
     config: SynthConfig,
     model: str | Path | Imaging,
@@ -247,33 +310,11 @@ def make_dataset(
     model: a model file (LSV model or PSF stack; each worker loads it once) or an in-process
     :class:`Imaging` (only with ``workers=0``). workers: local Dask workers (0: this process).
     """
-    if n_volumes < 1:
-        raise ValueError(f"n_volumes = {n_volumes}: must be ≥ 1")
-    if seed < 0:
-        raise ValueError(f"seed = {seed}: must be ≥ 0")
-    if workers < 0:
-        raise ValueError(f"workers = {workers}: must be ≥ 0")
-    if isinstance(model, Imaging) and (workers or dask_address):
-        raise ValueError("an in-process model runs with workers = 0; give a model file to use Dask workers")
+    _check_arguments(n_volumes, seed, workers, model, dask_address)
     out_dir = Path(out_dir)
     samples_dir = out_dir / "samples"
     samples_dir.mkdir(parents=True, exist_ok=True)
-    model_ref: str | Imaging
-    model_info: dict[str, Any]
-    if isinstance(model, Imaging):
-        model_ref, model_info = model, {"path": None, "kind": type(model.source).__name__}
-    else:
-        model_path = Path(model).resolve()
-        imaging = load_imaging(model_path, config.grid, config.render)  # fail early, in this process
-        model_ref = str(model_path)
-        model_info = {
-            "path": str(model_path),
-            "sha256": _file_sha256(model_path),
-            "kind": type(imaging.source).__name__,
-            "render": imaging.render,
-            "sensor_shape": list(imaging.sensor_shape),
-            "n_lenslets": imaging.n_lenslets,
-        }
+    model_ref, model_info = _model_reference(model, config)
     config_dict = config.to_dict()
     header = {
         "format": DATASET_FORMAT,
@@ -298,25 +339,7 @@ def make_dataset(
                 if progress:
                     progress(i + 1, n_volumes)
         else:
-            from dask.distributed import as_completed
-
-            client, cluster = _client(dask_address, workers)
-            try:
-                threads = 1 if cluster is not None else None
-                futures = {
-                    client.submit(_make_one, config_dict, model_ref, i, seed, str(p), threads, pure=False): i
-                    for i, p in enumerate(paths)
-                }
-                done = 0
-                for future in as_completed(futures):
-                    summaries[futures[future]] = future.result()
-                    done += 1
-                    if progress:
-                        progress(done, n_volumes)
-            finally:
-                client.close()
-                if cluster is not None:
-                    cluster.close()
+            _make_on_dask(summaries, config_dict, model_ref, paths, seed, dask_address, workers, progress)
     except BaseException:
         for tmp in samples_dir.glob(".sample_*.tmp*"):
             tmp.unlink(missing_ok=True)

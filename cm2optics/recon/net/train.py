@@ -28,6 +28,7 @@ import math
 import os
 import time
 from collections.abc import Callable, Iterable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -38,6 +39,7 @@ from torch.utils.data import DataLoader
 
 from cm2optics.formats.atomic import write_atomic
 from cm2optics.formats.volume import VolumeGrid
+from cm2optics.progress import progress_bar
 from cm2optics.recon.net.checkpoint import load_checkpoint, save_checkpoint, set_rng_state
 from cm2optics.recon.net.config import NetConfig, load_config
 from cm2optics.recon.net.data import (
@@ -103,25 +105,9 @@ def _mean_over_ranks(value: torch.Tensor) -> float:
 
 
 def _progress(enabled: bool):
-    from rich.progress import (
-        BarColumn,
-        MofNCompleteColumn,
-        Progress,
-        TextColumn,
-        TimeElapsedColumn,
-        TimeRemainingColumn,
-    )
+    from rich.progress import TextColumn
 
-    return Progress(
-        TextColumn("{task.description}"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TimeElapsedColumn(),
-        TimeRemainingColumn(),
-        TextColumn("{task.fields[info]}"),
-        disable=not enabled,
-        transient=False,
-    )
+    return progress_bar("{task.description}", TextColumn("{task.fields[info]}"), enabled=enabled)
 
 
 # ----------------------------------------------------------------------------- epoch
@@ -312,77 +298,20 @@ def train(
     optimiser = make_optimiser(net, config)
     scheduler = make_scheduler(optimiser, config)
     history: dict[str, Any] = {"config_hash": config.hash(), "steps": [], "epochs": [], "seconds_per_step": []}
-    epoch, step_in_epoch, global_step = 0, 0, 0
+    pos = _Position()
     if resume:
-        state = load_checkpoint(out / CHECKPOINT, config.hash())
-        net.load_state_dict(state["model"])
-        optimiser.load_state_dict(state["optimiser"])
-        scheduler.load_state_dict(state["scheduler"])
-        epoch, step_in_epoch, global_step = state["epoch"], state["step_in_epoch"], state["global_step"]
-        history = state["history"]
-        set_rng_state(state["rng"])
+        pos.epoch, pos.step_in_epoch, pos.global_step, history = _restore(
+            out / CHECKPOINT, config, net, optimiser, scheduler
+        )
     model: torch.nn.Module = net
     if world > 1:
         model = torch.nn.parallel.DistributedDataParallel(net, device_ids=[dev.index] if dev.type == "cuda" else None)
-    n_steps = steps_per_epoch(config)
-    if n_steps == 0:
-        raise ValueError(
-            f"train_volumes × patches_per_volume = {config.train_volumes * config.synth.patches_per_volume} patches "
-            f"make no batch of {config.batch_size}"
-        )
+    n_steps = _steps_per_epoch_or_raise(config)
     source = PatchSource(config) if rank == 0 or config.val_volumes else None
-    stopped = False
-    stop_at_epoch_end = False
+    checkpoint = _checkpointer(out / CHECKPOINT, net, optimiser, scheduler, config, history, pos, rank, world)
 
-    def checkpoint(e: int, s: int) -> None:
-        if rank == 0:
-            save_checkpoint(
-                out / CHECKPOINT,
-                model=net.state_dict(),
-                optimiser=optimiser.state_dict(),
-                scheduler=scheduler.state_dict(),
-                epoch=e,
-                step_in_epoch=s,
-                global_step=global_step,
-                history=history,
-                config_hash=config.hash(),
-                config=config.to_dict(),
-            )
-        if world > 1:
-            dist.barrier()
-
-    while epoch < config.epochs and not stopped:
-        items = rank_items(config, epoch_items(config, epoch), rank, world, step_in_epoch)
-        loader = DataLoader(
-            PatchDataset(config, items),
-            batch_size=config.batch_size // world,
-            shuffle=False,
-            num_workers=config.workers,
-            persistent_workers=False,
-        )
-        last = [time.perf_counter()]
-
-        def on_step(
-            i: int, record: dict[str, float], e: int = epoch, first: int = step_in_epoch, last: list[float] = last
-        ) -> bool:
-            nonlocal global_step, stopped, stop_at_epoch_end
-            global_step += 1
-            now = time.perf_counter()
-            history["steps"].append(record)
-            history["seconds_per_step"].append(now - last[0])
-            last[0] = now
-            s = first + i + 1
-            if config.checkpoint_every and global_step % config.checkpoint_every == 0 and s < n_steps:
-                checkpoint(e, s)
-            if max_steps is not None and global_step >= max_steps:
-                if s == n_steps:  # the epoch's last step: finish the epoch (validation, checkpoint), then stop
-                    stop_at_epoch_end = True
-                    return False
-                checkpoint(e, s)
-                stopped = True
-                return True
-            return False
-
+    while pos.epoch < config.epochs and not pos.stopped:
+        loader = _epoch_loader(config, pos, rank, world)
         train_one_epoch(
             model,
             optimiser,
@@ -390,58 +319,203 @@ def train(
             config,
             border,
             device=dev,
-            on_step=on_step,
-            total=n_steps - step_in_epoch,
-            description=f"epoch {epoch + 1}/{config.epochs}",
+            on_step=_step_hook(pos, history, config, n_steps, max_steps, checkpoint),
+            total=n_steps - pos.step_in_epoch,
+            description=f"epoch {pos.epoch + 1}/{config.epochs}",
             progress=config.progress and rank == 0,
         )
-        if stopped:
+        if pos.stopped:
             break
         metrics = evaluate(net, config, border, device=dev, source=source) if config.val_volumes else {}
-        train_losses = history["steps"][-n_steps:]
-        record = {
-            "epoch": epoch + 1,
-            "step": global_step,
-            "lr": optimiser.param_groups[0]["lr"],
-            "train_loss": float(np.mean([s["loss"] for s in train_losses])),
-            **metrics,
-        }
+        record = _epoch_record(pos.epoch, pos.global_step, optimiser, history["steps"][-n_steps:], metrics)
         scheduler.step(metrics.get("val_loss", record["train_loss"]))
         history["epochs"].append(record)
-        epoch, step_in_epoch = epoch + 1, 0
-        checkpoint(epoch, 0)
+        pos.epoch, pos.step_in_epoch = pos.epoch + 1, 0
+        checkpoint(pos.epoch, 0)
         if rank == 0:
-            _write_history(out, history)
-            plot_history(history, out / CURVE)
-            if config.progress:
-                shown = {k: round(v, 4) if isinstance(v, float) else v for k, v in record.items()}
-                print(f"epoch {record['epoch']}: {shown}", flush=True)
-        if stop_at_epoch_end and epoch < config.epochs:
-            stopped = True
-    summary: dict[str, Any] = {
+            _report_epoch(out, history, record, config.progress)
+        if pos.stop_at_epoch_end and pos.epoch < config.epochs:
+            pos.stopped = True
+    summary = _summary(out, config, history, pos, world=world)
+    if rank == 0 and not pos.stopped and pos.epoch >= config.epochs:
+        summary["weights"] = str(_save_final_weights(net, config, out, summary, source, pos, world))
+    if world > 1:
+        dist.barrier()
+    return summary
+
+
+def _checkpointer(
+    path: Path,
+    net: torch.nn.Module,
+    optimiser: torch.optim.Optimizer,
+    scheduler: Any,
+    config: NetConfig,
+    history: dict[str, Any],
+    pos: _Position,
+    rank: int,
+    world: int,
+) -> Callable[[int, int], None]:
+    """``checkpoint(epoch, step_in_epoch)``: rank 0 saves the whole state to ``path``; every rank
+    waits for it when there are several."""
+
+    def checkpoint(e: int, s: int) -> None:
+        if rank == 0:
+            save_checkpoint(
+                path,
+                model=net.state_dict(),
+                optimiser=optimiser.state_dict(),
+                scheduler=scheduler.state_dict(),
+                epoch=e,
+                step_in_epoch=s,
+                global_step=pos.global_step,
+                history=history,
+                config_hash=config.hash(),
+                config=config.to_dict(),
+            )
+        if world > 1:
+            dist.barrier()
+
+    return checkpoint
+
+
+@dataclass
+class _Position:
+    """Where a training run stands: the epoch (0-based), the step within it, the optimiser steps
+    in all, and whether it stopped (or stops once the epoch is done) for ``max_steps``."""
+
+    epoch: int = 0
+    step_in_epoch: int = 0
+    global_step: int = 0
+    stopped: bool = False
+    stop_at_epoch_end: bool = False
+
+
+def _epoch_loader(config: NetConfig, pos: _Position, rank: int, world: int) -> DataLoader:
+    """This rank's batches of the current epoch, from the step the run stands at."""
+    items = rank_items(config, epoch_items(config, pos.epoch), rank, world, pos.step_in_epoch)
+    return DataLoader(
+        PatchDataset(config, items),
+        batch_size=config.batch_size // world,
+        shuffle=False,
+        num_workers=config.workers,
+        persistent_workers=False,
+    )
+
+
+def _step_hook(
+    pos: _Position,
+    history: dict[str, Any],
+    config: NetConfig,
+    n_steps: int,
+    max_steps: int | None,
+    checkpoint: Callable[[int, int], None],
+) -> Callable[[int, dict[str, float]], bool]:
+    """The ``on_step`` callback of one epoch: records each step's loss and time (s), checkpoints
+    every ``checkpoint_every`` steps and stops at ``max_steps``; returns True to stop the epoch."""
+    e, first, last = pos.epoch, pos.step_in_epoch, [time.perf_counter()]
+
+    def on_step(i: int, record: dict[str, float]) -> bool:
+        pos.global_step += 1
+        now = time.perf_counter()
+        history["steps"].append(record)
+        history["seconds_per_step"].append(now - last[0])
+        last[0] = now
+        s = first + i + 1
+        if config.checkpoint_every and pos.global_step % config.checkpoint_every == 0 and s < n_steps:
+            checkpoint(e, s)
+        if max_steps is not None and pos.global_step >= max_steps:
+            if s == n_steps:  # the epoch's last step: finish the epoch (validation, checkpoint), then stop
+                pos.stop_at_epoch_end = True
+                return False
+            checkpoint(e, s)
+            pos.stopped = True
+            return True
+        return False
+
+    return on_step
+
+
+def _restore(
+    path: Path, config: NetConfig, net: torch.nn.Module, optimiser: torch.optim.Optimizer, scheduler: Any
+) -> tuple[int, int, int, dict[str, Any]]:
+    """Load a checkpoint into the net, optimiser, scheduler and the RNGs; returns the epoch, the
+    step within it, the global step and the history to continue from."""
+    state = load_checkpoint(path, config.hash())
+    net.load_state_dict(state["model"])
+    optimiser.load_state_dict(state["optimiser"])
+    scheduler.load_state_dict(state["scheduler"])
+    set_rng_state(state["rng"])
+    return state["epoch"], state["step_in_epoch"], state["global_step"], state["history"]
+
+
+def _steps_per_epoch_or_raise(config: NetConfig) -> int:
+    """The optimiser steps per epoch; a ValueError when the training patches make no batch."""
+    n_steps = steps_per_epoch(config)
+    if n_steps == 0:
+        raise ValueError(
+            f"train_volumes × patches_per_volume = {config.train_volumes * config.synth.patches_per_volume} patches "
+            f"make no batch of {config.batch_size}"
+        )
+    return n_steps
+
+
+def _epoch_record(
+    epoch: int, global_step: int, optimiser: torch.optim.Optimizer, train_losses: list[dict], metrics: dict
+) -> dict[str, Any]:
+    """The history record of a finished epoch (0-based ``epoch``): its mean training loss, the
+    learning rate and the validation metrics."""
+    return {
+        "epoch": epoch + 1,
+        "step": global_step,
+        "lr": optimiser.param_groups[0]["lr"],
+        "train_loss": float(np.mean([s["loss"] for s in train_losses])),
+        **metrics,
+    }
+
+
+def _report_epoch(out: Path, history: dict[str, Any], record: dict[str, Any], progress: bool) -> None:
+    """Write the history and its curve; print the epoch's record when ``progress``."""
+    _write_history(out, history)
+    plot_history(history, out / CURVE)
+    if progress:
+        shown = {k: round(v, 4) if isinstance(v, float) else v for k, v in record.items()}
+        print(f"epoch {record['epoch']}: {shown}", flush=True)
+
+
+def _summary(out: Path, config: NetConfig, history: dict[str, Any], pos: _Position, *, world: int) -> dict[str, Any]:
+    """The run's summary: where it is, how far it got, its last loss and metrics."""
+    return {
         "out_dir": str(out),
-        "epochs_done": epoch,
-        "global_step": global_step,
-        "stopped": stopped,
+        "epochs_done": pos.epoch,
+        "global_step": pos.global_step,
+        "stopped": pos.stopped,
         "world_size": world,
         "config_hash": config.hash(),
         "last_loss": history["steps"][-1]["loss"] if history["steps"] else None,
         "seconds_per_step": float(np.median(history["seconds_per_step"])) if history["seconds_per_step"] else None,
         "metrics": history["epochs"][-1] if history["epochs"] else {},
     }
-    if rank == 0 and not stopped and epoch >= config.epochs:
-        histogram = _histogram(source, config) if source is not None else None
-        training = {
-            "epochs": epoch,
-            "steps": global_step,
-            "processes": world,
-            "median seconds per step": summary["seconds_per_step"],
-        }
-        metrics = {k: v for k, v in summary["metrics"].items() if isinstance(v, int | float)}
-        summary["weights"] = str(save_weights_safe(net, config, out / "weights", metrics, training, histogram))
-    if world > 1:
-        dist.barrier()
-    return summary
+
+
+def _save_final_weights(
+    net: torch.nn.Module,
+    config: NetConfig,
+    out: Path,
+    summary: dict[str, Any],
+    source: PatchSource | None,
+    pos: _Position,
+    world: int,
+) -> Path:
+    """Save the trained weights to ``out/weights`` with the training facts and the metrics."""
+    histogram = _histogram(source, config) if source is not None else None
+    training = {
+        "epochs": pos.epoch,
+        "steps": pos.global_step,
+        "processes": world,
+        "median seconds per step": summary["seconds_per_step"],
+    }
+    metrics = {k: v for k, v in summary["metrics"].items() if isinstance(v, int | float)}
+    return save_weights_safe(net, config, out / "weights", metrics, training, histogram)
 
 
 def save_weights_safe(net, config, folder, metrics, training, histogram) -> Path:
