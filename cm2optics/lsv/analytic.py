@@ -130,11 +130,22 @@ class AnalyticCM2:
         _add_gaussian(out, offset, covs[j], fluxes[j])
         return out
 
-    def image(self, x_mm: float, y_mm: float, z_mm: float, *, lenslets: np.ndarray | None = None) -> np.ndarray:
+    def image(
+        self,
+        x_mm: float,
+        y_mm: float,
+        z_mm: float,
+        *,
+        lenslets: np.ndarray | None = None,
+        weights: np.ndarray | None = None,
+    ) -> np.ndarray:
         """The image (y, x) of a unit point source, float64, each focus integrated over its pixels
-        (3×3 sub-samples per pixel); ``lenslets`` restricts it to some foci."""
+        (3×3 sub-samples per pixel); ``lenslets`` restricts it to some foci, ``weights`` (J,)
+        scales each focus's flux (transmission, source profile)."""
         out = np.zeros(self.shape)
         centres, covs, fluxes = self.foci(x_mm, y_mm, z_mm)
+        if weights is not None:
+            fluxes = fluxes * np.asarray(weights, float)
         for j in range(len(centres)) if lenslets is None else lenslets:
             _add_gaussian(out, centres[j], covs[j], fluxes[j])
         return out
