@@ -20,11 +20,12 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
+import scipy.fft as sfft
 
 from cm2optics.calibrate.effects import Effect, apply_image_effects, leakage_counts
 from cm2optics.calibrate.features import focus_features, window_radii
 from cm2optics.calibrate.noise import SensorNoise, estimate_noise
-from cm2optics.calibrate.register import Registration, register, shift_images
+from cm2optics.calibrate.register import Registration, register, shift_spectra
 from cm2optics.calibrate.simulate import Simulator, Values
 
 #: ΔBIC a candidate must gain to be kept ("very strong" evidence on Kass & Raftery's scale).
@@ -195,31 +196,41 @@ class Problem:
         space.sigma = _feature_sigma(space, model_signal, self.noise)
         self.space = space
         self.use = np.isfinite(space.data) & np.isfinite(space.sigma) & (space.sigma > 0)
-        self._cache: dict[str, np.ndarray] = {}
+        self._spectra: dict[str, np.ndarray] = {}
+        self._shifted: dict[tuple, np.ndarray] = {}
 
     def start(self) -> State:
         r = self.registration
         return State(np.array([r.offset_px[0], r.offset_px[1], r.flux_scale, r.dark_level], float))
 
+    def _shifted_rate(self, state: State) -> np.ndarray:
+        """The simulator's images with the optical effects, moved by the state's offset (cached)."""
+        optical = {k: v for k, v in state.values.items() if not _is_image_side(k)}
+        key = repr(sorted((k, sorted(v.items())) for k, v in optical.items()))
+        spectra = self._spectra.get(key)
+        if spectra is None:
+            if len(self._spectra) > 16:
+                self._spectra.clear()
+            spectra = self._spectra[key] = sfft.rfft2(self.simulator.rates(self.positions, optical), workers=-1)
+        offset = (round(float(state.nuisance[0]), 9), round(float(state.nuisance[1]), 9))
+        shifted_key = (key, offset)
+        if shifted_key not in self._shifted:
+            if len(self._shifted) > 16:
+                self._shifted.clear()
+            self._shifted[shifted_key] = shift_spectra(spectra, self.counts.shape[-2:], offset)
+        return self._shifted[shifted_key]
+
     def model_counts(self, state: State) -> np.ndarray:
-        key = repr(sorted((k, sorted(v.items())) for k, v in state.values.items() if not _is_image_side(k)))
-        if key not in self._cache:
-            if len(self._cache) > 64:
-                self._cache.clear()
-            optical = {k: v for k, v in state.values.items() if not _is_image_side(k)}
-            self._cache[key] = np.fft.rfft2(self.simulator.rates(self.positions, optical))
-        spectra = self._cache[key]
-        row, col, scale, dark = state.nuisance
-        h, w = self.counts.shape[-2:]
-        ky = np.fft.fftfreq(h)[:, None]
-        kx = np.fft.rfftfreq(w)[None, :]
-        rate = np.fft.irfft2(spectra * np.exp(-2j * np.pi * (ky * row + kx * col)), s=(h, w)).astype(np.float32)
-        rate = apply_image_effects(rate, state.values, self.simulator.pixel_um)
+        """Expected raw counts (N, y, x) of the data under ``state``."""
+        rate = apply_image_effects(self._shifted_rate(state), state.values, self.simulator.pixel_um)
         leak = leakage_counts(state.values, self.exposure)[:, None, None]
-        return (dark + self.exposure[:, None, None] * scale * rate + leak).astype(np.float32)
+        scale, dark = state.nuisance[2], state.nuisance[3]
+        return (dark + self.exposure[:, None, None] * (scale * rate) + leak).astype(np.float32)
 
     def features(self, state: State) -> np.ndarray:
-        return self.space.features(self.model_counts(state), state.nuisance[3])
+        """The model's features under ``state``, measured like the data's (the same windows, the
+        same dark level subtracted, so that a change of the fitted dark shows)."""
+        return self.space.features(self.model_counts(state), self.registration.dark_level)
 
     def chi2(self, f: np.ndarray) -> float:
         r = ((self.space.data - f) / self.space.sigma)[self.use]
@@ -341,15 +352,20 @@ def attribute(problem: Problem, *, max_effects: int = 6, progress: Progress | No
         params = _parameters(problem, kept)
         k_now = len(params)
         best: tuple[float, str, State] | None = None
+        base_jac = _columns(problem, state, params, base)
         for effect in problem.candidates:
             if effect.key in kept:
                 continue
             for start in _probe_values(effect):
                 trial = state.copy()
                 trial.values[effect.key] = dict(start)
-                trial_base = problem.features(trial) if start != effect.defaults() else base
                 extra = [(effect.key, p.name) for p in effect.parameters]
-                jac = _columns(problem, trial, params + extra, trial_base)
+                if start == effect.defaults():  # the effect is absent: the other columns are the state's
+                    trial_base = base
+                    jac = np.hstack([base_jac, _columns(problem, trial, extra, trial_base)])
+                else:
+                    trial_base = problem.features(trial)
+                    jac = _columns(problem, trial, params + extra, trial_base)
                 step, predicted, _ = _solve(problem, jac, problem.space.data - trial_base)
                 candidate = _apply(problem, trial, params + extra, step)
                 c = problem.chi2(problem.features(candidate))
@@ -374,9 +390,9 @@ def attribute(problem: Problem, *, max_effects: int = 6, progress: Progress | No
             uncertainties[key][name] = float(s)
     final = problem.features(state)
     residual = (problem.space.data - final) / problem.space.sigma
-    r = problem.registration
-    registration = Registration((float(state.nuisance[0]), float(state.nuisance[1])), float(state.nuisance[2]), float(state.nuisance[3]))
-    del r
+    registration = Registration(
+        (float(state.nuisance[0]), float(state.nuisance[1])), float(state.nuisance[2]), float(state.nuisance[3])
+    )
     return Attribution(
         effects=effects,
         uncertainties=uncertainties,
@@ -390,4 +406,4 @@ def attribute(problem: Problem, *, max_effects: int = 6, progress: Progress | No
     )
 
 
-__all__ = ["Attribution", "Problem", "attribute", "shift_images"]
+__all__ = ["Attribution", "Problem", "attribute"]

@@ -54,14 +54,16 @@ def focus_features(signal: np.ndarray, centres: np.ndarray, radius_px: np.ndarra
     values = np.where(weight, values, 0.0)
     energy = values.sum(axis=(-2, -1))
     complete = np.all(inside | (distance > radius_px[..., None, None]), axis=(-2, -1))
-    positive = np.clip(values, 0.0, None)  # moments of the light, not of the noise below zero
-    mass = positive.sum(axis=(-2, -1))
+    # moments of the signal as it is (noise below zero included), so that noise averages out
+    # and data and model are measured alike
+    mass = energy
     with np.errstate(invalid="ignore", divide="ignore"):
-        row_c = (positive * rows).sum(axis=(-2, -1)) / mass
-        col_c = (positive * cols).sum(axis=(-2, -1)) / mass
-        second = (positive * ((rows - row_c[..., None, None]) ** 2 + (cols - col_c[..., None, None]) ** 2)).sum(
+        row_c = (values * rows).sum(axis=(-2, -1)) / mass
+        col_c = (values * cols).sum(axis=(-2, -1)) / mass
+        second = (values * ((rows - row_c[..., None, None]) ** 2 + (cols - col_c[..., None, None]) ** 2)).sum(
             axis=(-2, -1)
         ) / mass
+    second = np.where(second > 0, second, np.nan)
     dark = ~complete | (mass <= 0)
     energy = np.where(complete, energy, np.nan)
     centroid = np.where(dark[..., None], np.nan, np.stack([row_c, col_c], axis=-1))

@@ -54,10 +54,11 @@ def _ramp(shape: tuple[int, int], offset_px: tuple[float, float]) -> np.ndarray:
 def shift_images(images: np.ndarray, offset_px: tuple[float, float]) -> np.ndarray:
     """Images (N, y, x) moved by ``offset_px`` (row, col) px, by the Fourier shift theorem."""
     shape = images.shape[-2:]
-    return _shifted(sfft.rfft2(images.astype(np.float32), workers=-1), shape, offset_px)
+    return shift_spectra(sfft.rfft2(images.astype(np.float32), workers=-1), shape, offset_px)
 
 
-def _shifted(spectra: np.ndarray, shape: tuple[int, int], offset_px: tuple[float, float]) -> np.ndarray:
+def shift_spectra(spectra: np.ndarray, shape: tuple[int, int], offset_px: tuple[float, float]) -> np.ndarray:
+    """Images (N, y, x) from their real FFTs, moved by ``offset_px`` (row, col) px."""
     return sfft.irfft2(spectra * _ramp(shape, offset_px), s=shape, workers=-1)
 
 
@@ -102,7 +103,7 @@ def register(
     dark_guess = float(np.median(data[valid & ~lit])) if np.any(valid & ~lit) else 0.0
     offset = _correlation_offset(np.where(valid, data - dark_guess, 0.0).astype(np.float32) / exposure, spectra)
     for _ in range(OFFSET_STEPS):
-        model = exposure * _shifted(spectra, shape, tuple(offset))
+        model = exposure * shift_spectra(spectra, shape, tuple(offset))
         scale, dark = _scale_and_dark(data, model, valid)
         gy, gx = np.gradient(model, axis=(-2, -1))
         residual = (data - dark - scale * model)[valid]
@@ -112,7 +113,7 @@ def register(
         offset = offset + np.clip(step, -0.5, 0.5)
         if np.max(np.abs(step)) < 1e-4:
             break
-    model = exposure * _shifted(spectra, shape, tuple(offset))
+    model = exposure * shift_spectra(spectra, shape, tuple(offset))
     scale, dark = _scale_and_dark(data, model, valid)
     registration = Registration((float(offset[0]), float(offset[1])), scale, dark)
     return registration, (dark + scale * model).astype(np.float32)
