@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from cm2optics.design import load_preset
-from cm2optics.illumination.backend import mitsuba, variant
+from cm2optics.optics.backend import mitsuba, variant
 from cm2optics.illumination.excitation import design_filter_transmission
 from cm2optics.illumination.geometry import build_scene, collimator_from_design, collimator_from_stl
 from cm2optics.illumination.metrics import figures_of_merit

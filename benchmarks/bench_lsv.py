@@ -3,7 +3,7 @@
 The model is a full-size synthetic CM² V2 model (3088 × 2076 sensor, 9 × 9 × 11 calibration
 nodes, K = 64, foci cropped at 160 × 160 px; ``--no-trim`` keeps the full crops, by default their
 dark margins are cut as ``cm2 lsv build`` does) of the analytic CM²-like PSF
-(:mod:`cm2optics.lsv.analytic`). The volume is a dense random 1920 × 1920 × 80 volume at the
+(:mod:`cm2optics.lsv.toy`). The volume is a dense random 1920 × 1920 × 80 volume at the
 model's native voxel (4.15 × 4.15 × 10 µm).
 
 - **Ours**: :class:`cm2optics.lsv.operators.LSVOperator` forward (torch, float32), timed
@@ -49,11 +49,11 @@ import numpy as np
 import torch
 
 from cm2optics.design import load_preset
-from cm2optics.lsv.analytic import AnalyticCM2, analytic_model
+from cm2optics.formats.emitters import Emitters
+from cm2optics.formats.volume import VolumeGrid
 from cm2optics.lsv.model import LSVModel
 from cm2optics.lsv.reference import reference_forward
-from cm2optics.volume_io import Emitters, VolumeGrid
-
+from cm2optics.lsv.toy import AnalyticCM2, analytic_lsv_model
 
 class PeakMemory:
     """Peak resident set size (bytes) of this process while the block runs (sampled every 20 ms,
@@ -132,15 +132,15 @@ def main() -> None:
     print(f"building the synthetic model (binning {binning}, K = {args.rank}) …", flush=True)
     start = time.perf_counter()
     design = load_preset("cm2-v2")
-    analytic = AnalyticCM2.from_design(design, binning=binning, sigma0_um=2.4 * binning)
+    analytic = AnalyticCM2.from_design(design, binning=binning, sigma0_um=design.sensor.pixel_um * binning)
     axis = np.linspace(-4, 4, 9)
-    model = analytic_model(
+    model = analytic_lsv_model(
         analytic, axis, axis, np.linspace(-0.5, 0.5, 11), rank=args.rank, trim=None if args.no_trim else 1e-6
     )
     if args.cross_coupling_px:
         model = cross_coupled(model, args.cross_coupling_px)
     native = model.default_grid.voxel_um[1]
-    grid = VolumeGrid((nz, n_lateral, n_lateral), (10.0, native, native))
+    grid = VolumeGrid((nz, n_lateral, n_lateral), (design.volume.axial_step_um, native, native))
     results["model"] = {
         "sensor": list(model.sensor_shape),
         "rank": model.rank,

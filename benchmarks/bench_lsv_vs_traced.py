@@ -124,11 +124,12 @@ def scan(args: argparse.Namespace, folder: Path) -> dict:
     else:
         # `cm2 psf simulate` offers the paper's pinhole only; the emission module's API takes any source
         from cm2optics.emission.psf import PSFSettings
-        from cm2optics.emission.scan import ScanSettings, calibration_grid_mm, parse_grid, simulate_scan
+        from cm2optics.cli.options import parse_int_list
+        from cm2optics.emission.scan import ScanSettings, calibration_grid_mm, simulate_scan
         from cm2optics.emission.source import fluorescent_bead
 
         settings = ScanSettings(psf=PSFSettings(binning=args.binning), source=fluorescent_bead(args.diameter_um))
-        points = calibration_grid_mm(design, parse_grid(args.grid))
+        points = calibration_grid_mm(design, parse_int_list(args.grid, 3, name="--grid", sep="x", low=1, high=101))
         simulate_scan(design, points, folder, settings, workers=args.workers, progress=True)
     return {"reused": False, "seconds": time.perf_counter() - start}
 

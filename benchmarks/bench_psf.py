@@ -5,7 +5,7 @@ for a point source in the nominal focal plane, after a warm-up call:
 
 * ours: :meth:`cm2optics.emission.psf.EmissionModel.foci` for that lenslet and one band — the
   whole pipeline: coarse and fine traces (Dr.Jit), pupil on the reference sphere, Debye integral
-  by FFT, pixel integration on the sensor's 2.4-µm pixels;
+  by FFT, pixel integration on the sensor's pixels (2.4 µm for cm2-v2);
 * Optiland: ``FFTPSF(num_rays=128, grid_size=256)`` (its optic built once, outside the timing).
 
 Printed: the best of ``--repeat`` timings of each, their ratio (Optiland / ours: > 1 means we are
@@ -28,7 +28,7 @@ import warnings
 
 from cm2optics.design import load_preset
 from cm2optics.emission.analysis import central_lenslet
-from cm2optics.emission.backend import variant
+from cm2optics.optics.backend import variant
 from cm2optics.emission.crosscheck import optiland_lenslet
 from cm2optics.emission.psf import EmissionModel, PSFSettings
 from cm2optics.emission.source import calibration_pinhole
@@ -83,7 +83,7 @@ def main() -> None:
     print(f"Optiland (FFTPSF, 128 rays, 256 grid):               {t_theirs * 1000:8.2f} ms")
     print(f"ratio Optiland / ours: {t_theirs / t_ours:.2f}  (> 1: ours is faster)")
     print(
-        f"one full source position (9 lenslets x {len(model.bands)} bands, 2.4-um pixels): {t_position * 1000:.0f} ms"
+        f"one full source position (9 lenslets x {len(model.bands)} bands, {design.sensor.pixel_um:g}-um pixels): {t_position * 1000:.0f} ms"
     )
     if args.positions > 0:
         scan_positions(design, args.positions)

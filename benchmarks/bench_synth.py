@@ -37,8 +37,8 @@ from cm2optics.synth.raster import rasterize_balls, rasterize_balls_naive
 
 def build_full_model(cache: Path) -> Path:
     from cm2optics.design import load_preset
-    from cm2optics.lsv.analytic import AnalyticCM2, write_analytic_scan
     from cm2optics.lsv.build import build_model
+    from cm2optics.lsv.toy import AnalyticCM2, write_analytic_scan
 
     path = cache / "lsv-full.h5"
     if path.is_file():

@@ -17,7 +17,8 @@ from cm2optics.cad.led_housing import Box, build_led_housing, led_housing_layout
 from cm2optics.cad.mesh_checks import min_wall_thickness_mm
 from cm2optics.cad.placement import location_from_pose
 from cm2optics.design import DesignError, load_preset
-from cm2optics.layout import led_poses, mla_housing_envelope
+from cm2optics.optics import first_order
+from cm2optics.optics.layout import led_poses, mla_housing_envelope
 
 SHARED = 1e-6  # mm³: shared faces and edges, not overlap
 
@@ -76,7 +77,7 @@ def field_circle(design, n: int = 96) -> np.ndarray:
     """Points around the illuminated field on the focal plane, on a polygon that encloses it."""
     r = design.volume.field_mm / 2 / math.cos(math.pi / n)
     t = np.linspace(0, 2 * math.pi, n, endpoint=False)
-    return np.column_stack([r * np.cos(t), r * np.sin(t), np.full(n, design.object_plane_z_mm)])
+    return np.column_stack([r * np.cos(t), r * np.sin(t), np.full(n, first_order.object_plane_z_mm(design))])
 
 
 def excitation_cones(design) -> list[cq.Solid]:

@@ -10,6 +10,7 @@ import pytest
 from typer.testing import CliRunner
 
 from cm2optics.cli import app
+from cm2optics.optics import first_order
 
 runner = CliRunner()
 
@@ -32,7 +33,7 @@ def test_design_show_json(v2):
     result = runner.invoke(app, ["design", "show", "--preset", "cm2-v2", "--json"])
     assert result.exit_code == 0
     data = json.loads(result.stdout)
-    assert data["magnification"] == pytest.approx(v2.magnification, abs=1e-4)
+    assert data["magnification"] == pytest.approx(first_order.magnification(v2), abs=1e-4)
     assert data["object_pixel_um"] == pytest.approx(4.15, rel=0.02)
 
 

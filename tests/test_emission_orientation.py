@@ -9,7 +9,8 @@ import yaml
 from cm2optics.emission.psf import EmissionModel, PSFSettings, SensorGrid
 from cm2optics.emission.scan import ScanSettings, simulate_scan
 from cm2optics.emission.source import fluorescent_bead
-from cm2optics.psf_scan import read_scan
+from cm2optics.optics import first_order
+from cm2optics.formats.scan import read_scan
 
 
 @pytest.fixture(scope="module")
@@ -29,7 +30,7 @@ def test_a_source_moved_plus_x_or_y_moves_every_focus_the_inverted_way(model, v2
     b[axis] = step
     before, after = _centres(model, a), _centres(model, b)
     assert set(before) == set(after) and len(before) == 9
-    expected_px = -v2.magnification * step * 1000 / (v2.sensor.pixel_um * model.grid.binning)  # inverted image
+    expected_px = -first_order.magnification(v2) * step * 1000 / (v2.sensor.pixel_um * model.grid.binning)  # inverted image
     for k in before:
         shift = after[k] - before[k]  # (row, col)
         along, across = (shift[1], shift[0]) if axis == 0 else (shift[0], shift[1])
@@ -43,8 +44,8 @@ def test_foci_sit_where_the_lenslets_are(model, v2):
     for cell in model.optics.lenslets:
         row, col = centres[cell.index]
         # An on-axis source images through a lenslet at (1 + m) × its offset from the axis.
-        assert float(grid.x_mm(col)) == pytest.approx((1 + v2.magnification) * cell.vertex_x_mm, abs=0.03)
-        assert float(grid.y_mm(row)) == pytest.approx((1 + v2.magnification) * cell.vertex_y_mm, abs=0.03)
+        assert float(grid.x_mm(col)) == pytest.approx((1 + first_order.magnification(v2)) * cell.vertex_x_mm, abs=0.03)
+        assert float(grid.y_mm(row)) == pytest.approx((1 + first_order.magnification(v2)) * cell.vertex_y_mm, abs=0.03)
     # View disparity ≈ 640–660 sensor pixels (the authors' crops are ≈ 645 px apart).
     disparity_px = (centres[5][1] - centres[4][1]) * grid.binning
     assert 630 < disparity_px < 670

@@ -11,19 +11,22 @@ import yaml
 from typer.testing import CliRunner
 
 import cm2optics.emission.scan as scan_module
-from cm2optics.emission.cli import psf_app
-from cm2optics.emission.image import Emitters, read_emitters_csv
+from cm2optics.emission.image import render_emitters
+from cm2optics.cli.psf import psf_app
 from cm2optics.emission.psf import EmissionModel, PSFSettings, SensorGrid
-from cm2optics.emission.scan import ScanSettings, calibration_grid_mm, parse_grid, read_positions_csv, simulate_scan
+from cm2optics.cli.options import parse_int_list
+from cm2optics.emission.scan import ScanSettings, calibration_grid_mm, read_positions_csv, simulate_scan
 from cm2optics.emission.source import fluorescent_bead
-from cm2optics.psf_scan import read_scan
+from cm2optics.optics import first_order
+from cm2optics.formats.emitters import Emitters, read_emitters
+from cm2optics.formats.scan import read_scan
 
 runner = CliRunner()
 FAST = ScanSettings(psf=PSFSettings(binning=8), source=fluorescent_bead(5.0))
 
 
 def test_the_papers_calibration_grid(v2):
-    positions = calibration_grid_mm(v2, parse_grid("9x9x11"))
+    positions = calibration_grid_mm(v2, (9, 9, 11))
     assert positions.shape == (891, 3)
     xs, ys, zs = (np.unique(positions[:, k]) for k in range(3))
     assert np.allclose(xs, np.arange(-4, 4.01, 1.0)) and np.allclose(ys, xs)
@@ -31,15 +34,15 @@ def test_the_papers_calibration_grid(v2):
     assert np.allclose(positions[:9, 0], xs)  # x runs fastest, z slowest
     assert np.allclose(calibration_grid_mm(v2, (1, 1, 1)), 0.0)
     # z = 0 is the best focus; the paraxial conjugate lies beyond the calibrated depth.
-    assert v2.object_z_to_height_mm(0.0) == v2.object_plane_z_mm
-    assert -v2.focus_shift_mm < zs.min()
+    assert first_order.object_z_to_height_mm(v2, 0.0) == first_order.object_plane_z_mm(v2)
+    assert -first_order.focus_shift_mm(v2) < zs.min()
 
 
 def test_scan_metadata_names_the_focal_plane(v2):
     meta = scan_module._extra_meta(v2, FAST, SensorGrid.of(v2, 8))
     assert "best focus" in meta["position_units"] and "best focus" in meta["focal_plane"]
-    assert meta["focal_plane_height_mm"] == pytest.approx(v2.object_plane_z_mm, abs=1e-6)
-    assert meta["paraxial_focal_plane_z_mm"] == pytest.approx(-v2.focus_shift_mm, abs=1e-6)
+    assert meta["focal_plane_height_mm"] == pytest.approx(first_order.object_plane_z_mm(v2), abs=1e-6)
+    assert meta["paraxial_focal_plane_z_mm"] == pytest.approx(-first_order.focus_shift_mm(v2), abs=1e-6)
     assert meta["object_pixel_um"] == pytest.approx(4.15, rel=0.01)
 
 
@@ -51,7 +54,7 @@ def test_bad_chunk_sizes_are_refused(v2, tmp_path):
 @pytest.mark.parametrize("text", ["9x9", "0x9x11", "axbxc", "9x9x200"])
 def test_bad_grids_are_refused(text):
     with pytest.raises(ValueError, match="--grid"):
-        parse_grid(text)
+        parse_int_list(text, 3, name="--grid", sep="x", low=1, high=101)
 
 
 def test_positions_csv(tmp_path):
@@ -181,7 +184,7 @@ def test_cli_user_errors_end_in_one_line(args, message, tmp_path, monkeypatch):
 def test_emitters_csv_and_cli_image(v2, tmp_path):
     path = tmp_path / "emitters.csv"
     path.write_text("x_um,y_um,z_um,diameter_um,intensity\n0,0,0,10,1\n300,-200,100,15,0.5\n")
-    emitters = read_emitters_csv(path)
+    emitters = read_emitters(path)
     assert len(emitters) == 2 and emitters.diameter_um[1] == 15
     out = tmp_path / "m.tif"
     result = runner.invoke(psf_app, ["image", "--emitters", str(path), "--binning", "8", "--out", str(out), "--json"])
@@ -193,6 +196,6 @@ def test_emitters_csv_and_cli_image(v2, tmp_path):
     bad = tmp_path / "bad.csv"
     bad.write_text("x_um,y_um,z_um,diameter_um,intensity\n0,0,0,10,-1\n")
     with pytest.raises(ValueError, match="intensity"):
-        read_emitters_csv(bad)
+        read_emitters(bad)
     with pytest.raises(ValueError, match="diameter_um"):
-        Emitters(np.zeros((1, 3)), np.array([500.0]), np.array([1.0]))
+        render_emitters(v2, Emitters.from_positions_um(np.zeros((1, 3)), np.array([500.0]), np.array([1.0])))

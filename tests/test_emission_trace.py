@@ -8,13 +8,13 @@ import math
 import numpy as np
 import pytest
 
-from cm2optics.emission.backend import is_jit
+from cm2optics.optics.backend import is_jit
 from cm2optics.emission.optics import emission_optics, housing_bores, lenslets
 from cm2optics.emission.source import AngularProfile, PointSource, ProfileKind
 from cm2optics.emission.spectral import spectral_bands
 from cm2optics.emission.trace import RayBatch, trace_rays
 from cm2optics.emission.wavefront import debye_fft, fft_size, fit_pupil_map, mft
-from cm2optics.materials import refractive_index
+from cm2optics.design.materials import refractive_index
 
 
 @pytest.fixture(scope="module")
@@ -114,8 +114,7 @@ def test_the_octagonal_tabs_block_the_same_rays_in_both_engines(optics):
 
 
 def test_bores_follow_the_printed_housing(v2):
-    pytest.importorskip("cadquery")
-    from cm2optics.cad.mla_housing import bore_steps, mla_tab_geometry
+    from cm2optics.optics.housing import bore_steps, mla_tab_geometry
 
     ours = {b.name: b for b in housing_bores(v2)}
     for step in bore_steps(v2):

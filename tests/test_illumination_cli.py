@@ -13,7 +13,7 @@ import pytest
 import trimesh
 from typer.testing import CliRunner
 
-from cm2optics.illumination.cli import illum_app
+from cm2optics.cli.illum import illum_app
 
 runner = CliRunner()
 KEYS = (
@@ -119,7 +119,7 @@ def test_scalar_fallback_runs_and_says_so_once(tmp_path):
         warnings.simplefilter("always")
         import numpy as np
         from cm2optics.design import load_preset
-        from cm2optics.illumination.backend import variant
+        from cm2optics.optics.backend import variant
         from cm2optics.illumination.geometry import build_scene
         from cm2optics.illumination.source import led_source
         from cm2optics.illumination.excitation import design_filter_transmission

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from cm2optics.collimator import collimator_profile
-from cm2optics.collimator_shaping import shaped_profile
+from cm2optics.optics.collimator import collimator_profile
+from cm2optics.optics.collimator_shaping import shaped_profile
 from cm2optics.design import DesignError, load_design
 from cm2optics.illumination.bounds import etendue_bound, uniform_beam_bound
 from cm2optics.illumination.revolve import revolve_profile
@@ -115,7 +115,7 @@ def test_uniform_beam_bound_of_the_oblique_array(v2):
 
 
 def test_optimize_writes_a_printable_design(tmp_path):
-    from cm2optics.illumination.cli import illum_app
+    from cm2optics.cli.illum import illum_app
 
     result = CliRunner().invoke(
         illum_app,

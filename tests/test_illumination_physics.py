@@ -23,7 +23,7 @@ from cm2optics.illumination.metrics import figures_of_merit
 from cm2optics.illumination.reference_numpy import sample_tea_float32, trace_rays_numpy
 from cm2optics.illumination.source import lambertian_profile, led_source, sample_led_rays
 from cm2optics.illumination.tracer import EmittedBatch, Status, emit_rays, filter_table, trace, trace_rays
-from cm2optics.materials import Material
+from cm2optics.design.materials import Material
 
 NO_FILTER = TransmissionTable(0.0, 1.0, math.pi / 2, np.ones((2, 2)))
 
@@ -167,7 +167,7 @@ def test_small_lambertian_emitter_gives_the_analytic_irradiance(v2):
 
 
 def test_tea_random_numbers_match_mitsuba():
-    from cm2optics.illumination.backend import mitsuba
+    from cm2optics.optics.backend import mitsuba
 
     mi = mitsuba()
     index = np.array([0, 1, 2, 12345, 2**31 + 7], dtype=np.uint32)

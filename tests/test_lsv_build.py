@@ -11,11 +11,11 @@ import pytest
 import tifffile
 import yaml
 
-from cm2optics.lsv.analytic import AnalyticCM2, write_analytic_scan
+from cm2optics.formats.scan import ScanError, ScanMeta, write_scan
 from cm2optics.lsv.build import build_model
 from cm2optics.lsv.decompose import numerical_rank
 from cm2optics.lsv.lsi import lsi_model
-from cm2optics.psf_scan import ScanError, ScanMeta, write_scan
+from cm2optics.lsv.toy import AnalyticCM2, write_analytic_scan
 
 BINNING = 8
 
@@ -110,7 +110,8 @@ def test_a_shift_invariant_system_gives_rank_one_and_plain_convolution(tmp_path)
     counts = np.stack([np.round(100 + 60000 * im) for im in images]).astype(np.uint16)
     meta = ScanMeta(pixel_um=20.0, binning=1, bit_depth=16, dark_level=100.0, extra={"lenslets": [2, 2]})
     scan = write_scan(tmp_path / "lsi_scan", counts, positions, 1.0, meta)
-    result = build_model(scan, rank=4, patch_px=16, axial_um=100.0, trim=None)
+    with pytest.warns(UserWarning, match="--rank 4: the scan's 27 positions allow only 1 basis PSFs"):
+        result = build_model(scan, rank=4, patch_px=16, axial_um=100.0, trim=None)
     assert numerical_rank(result.decomposition.singular_values, 1e-3) == 1
     assert result.decomposition.nmse[1] < 1e-6
     model = result.model.truncated(1)
@@ -175,6 +176,18 @@ def test_bad_options(small_scan, v2):
         build_model(small_scan, rank=0, design=v2)
     with pytest.raises(ValueError, match="patch_px = 2"):
         build_model(small_scan, rank=4, patch_px=2, design=v2)
+    with pytest.warns(UserWarning, match=r"--rank 1000: the scan's 75 positions allow only \d+ basis PSFs"):
+        assert build_model(small_scan, rank=1000, design=v2).model.rank <= 75
+
+
+def test_scan_pixel_that_contradicts_the_binning_is_refused(small_scan, v2):
+    """scan.yaml's pixel_um against binning × the design's sensor pixel (a wrong pitch gave a
+    magnification of 0.14 instead of 0.58)."""
+    meta = yaml.safe_load((small_scan / "scan.yaml").read_text())
+    meta["pixel_um"] = meta["pixel_um"] * 4
+    (small_scan / "scan.yaml").write_text(yaml.safe_dump(meta))
+    with pytest.raises(ScanError, match=r"scan.yaml: pixel_um = [\d.]+ contradicts binning = 8"):
+        build_model(small_scan, rank=4, design=v2)
 
 
 @pytest.mark.parametrize("nodes", [5, 3])

@@ -12,10 +12,11 @@ import typer
 import yaml
 from typer.testing import CliRunner
 
-from cm2optics.lsv.analytic import AnalyticCM2, write_analytic_scan
-from cm2optics.lsv.cli import lsv_app, simulate_command
-from cm2optics.lsv.report import FIGURES
-from cm2optics.volume_io import Emitters, write_emitters, write_volume
+from cm2optics.formats.emitters import Emitters, write_emitters
+from cm2optics.formats.volume import write_volume
+from cm2optics.lsv.toy import AnalyticCM2, write_analytic_scan
+from cm2optics.cli.lsv import lsv_app, simulate_command
+from cm2optics.reports.lsv import FIGURES
 
 app = typer.Typer()
 app.add_typer(lsv_app, name="lsv")
@@ -68,6 +69,14 @@ def test_validate_json_on_the_calibration_scan(model, scan):
     assert 0 < data["nmse_heldout"] < 0.5
     assert set(data["nmse_heldout_vs_rank"]) == {"4", "16"}
     assert set(data["nmse_subsampled"]) == {"lateral_2x", "axial_2x"}
+    with pytest.warns(UserWarning) as record:
+        result = runner.invoke(
+            app, ["lsv", "validate", str(path), str(scan), "--json", "--heldout", "999", "--ranks", "4,999", "--no-subsample"]
+        )
+    assert result.exit_code == 0, result.output
+    messages = " | ".join(str(w.message) for w in record)
+    assert "--heldout 999: the scan has only" in messages and "--ranks: 999 exceed" in messages
+    assert json.loads(result.stdout)["n_heldout"] < 999
 
 
 def test_validate_on_a_second_offset_scan(model, v2, tmp_path):
@@ -125,11 +134,21 @@ def test_simulate_emitters_with_noise(model, tmp_path):
     sidecar = yaml.safe_load(out.with_suffix(".yaml").read_text())
     assert sidecar["noise"]["poisson_peak_photons"] == 500 and sidecar["bit_depth"] == 12
     assert 0.03 * 4095 < np.median(counts) < 0.07 * 4095  # the dark offset
+    assert sidecar["dark_level"] == pytest.approx(0.048 * 4095, abs=0.01) and sidecar["counts_per_unit"] > 0
     again = tmp_path / "again.tif"
     runner.invoke(
         app, ["simulate", "--model", str(path), "--emitters", str(csv), "--noise", "--seed", "1", "--out", str(again)]
     )
     np.testing.assert_array_equal(tifffile.imread(again), counts)
+
+
+def test_simulate_warns_about_emitters_outside_the_calibration(model, tmp_path):
+    path, _ = model
+    far = Emitters(*(np.array(v) for v in ([0.0, 0.0], [0.0, 0.0], [0.0, 3000.0], [10.0, 10.0], [1.0, 1.0])))
+    csv = write_emitters(tmp_path / "far.csv", far)
+    with pytest.warns(UserWarning, match=r"1 of 2 emitters lie outside the model's calibrated range \(x -3…3, y -3…3, z -0.3…0.3 mm\)"):
+        result = runner.invoke(app, ["simulate", "--model", str(path), "--emitters", str(csv), "--out", str(tmp_path / "m.tif")])
+    assert result.exit_code == 0, result.output
 
 
 def test_simulate_emitters_placed_exactly(model, tmp_path):

@@ -9,12 +9,13 @@ import numpy as np
 import pytest
 import torch
 
+from cm2optics.formats.emitters import Emitters
+from cm2optics.formats.volume import VolumeGrid
 from cm2optics.lsv.interpolate import chief_ray_nodes
 from cm2optics.lsv.lsi import lsi_model
 from cm2optics.lsv.model import LSVModel, ModelError, load_model
 from cm2optics.lsv.preprocess import Geometry
 from cm2optics.lsv.reference import reference_forward
-from cm2optics.volume_io import Emitters, VolumeGrid
 
 PIXEL_UM = 20.0
 SENSOR = (64, 72)

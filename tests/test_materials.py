@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from cm2optics.materials import Material, refractive_index
+from cm2optics.design.materials import Material, refractive_index
 
 
 @pytest.mark.parametrize(

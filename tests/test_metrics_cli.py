@@ -5,12 +5,14 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import tifffile
 import pytest
 import typer
 from typer.testing import CliRunner
 
-from cm2optics.metrics.cli import evaluate_command
-from cm2optics.volume_io import Emitters, VolumeGrid, write_emitters, write_volume
+from cm2optics.formats.emitters import Emitters, write_emitters
+from cm2optics.formats.volume import VolumeGrid, write_volume
+from cm2optics.cli.evaluate import evaluate_command
 
 GRID = VolumeGrid((11, 40, 40), (10.0, 4.15, 4.15))
 KEYS = ("recall", "precision", "f1", "jaccard", "rmse_lateral_um", "rmse_axial_um", "n_true", "n_detected")
@@ -140,6 +142,11 @@ def test_errors_are_one_clear_line(files, tmp_path):
     assert "columns" in _one_line_error(runner.invoke(_app(), ["evaluate", str(files / "recon.tif"), str(bad)]))
     assert "connectivity" in _one_line_error(
         runner.invoke(_app(), ["evaluate", str(files / "recon.tif"), str(files / "truth.csv"), "--connectivity", "5"])
+    )
+    raw = tmp_path / "measurement.tif"
+    tifffile.imwrite(raw, np.ones((40, 40), np.uint16))  # a raw 2-D measurement given as the reconstruction
+    assert "not a 3-D volume" in _one_line_error(
+        runner.invoke(_app(), ["evaluate", str(raw), str(files / "truth.csv"), "--voxel-um", "10,4.15,4.15"])
     )
     nan = tmp_path / "nan.tif"
     write_volume(nan, np.full((3, 4, 5), np.nan, np.float32), (10.0, 4.15, 4.15))

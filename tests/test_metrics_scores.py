@@ -20,7 +20,8 @@ from cm2optics.metrics import (
     scores,
     volume_emitters,
 )
-from cm2optics.volume_io import Emitters, VolumeGrid
+from cm2optics.formats.emitters import Emitters
+from cm2optics.formats.volume import VolumeGrid
 
 GRID = VolumeGrid((21, 41, 41), (10.0, 4.0, 4.0))
 

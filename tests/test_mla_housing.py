@@ -11,7 +11,7 @@ from cm2optics.cad.mesh_checks import min_wall_thickness_mm
 from cm2optics.cad.mla import build_mla
 from cm2optics.cad.mla_housing import bore_steps, build_mla_housing, mla_housing_fits, mla_tab_geometry
 from cm2optics.cad.tessellate import export_stl
-from cm2optics.layout import mla_housing_envelope
+from cm2optics.optics.layout import mla_housing_envelope
 
 
 @pytest.fixture(scope="module")

@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from cm2optics import paraxial
+from cm2optics.design import paraxial
 
 
 def test_thin_lens_imaging_matches_gaussian_formula():

@@ -12,12 +12,15 @@ import torch
 import typer
 from typer.testing import CliRunner
 
+from cm2optics.formats.emitters import Emitters
+from cm2optics.formats.volume import VolumeGrid
+from cm2optics.lsv.lsi import DepthwiseConvOperator, lsi_from_model
+from cm2optics.lsv.toy import gaussian_lsi_operator
 from cm2optics.metrics import evaluate_volume
-from cm2optics.recon.operators import DepthwiseConvOperator, gaussian_cm2, load_operator, lsi_from_model
+from cm2optics.recon.operators import load_operator
 from cm2optics.recon.reconstruct import ReconOptions, memory_estimate, reconstruct
 from cm2optics.recon.regularizers import TV
 from cm2optics.recon.solvers import Stopping, fista, power_iteration
-from cm2optics.volume_io import Emitters, VolumeGrid
 
 GRID = VolumeGrid((9, 30, 30), (20.0, 4.0, 4.0))
 
@@ -33,7 +36,7 @@ def one_torch_thread():
 
 @pytest.fixture(scope="module")
 def op() -> DepthwiseConvOperator:
-    return gaussian_cm2(GRID, (110, 110), defocus_px_per_um=0.01, shear_per_um=4e-4)
+    return gaussian_lsi_operator(GRID, (110, 110), defocus_px_per_um=0.01, shear_per_um=4e-4)
 
 
 @pytest.fixture(scope="module")
@@ -85,7 +88,7 @@ def test_batched_operators_and_file_round_trip(op, tmp_path):
 
 def test_power_iteration_matches_the_dense_matrix():
     grid = VolumeGrid((2, 6, 6), (20.0, 4.0, 4.0))
-    small = gaussian_cm2(grid, (30, 30), pitch_px=9)
+    small = gaussian_lsi_operator(grid, (30, 30), pitch_px=9)
     columns = []
     for k in range(int(np.prod(grid.shape))):
         e = np.zeros(grid.shape, np.float32)
@@ -180,8 +183,8 @@ def test_memory_guard_and_bad_input(op, scene):
 
 
 def _app():
-    from cm2optics.metrics.cli import evaluate_command
-    from cm2optics.recon.cli import reconstruct_command
+    from cm2optics.cli.evaluate import evaluate_command
+    from cm2optics.cli.reconstruct import reconstruct_command
 
     app = typer.Typer()
 
@@ -197,7 +200,8 @@ def _app():
 def test_cli_reconstruct_then_evaluate(op, scene, tmp_path):
     import tifffile
 
-    from cm2optics.volume_io import read_volume, write_emitters
+    from cm2optics.formats.emitters import write_emitters
+    from cm2optics.formats.volume import read_volume
 
     truth, _, image = scene
     model = op.save(tmp_path / "model.h5")
@@ -279,10 +283,10 @@ def lsv_model(tmp_path_factory):
     """A small LSV model (analytic PSF scan binned 8×, 1.2-mm lateral step), built once per session."""
     from cm2optics.design import load_preset
     from cm2optics.lsv.model import load_model
-    from cm2optics.recon.compare import analytic_model
+    from cm2optics.lsv.toy import analytic_lsv_model_file
 
     path = tmp_path_factory.getbasetemp() / "shared-lsv-b8.h5"
-    analytic_model(path, load_preset("cm2-v2"), binning=8, rank=6, lateral_nodes=7, depth_nodes=3)
+    analytic_lsv_model_file(path, load_preset("cm2-v2"), binning=8, rank=6, lateral_nodes=7, depth_nodes=3)
     model = load_model(path)
     return model
 
@@ -335,7 +339,7 @@ def test_fft_lsi_operator_agrees_with_the_lsv_packages_lsi_model(lsv_model):
 
 @pytest.mark.slow
 def test_lsv_against_lsi_comparison_end_to_end(lsv_model, tmp_path):
-    """The comparison pipeline on two small volumes (the real run: python -m cm2optics.recon.compare)."""
+    """The comparison pipeline on two small volumes (the real run: cm2 compare-baselines)."""
     from cm2optics.recon.compare import compare_baselines, scaled_test_config
 
     path = lsv_model.save(tmp_path / "model.h5")

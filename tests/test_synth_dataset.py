@@ -13,13 +13,13 @@ import torch
 import typer
 from typer.testing import CliRunner
 
-from cm2optics.recon.operators import gaussian_cm2
+from cm2optics.formats.emitters import Emitters
+from cm2optics.lsv.toy import gaussian_lsi_operator
 from cm2optics.synth.config import SynthConfig
 from cm2optics.synth.dataset import make_dataset, read_sample
 from cm2optics.synth.generate import synthesize_sample
 from cm2optics.synth.imaging import Imaging
 from cm2optics.synth.views import crop_views, volume_patch
-from cm2optics.volume_io import Emitters
 
 CONFIG = SynthConfig.scaled(
     20, voxel_um=(40.0, 8.0, 8.0), view_px=64, patch_px=32, patches_per_volume=3, density_per_mm2=(40.0, 100.0)
@@ -36,7 +36,7 @@ def one_torch_thread():
 
 
 def toy(config: SynthConfig = CONFIG):
-    return gaussian_cm2(config.grid, (160, 160), defocus_px_per_um=0.006)
+    return gaussian_lsi_operator(config.grid, (160, 160), defocus_px_per_um=0.006)
 
 
 @pytest.fixture(scope="module")
@@ -109,6 +109,28 @@ def test_dataset_files_manifest_and_reproducibility(toy_file, tmp_path):
     assert not list((tmp_path / "a" / "samples").glob(".*tmp*"))
 
 
+def test_rerun_into_a_folder_refuses_other_inputs_and_samples_are_verified(toy_file, tmp_path):
+    from cm2optics.synth.dataset import DatasetError
+
+    first = make_dataset(CONFIG, toy_file, tmp_path / "a", 2, seed=3, workers=0)
+    again = make_dataset(CONFIG, toy_file, tmp_path / "a", 2, seed=3, workers=0)  # same inputs: a resume
+    assert [s["content_sha256"] for s in first["samples"]] == [s["content_sha256"] for s in again["samples"]]
+    with pytest.raises(DatasetError, match=r"another seed \(3 there, 4 now\)"):
+        make_dataset(CONFIG, toy_file, tmp_path / "a", 2, seed=4, workers=0)
+    other = SynthConfig.from_dict(CONFIG.to_dict() | {"noise": "none"})
+    with pytest.raises(DatasetError, match=r"another config \(noise\)"):
+        make_dataset(other, toy_file, tmp_path / "a", 2, seed=3, workers=0)
+    assert json.loads((tmp_path / "a" / "manifest.json").read_text())["seed"] == 3
+    import h5py
+
+    path = tmp_path / "a" / "samples" / "sample_00001.h5"
+    with h5py.File(path, "r+") as f:
+        f["measurement"][0, 0] += 1.0
+    with pytest.raises(DatasetError, match=r"sample_00001.h5: content_sha256 does not match"):
+        read_sample(path)
+    assert read_sample(path, verify=False)["index"] == 1
+
+
 def test_dask_workers_make_the_same_data(toy_file, tmp_path):
     serial = make_dataset(CONFIG, toy_file, tmp_path / "serial", 2, seed=5, workers=0)
     parallel = make_dataset(CONFIG, toy_file, tmp_path / "dask", 2, seed=5, workers=2)
@@ -117,7 +139,7 @@ def test_dask_workers_make_the_same_data(toy_file, tmp_path):
 
 
 def _app():
-    from cm2optics.synth.cli import synth_command
+    from cm2optics.cli.synth import synth_command
 
     app = typer.Typer()
 
@@ -164,7 +186,8 @@ def test_cli_synth_json_and_export(toy_file, tmp_path):
     assert data["n_volumes"] == 2 and len(data["samples"]) == 2 and data["n_patches"] == 4
     assert data["config"]["voxel_um"] == [40.0, 8.0, 8.0]  # taken from the model's grid
     exported = data["exported"][0]
-    from cm2optics.volume_io import read_emitters, read_volume
+    from cm2optics.formats.emitters import read_emitters
+    from cm2optics.formats.volume import read_volume
 
     assert len(read_emitters(exported["emitters"])) == data["samples"][0]["n_emitters"]
     volume, grid = read_volume(exported["volume"])
@@ -181,23 +204,23 @@ def _one_line_error(result) -> str:
 def test_cli_synth_errors_are_one_line(toy_file, tmp_path):
     runner = CliRunner()
     line = _one_line_error(
-        runner.invoke(_app(), ["synth", "--model", str(tmp_path / "missing.h5"), "--out", str(tmp_path)])
+        runner.invoke(_app(), ["synth", "--model", str(tmp_path / "missing.h5"), "--out", str(tmp_path / "set")])
     )
     assert "no such model file" in line
     bad = tmp_path / "bad.h5"
     bad.write_text("not hdf5")
     assert "not an HDF5 model" in _one_line_error(
-        runner.invoke(_app(), ["synth", "--model", str(bad), "--out", str(tmp_path)])
+        runner.invoke(_app(), ["synth", "--model", str(bad), "--out", str(tmp_path / "set")])
     )
     line = _one_line_error(
         runner.invoke(
-            _app(), ["synth", "--model", str(toy_file), "--out", str(tmp_path), "--noise", "loud", "--workers", "0"]
+            _app(), ["synth", "--model", str(toy_file), "--out", str(tmp_path / "set"), "--noise", "loud", "--workers", "0"]
         )
     )
     assert "noise" in line
     # a PSF stack is defined on its own grid: a different field is refused with the reason
     line = _one_line_error(
-        runner.invoke(_app(), ["synth", "--model", str(toy_file), "--out", str(tmp_path), "--workers", "0"])
+        runner.invoke(_app(), ["synth", "--model", str(toy_file), "--out", str(tmp_path / "set"), "--workers", "0"])
     )
     assert "grid" in line
 
@@ -210,10 +233,10 @@ def lsv_model(tmp_path_factory):
     """A small LSV model (analytic PSF scan binned 8×, 1.2-mm lateral step), built once per session."""
     from cm2optics.design import load_preset
     from cm2optics.lsv.model import load_model
-    from cm2optics.recon.compare import analytic_model
+    from cm2optics.lsv.toy import analytic_lsv_model_file
 
     path = tmp_path_factory.getbasetemp() / "shared-lsv-b8.h5"
-    analytic_model(path, load_preset("cm2-v2"), binning=8, rank=6, lateral_nodes=7, depth_nodes=3)
+    analytic_lsv_model_file(path, load_preset("cm2-v2"), binning=8, rank=6, lateral_nodes=7, depth_nodes=3)
     model = load_model(path)
     return model, path
 

@@ -8,9 +8,12 @@ import math
 import numpy as np
 import pytest
 
+from cm2optics.design import load_preset
+from cm2optics.optics import first_order
+from cm2optics.formats.emitters import Emitters
+from cm2optics.formats.volume import VolumeGrid
 from cm2optics.synth import SynthConfig, add_noise, rasterize_balls, rasterize_balls_naive, sample_emitters, sample_rng
 from cm2optics.synth.noise import noise_variance
-from cm2optics.volume_io import Emitters, VolumeGrid
 
 GRID = VolumeGrid((41, 70, 90), (10.0, 4.15, 4.15))
 
@@ -116,8 +119,10 @@ def test_same_seed_same_emitters_whatever_the_order():
 
 def test_paper_config_sizes_and_validation():
     config = SynthConfig.paper()
-    assert config.grid.shape == (81, 1808, 1808)
-    assert config.grid.voxel_um == (10.0, 4.15, 4.15)
+    assert config.grid.shape == (81, 1820, 1820)
+    # The cm2-v2 preset's axial step and object pixel (the paper calibrated 4.15 µm).
+    assert config.grid.voxel_um == first_order.voxel_um(load_preset("cm2-v2"))
+    assert config.grid.voxel_um == pytest.approx((10.0, 4.15, 4.15), rel=0.01)
     assert config.view_px == 1920 and config.patch_px == 320 and config.supersample == 5
     small = SynthConfig.scaled(4)
     assert small.fov_mm == pytest.approx((6.5 / 4, 7.5 / 4)) and small.view_px == 480 and small.patch_px == 80

@@ -15,7 +15,7 @@ from cm2optics.cad import base_plate, collimator, components, led_housing, mla, 
 from cm2optics.cad.fits import Fit
 from cm2optics.cad.placement import location_from_pose
 from cm2optics.design import SystemDesign
-from cm2optics.layout import led_poses
+from cm2optics.optics.layout import led_poses
 
 #: Intersections smaller than this (mm³) are contacts (a part resting on its ledge), not clashes.
 INTERFERENCE_TOLERANCE_MM3 = 1e-4

@@ -11,7 +11,7 @@ it sits; it has three features:
   and bottom rims are cut square (a vertical land and a horizontal face of equal width,
   ``thickness / (cos tilt + sin tilt)``), so the shell has no knife edges. Between the units
   it closes the space around the tower against side light;
-* **sockets** — one per :func:`cm2optics.layout.led_poses` entry, in that unit's LED frame:
+* **sockets** — one per :func:`cm2optics.optics.layout.led_poses` entry, in that unit's LED frame:
   a cup ``base_plate.socket_depth_mm`` deep around the housing's back (clearance on every
   side; walls and a floor ``mechanics.wall_mm`` thick, the floor with a hole for the LED's
   leads) whose outer back edge is chamfered to keep the plate compact;
@@ -36,7 +36,7 @@ from cm2optics.cad.fits import Fit
 from cm2optics.cad.led_housing import THROUGH_MM, Box, LEDHousingLayout, bore_solid, led_housing_layout
 from cm2optics.cad.placement import place
 from cm2optics.design import DesignError, SystemDesign
-from cm2optics.layout import led_poses, mla_housing_envelope
+from cm2optics.optics.layout import led_poses, mla_housing_envelope
 
 #: How far the space swept by a housing sliding into its socket is cut out in front of it, mm.
 SWEEP_MM = 30.0

@@ -1,7 +1,7 @@
 """The freeform TIR collimator as a solid, and its comparison with a reference part.
 
 Local frame: the LED frame (origin at the centre of the LED's emitting surface, +z the
-direction the light leaves in). The section computed by :mod:`cm2optics.collimator` is
+direction the light leaves in). The section computed by :mod:`cm2optics.optics.collimator` is
 revolved about z — the lens and the TIR surface as splines through the computed points with
 their end tangents — and fused with the square exit flange.
 
@@ -20,7 +20,7 @@ import cadquery as cq
 import numpy as np
 import trimesh
 
-from cm2optics.collimator import CollimatorProfile, collimator_profile
+from cm2optics.optics.collimator import CollimatorProfile, collimator_profile
 from cm2optics.design import SystemDesign
 
 SPLINE_POINTS = 41

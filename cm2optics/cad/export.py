@@ -24,7 +24,7 @@ from cm2optics.cad.mesh_checks import check_mesh
 from cm2optics.cad.render import render_meshes, render_part
 from cm2optics.cad.tessellate import DEFAULT_TOLERANCE_UM, export_stl
 from cm2optics.design import SystemDesign
-from cm2optics.io import write_json_atomic, write_text_atomic
+from cm2optics.formats.atomic import write_json_atomic, write_text_atomic
 
 FORMATS = ("stl", "step")
 #: Relative mesh-volume error accepted for an exported part.
@@ -32,8 +32,8 @@ VOLUME_TOLERANCE = 0.005
 
 
 def parse_formats(formats: str | Iterable[str]) -> tuple[str, ...]:
-    """``"stl,step"`` → ``("stl", "step")``; unknown formats raise ``ValueError``."""
-    items = formats.split(",") if isinstance(formats, str) else list(formats)
+    """``("stl", "step")`` (or one name) checked; unknown formats raise ``ValueError``."""
+    items = [formats] if isinstance(formats, str) else list(formats)  # the CLI splits "stl,step"
     parsed = tuple(dict.fromkeys(f.strip().lower() for f in items if f.strip()))
     bad = [f for f in parsed if f not in FORMATS]
     if not parsed or bad:

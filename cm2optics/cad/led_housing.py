@@ -1,8 +1,8 @@
 """The printed LED housing of one illumination unit: LED, collimator and excitation filter.
 
-Local frame: the LED frame of :mod:`cm2optics.layout` — origin at the centre of the LED's
+Local frame: the LED frame of :mod:`cm2optics.optics.layout` — origin at the centre of the LED's
 emitting surface, ``+z`` the direction the light leaves in, the package at ``z ≤ 0``; the
-assembly places one housing per :func:`cm2optics.layout.led_poses` entry.
+assembly places one housing per :func:`cm2optics.optics.layout.led_poses` entry.
 
 A square tube (``led_housing.outer_mm``) with these sections, from the back:
 

@@ -19,7 +19,7 @@ import numpy as np
 import trimesh
 
 from cm2optics.design import MicrolensArray, SystemDesign
-from cm2optics.lenslets import LensCell, lens_cells
+from cm2optics.optics.lenslets import LensCell, lens_cells
 
 
 def land_height_mm(mla: MicrolensArray) -> float:

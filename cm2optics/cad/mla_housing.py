@@ -25,86 +25,22 @@ edges are chamfered at 45° to clear the tilted LED units.
 Nothing lies under the array's flat face: there each lenslet's beam converges to a fraction of
 its aperture and a support would shade much of it (corner pads under the array cost the corner
 lenslets 30 % of their light on axis and whole foci off axis), whereas above the lenses each beam
-fills its aperture and the tabs shade ≤ 5 % of a corner lenslet (:mod:`cm2optics.emission.optics`
-models the same bore).
+fills its aperture and the tabs shade ≤ 5 % of a corner lenslet (the bore and tabs are
+:mod:`cm2optics.optics.housing`, which the emission tracer uses too).
 """
 
 from __future__ import annotations
-
-from dataclasses import dataclass
 
 import cadquery as cq
 
 from cm2optics.cad.fits import Fit
 from cm2optics.design import SystemDesign
-from cm2optics.layout import mla_housing_envelope
-from cm2optics.lenslets import lens_top_under_tabs_mm
-
-
-@dataclass(frozen=True)
-class BoreStep:
-    """One step of the housing's bore: a centred rectangle from ``z0_mm`` to ``z1_mm``."""
-
-    name: str
-    width_mm: float
-    length_mm: float
-    z0_mm: float
-    z1_mm: float
-
-
-def bore_steps(design: SystemDesign) -> list[BoreStep]:
-    """The seats and clear openings of the bore, bottom to top (sensor cone excluded)."""
-    c, lip = design.mechanics.clearance_mm, design.mla_housing.lip_mm
-    mla, film, mask, filt = design.mla, design.absorption_filter, design.aperture_mask, design.emission_filter
-    z_mla = design.imaging.mla_to_sensor_mm
-    steps = []
-    if film is not None:
-        z_film = design.imaging.film_to_sensor_mm
-        steps.append(
-            BoreStep("film seat", film.width_mm + 2 * c, film.length_mm + 2 * c, z_film, z_film + film.thickness_mm)
-        )
-        spacer_w, spacer_l = film.width_mm - 2 * lip, film.length_mm - 2 * lip
-        spacer_z0 = z_film + film.thickness_mm
-    else:  # no film: a short spacer, wider than the MLA, then the sensor cone
-        spacer_w, spacer_l = mla.width_mm + 2 * c + 4 * lip, mla.length_mm + 2 * c + 4 * lip
-        spacer_z0 = z_mla - 2 * lip
-    steps += [
-        BoreStep("spacer", spacer_w, spacer_l, spacer_z0, z_mla),
-        BoreStep("MLA seat", mla.width_mm + 2 * c, mla.length_mm + 2 * c, z_mla, design.mask_z_mm),
-        BoreStep(
-            "mask seat", mask.outer_mm + 2 * c, mask.outer_mm + 2 * c, design.mask_z_mm, design.emission_filter_z_mm
-        ),
-        BoreStep(
-            "filter seat",
-            filt.width_mm + 2 * c,
-            filt.length_mm + 2 * c,
-            design.emission_filter_z_mm,
-            mla_housing_envelope(design).tower_top_z_mm,
-        ),
-    ]
-    return steps
+from cm2optics.optics.housing import BoreStep, bore_steps, mla_tab_geometry
+from cm2optics.optics.layout import mla_housing_envelope
 
 
 def _box(width: float, length: float, z0: float, z1: float) -> cq.Workplane:
     return cq.Workplane().box(width, length, z1 - z0, centered=(True, True, False)).translate((0, 0, z0))
-
-
-@dataclass(frozen=True)
-class TabGeometry:
-    """The corner tabs that hold the MLA from above: triangles in the MLA seat's corners, from the
-    highest point of the lens surface under them (where the array touches them) at ``z0_mm`` up
-    to the mask at ``z1_mm``, bounded by the 45° line |x| + |y| = ``diagonal_mm`` (mm)."""
-
-    z0_mm: float
-    z1_mm: float
-    diagonal_mm: float
-
-
-def mla_tab_geometry(design: SystemDesign) -> TabGeometry:
-    """The MLA's corner tabs: each reaches ``lip_mm`` over the array's corner along both edges
-    (the array may sit ``clearance_mm`` off centre and still meet all four)."""
-    mla, lip = design.mla, design.mla_housing.lip_mm
-    return TabGeometry(lens_top_under_tabs_mm(design, lip), design.mask_z_mm, (mla.width_mm + mla.length_mm) / 2 - lip)
 
 
 def _mla_tabs(design: SystemDesign, seat: BoreStep) -> cq.Workplane:

@@ -1,11 +1,11 @@
-"""Conversions between :class:`cm2optics.layout.Pose` and CadQuery placements."""
+"""Conversions between :class:`cm2optics.optics.layout.Pose` and CadQuery placements."""
 
 from __future__ import annotations
 
 import cadquery as cq
 from OCP.gp import gp_Trsf
 
-from cm2optics.layout import Pose
+from cm2optics.optics.layout import Pose
 
 
 def location_from_pose(pose: Pose) -> cq.Location:

@@ -12,7 +12,7 @@ import numpy as np
 import pyvista as pv
 import trimesh
 
-from cm2optics.io import write_atomic
+from cm2optics.formats.atomic import write_atomic
 
 #: Colours by material family, so a picture reads like the device.
 _COLOURS = {

@@ -12,11 +12,13 @@
 * :mod:`~cm2optics.emission.analysis` — magnification, shear, focus quality, vignetting;
 * :mod:`~cm2optics.emission.scan` — synthetic PSF calibration scans (Dask, resumable);
 * :mod:`~cm2optics.emission.image` — brute-force measurements of a few emitters;
-* :mod:`~cm2optics.emission.report` and :mod:`~cm2optics.emission.cli` — ``cm2 demo`` section, ``cm2 psf``.
+* :mod:`~cm2optics.reports.emission` and :mod:`~cm2optics.cli.psf` — ``cm2 demo`` section, ``cm2 psf``.
 
-Mitsuba and Dr.Jit are imported only inside this subpackage and :mod:`cm2optics.illumination`
-(whose variant choice, :mod:`~cm2optics.emission.backend`, this one shares).
+Mitsuba and Dr.Jit are imported only inside this subpackage, :mod:`cm2optics.illumination` and
+the variant choice both share, :mod:`~cm2optics.optics.backend`.
 """
+
+from cm2optics.optics import backend as backend  # noqa: F401  (sets DRJIT_LIBLLVM_PATH first)
 
 from cm2optics.emission.optics import EmissionOptics, emission_optics
 from cm2optics.emission.psf import EmissionModel, Focus, PSFSettings, Pupil, SensorGrid

@@ -23,9 +23,10 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import minimize_scalar
 
-from cm2optics import paraxial
+from cm2optics.design import paraxial
 from cm2optics.emission.psf import EmissionModel, Focus
-from cm2optics.materials import refractive_index
+from cm2optics.design.materials import refractive_index
+from cm2optics.optics import first_order
 
 __all__ = [
     "FocusQuality",
@@ -113,7 +114,7 @@ def paraxial_shear(
 
     def landing(z: float, height: float) -> float:
         before = paraxial.chain(
-            paraxial.propagate(design.object_plane_z_mm - z - top, 1.0),
+            paraxial.propagate(first_order.object_plane_z_mm(design) - z - top, 1.0),
             paraxial.propagate(design.emission_filter.thickness_mm, n_f),
             paraxial.propagate(design.emission_filter_z_mm - design.mla_vertex_z_mm, 1.0),
         )

@@ -47,7 +47,8 @@ from cm2optics.emission.psf import EmissionModel, PSFSettings, Pupil
 from cm2optics.emission.source import PointSource
 from cm2optics.emission.trace import paraxial_reach_mm, trace_rays
 from cm2optics.emission.wavefront import solve_least_squares
-from cm2optics.materials import refractive_index
+from cm2optics.design.materials import refractive_index
+from cm2optics.optics import first_order
 
 __all__ = ["METHODS", "Comparison", "classical_pupil", "compare_with_optiland", "optiland_lenslet", "optiland_psf"]
 
@@ -69,7 +70,7 @@ def optiland_lenslet(design: SystemDesign, wavelength_nm: float, field_mm: float
     half = design.mla.aperture_mm / 2
     optic = Optic()
     s = optic.surfaces
-    s.add(index=0, radius=math.inf, thickness=design.object_plane_z_mm - z_mm - top)
+    s.add(index=0, radius=math.inf, thickness=first_order.object_plane_z_mm(design) - z_mm - top)
     s.add(index=1, radius=math.inf, thickness=design.emission_filter.thickness_mm, material=IdealMaterial(n=n_f))
     s.add(index=2, radius=math.inf, thickness=design.emission_filter_z_mm - design.mla_vertex_z_mm)
     s.add(

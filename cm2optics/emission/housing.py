@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from cm2optics.emission.backend import mitsuba
+from cm2optics.optics.backend import mitsuba
 from cm2optics.emission.optics import Bore, EmissionOptics
 
 __all__ = ["OUTER_MM", "bore_mesh", "housing_scene", "segment_test"]

@@ -20,8 +20,8 @@ absorption film       gelatin plate (``absorption_filter``), optional; its seat 
 sensor                the active area at z = 0
 ====================  ======================================================================
 
-The bore follows the printed MLA housing step by step (:func:`cm2optics.cad.mla_housing.bore_steps`
-and its corner tabs, rebuilt here without CadQuery and checked against it by the tests). Below
+The bore is the printed MLA housing's, step by step with its corner tabs: one description,
+:mod:`cm2optics.optics.housing`, for the CAD part and this tracer. Below
 the film the housing opens as a cone onto the active area, which cannot clip a ray that lands
 on the sensor.
 
@@ -44,12 +44,11 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-import numpy as np
-
 from cm2optics.design import Side, SystemDesign
-from cm2optics.layout import mla_housing_envelope
-from cm2optics.lenslets import lens_cells, lens_top_under_tabs_mm
-from cm2optics.materials import Material
+from cm2optics.optics import first_order
+from cm2optics.optics.housing import Bore, housing_bores, mla_tabs
+from cm2optics.optics.lenslets import lens_cells
+from cm2optics.design.materials import Material
 
 __all__ = ["Bore", "EmissionOptics", "Lenslet", "Plate", "emission_optics", "housing_bores", "lenslets", "mla_tabs"]
 
@@ -68,38 +67,6 @@ class Plate:
     @property
     def thickness_mm(self) -> float:
         return self.z1_mm - self.z0_mm
-
-
-@dataclass(frozen=True)
-class Bore:
-    """A centred opening a ray must stay inside from ``z0_mm`` to ``z1_mm`` (mm): the rectangle
-    |x| ≤ ``half_x_mm``, |y| ≤ ``half_y_mm`` (mm), its corners cut by 45° faces at
-    |x| + |y| = ``diagonal_mm`` (mm; ``inf``: none) — a convex octagon. Walls of the housing,
-    the opening of the mask, the MLA seat with its corner tabs."""
-
-    name: str
-    half_x_mm: float
-    half_y_mm: float
-    z0_mm: float
-    z1_mm: float
-    diagonal_mm: float = math.inf
-
-    def __post_init__(self) -> None:
-        if not (self.half_x_mm > 0 and self.half_y_mm > 0 and self.z1_mm > self.z0_mm):
-            raise ValueError(f"bore {self.name!r}: needs half-widths > 0 and z1_mm > z0_mm (got {self})")
-        if not self.diagonal_mm > max(self.half_x_mm, self.half_y_mm):
-            raise ValueError(
-                f"bore {self.name!r}: diagonal_mm = {self.diagonal_mm} must exceed both half-widths "
-                f"({self.half_x_mm}, {self.half_y_mm}) mm, or the corner faces would close the opening"
-            )
-
-    def polygon_mm(self) -> np.ndarray:
-        """Vertices (k, 2) of the opening, counter-clockwise, mm (4 for a rectangle, 8 for an octagon)."""
-        hx, hy, d = self.half_x_mm, self.half_y_mm, self.diagonal_mm
-        if d >= hx + hy:
-            return np.array([[hx, -hy], [hx, hy], [-hx, hy], [-hx, -hy]])
-        a, b = d - hx, d - hy  # where the corner faces meet the sides
-        return np.array([[hx, -a], [hx, a], [b, hy], [-b, hy], [-hx, a], [-hx, -a], [-b, -hy], [b, -hy]])
 
 
 @dataclass(frozen=True)
@@ -133,7 +100,7 @@ class EmissionOptics:
     mla_x_mm, mla_y_mm: (low, high) extent of the diced array, partial cells included. film: the absorption film or None.
     bores: openings of the housing and mask. sensor_half_x_mm, sensor_half_y_mm: half the
     active area. object_plane_z_mm: the nominal focal plane (the plane of best focus,
-    :attr:`SystemDesign.object_plane_z_mm`), where object-space z = 0.
+    :func:`~cm2optics.optics.first_order.object_plane_z_mm`), where object-space z = 0.
     """
 
     filter: Plate
@@ -162,7 +129,7 @@ class EmissionOptics:
 
 def lenslets(design: SystemDesign) -> tuple[Lenslet, ...]:
     """Every lenslet of the array (full cells row by row, then with the partial cells that
-    :func:`cm2optics.lenslets.lens_cells` adds on ``partial_sides``), in the device frame.
+    :func:`cm2optics.optics.lenslets.lens_cells` adds on ``partial_sides``), in the device frame.
 
     A lenslet's clear aperture is its cell intersected with the square of side
     ``mla.aperture_mm`` around its vertex.
@@ -186,57 +153,6 @@ def lenslets(design: SystemDesign) -> tuple[Lenslet, ...]:
     )
 
 
-def mla_tabs(design: SystemDesign) -> Bore:
-    """The corner tabs that hold the MLA from above, as an opening: the MLA seat with its corners
-    cut at |x| + |y| = (MLA width + length)/2 − ``lip_mm`` (each tab reaches ``lip_mm`` over the
-    array's corner along both edges), from the array's corners (the lowest points of its lens
-    surface under them, where the array touches them) up to the mask (as
-    :func:`cm2optics.cad.mla_housing.mla_tab_geometry`)."""
-    c, lip, mla = design.mechanics.clearance_mm, design.mla_housing.lip_mm, design.mla
-    return Bore(
-        "MLA tabs",
-        mla.width_mm / 2 + c,
-        mla.length_mm / 2 + c,
-        lens_top_under_tabs_mm(design, lip),
-        design.mask_z_mm,
-        (mla.width_mm + mla.length_mm) / 2 - lip,
-    )
-
-
-def housing_bores(design: SystemDesign) -> tuple[Bore, ...]:
-    """The bore of the printed MLA housing, bottom to top (as ``bore_steps`` of the CAD, with its
-    corner tabs), plus the mask's opening. The film seat is left out: the film's own clear
-    aperture stands for it."""
-    c, lip = design.mechanics.clearance_mm, design.mla_housing.lip_mm
-    mla, film, mask, filt = design.mla, design.absorption_filter, design.aperture_mask, design.emission_filter
-    z_mla = design.imaging.mla_to_sensor_mm
-    if film is not None:
-        spacer = Bore(
-            "spacer",
-            film.width_mm / 2 - lip,
-            film.length_mm / 2 - lip,
-            design.imaging.film_to_sensor_mm + film.thickness_mm,
-            z_mla,
-        )
-    else:
-        spacer = Bore("spacer", mla.width_mm / 2 + c + 2 * lip, mla.length_mm / 2 + c + 2 * lip, z_mla - 2 * lip, z_mla)
-    top = mla_housing_envelope(design).tower_top_z_mm
-    return (
-        spacer,
-        Bore("MLA seat", mla.width_mm / 2 + c, mla.length_mm / 2 + c, z_mla, design.mask_z_mm),
-        mla_tabs(design),
-        Bore(
-            "mask opening",
-            mask.opening_mm / 2,
-            mask.opening_mm / 2,
-            design.mask_z_mm,
-            design.mask_z_mm + mask.thickness_mm,
-        ),
-        Bore("mask seat", mask.outer_mm / 2 + c, mask.outer_mm / 2 + c, design.mask_z_mm, design.emission_filter_z_mm),
-        Bore("filter seat", filt.width_mm / 2 + c, filt.length_mm / 2 + c, design.emission_filter_z_mm, top),
-    )
-
-
 def _extent(design: SystemDesign, count: int, low_side: Side, high_side: Side) -> tuple[float, float]:
     mla = design.mla
     border = mla.partial_border_mm
@@ -254,8 +170,8 @@ def emission_optics(design: SystemDesign) -> EmissionOptics:
         film_plate = Plate(z0, z0 + film.thickness_mm, film.width_mm / 2, film.length_mm / 2, film.material)
     z_filter = design.emission_filter_z_mm
     cells = lenslets(design)
-    if not math.isfinite(design.object_plane_z_mm):
-        raise ValueError(f"the design has no finite focal plane (object_plane_z_mm = {design.object_plane_z_mm})")
+    if not math.isfinite(first_order.object_plane_z_mm(design)):
+        raise ValueError(f"the design has no finite focal plane (object_plane_z_mm = {first_order.object_plane_z_mm(design)})")
     return EmissionOptics(
         filter=Plate(z_filter, z_filter + filt.thickness_mm, filt.width_mm / 2, filt.length_mm / 2, filt.material),
         mask_z0_mm=design.mask_z_mm,
@@ -273,5 +189,5 @@ def emission_optics(design: SystemDesign) -> EmissionOptics:
         lenslets=cells,
         sensor_half_x_mm=design.sensor.active_width_mm / 2,
         sensor_half_y_mm=design.sensor.active_length_mm / 2,
-        object_plane_z_mm=design.object_plane_z_mm,
+        object_plane_z_mm=first_order.object_plane_z_mm(design),
     )

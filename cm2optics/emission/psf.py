@@ -41,7 +41,8 @@ from cm2optics.emission.source import PointSource, calibration_pinhole
 from cm2optics.emission.spectral import SpectralBands, spectral_bands
 from cm2optics.emission.trace import RayBatch, TracedRays, default_engine, paraxial_reach_mm, trace_rays
 from cm2optics.emission.wavefront import PupilMap, debye_fft, fft_size, fit_pupil_map, mft, solve_least_squares
-from cm2optics.materials import refractive_index
+from cm2optics.design.materials import refractive_index
+from cm2optics.optics import first_order
 from cm2optics.spectra.spectrum import Spectrum
 
 #: Fraction of a lenslet's light (all bands) below which a band is left out of its focus.
@@ -759,7 +760,7 @@ class EmissionModel:
         diameter = self.source.diameter_um if diameter_um is None else float(diameter_um)
         if not (math.isfinite(diameter) and 0 <= diameter <= 200):
             raise ValueError(f"diameter_um = {diameter_um!r}: must lie within 0–200 µm")
-        kernel = _disc_kernel(abs(self.design.magnification) * diameter / 1000.0, self.grid.pitch_mm / self._q)
+        kernel = _disc_kernel(abs(first_order.magnification(self.design)) * diameter / 1000.0, self.grid.pitch_mm / self._q)
         foci = []
         for k, window in windows.items():
             own = [p for p in pairs if p.lenslet == k]

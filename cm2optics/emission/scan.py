@@ -1,8 +1,8 @@
 """Synthetic PSF calibration scans: a grid (or list) of source positions → a scan folder.
 
-The folder is the measured-scan format of DESIGN.md (:mod:`cm2optics.psf_scan`): ``positions.csv``,
+The folder is the measured-scan format of DESIGN.md (:mod:`cm2optics.formats.scan`): ``positions.csv``,
 one 16-bit TIFF per position, ``scan.yaml``, written atomically by
-:func:`~cm2optics.psf_scan.write_scan`; beside them ``montage.png`` and ``manifest.json``.
+:func:`~cm2optics.formats.scan.write_scan`; beside them ``montage.png`` and ``manifest.json``.
 
 Each image is what the sensor would record of the source at that position: the simulated
 frame (photons detected per emitted photon, :mod:`.psf`) × the source's photon rate
@@ -26,7 +26,6 @@ import hashlib
 import json
 import math
 import os
-import re
 import shutil
 import time
 from collections.abc import Callable, Iterable
@@ -40,13 +39,13 @@ import cm2optics
 from cm2optics.design import SystemDesign
 from cm2optics.emission.psf import EmissionModel, Focus, PSFSettings, SensorGrid
 from cm2optics.emission.source import PointSource, calibration_pinhole
-from cm2optics.io import write_atomic, write_json_atomic
-from cm2optics.psf_scan import ScanError, ScanMeta, grid_axes_mm, write_scan
+from cm2optics.optics import first_order
+from cm2optics.formats.atomic import write_atomic, write_json_atomic
+from cm2optics.formats.scan import ScanError, ScanMeta, grid_axes_mm, write_scan
 
 __all__ = [
     "ScanSettings",
     "calibration_grid_mm",
-    "parse_grid",
     "read_positions_csv",
     "simulate_position",
     "simulate_scan",
@@ -97,17 +96,6 @@ class ScanSettings:
 # ----------------------------------------------------------------------------- positions
 
 
-def parse_grid(text: str) -> tuple[int, int, int]:
-    """``"9x9x11"`` → (nx, ny, nz): positions along x, y and z (each 1–101)."""
-    match = re.fullmatch(r"\s*(\d+)\s*[xX×]\s*(\d+)\s*[xX×]\s*(\d+)\s*", str(text))
-    if not match:
-        raise ValueError(f"--grid {text!r}: must read NXxNYxNZ, e.g. 9x9x11")
-    counts = tuple(int(g) for g in match.groups())
-    if not all(1 <= c <= 101 for c in counts):
-        raise ValueError(f"--grid {text!r}: each count must lie within 1–101")
-    return counts  # type: ignore[return-value]
-
-
 def calibration_grid_mm(
     design: SystemDesign, counts: tuple[int, int, int], field_mm: float | None = None, depth_mm: float | None = None
 ) -> np.ndarray:
@@ -119,9 +107,9 @@ def calibration_grid_mm(
     100-µm steps), as the paper's 9×9×11 scan. ``field_mm``/``depth_mm`` (mm) override the extents.
 
     The nominal focal plane (z = 0) is the design's plane of best focus
-    (:attr:`~cm2optics.design.SystemDesign.object_plane_z_mm`), where the PSFs are sharpest and
+    (:func:`~cm2optics.optics.first_order.object_plane_z_mm`), where the PSFs are sharpest and
     where a lab centres its calibration, not the paraxial conjugate of the sensor, which lies
-    :attr:`~cm2optics.design.SystemDesign.focus_shift_mm` (≈ 0.85 mm for cm2-v2) farther from the
+    :func:`~cm2optics.optics.first_order.focus_shift_mm` (≈ 0.85 mm for cm2-v2) farther from the
     device, outside the scanned depth: so the scan spans the usable depth symmetrically, and its
     centre has the design's magnification (0.58) and object pixel (4.1 µm).
     """
@@ -143,7 +131,7 @@ def read_positions_csv(path: str | Path) -> np.ndarray:
     """Positions (N, 3) in mm from a CSV with columns ``x_mm,y_mm,z_mm`` (others ignored).
 
     They must form a full grid (every combination of the unique x, y and z once), as a scan
-    folder must (:func:`cm2optics.psf_scan.grid_axes_mm`); a single line of positions is a grid.
+    folder must (:func:`cm2optics.formats.scan.grid_axes_mm`); a single line of positions is a grid.
     """
     path = Path(path)
     if not path.is_file():
@@ -228,7 +216,7 @@ def _simulate_chunk(
 
 def _set_jit_threads(threads: int) -> None:
     """Dr.Jit's thread pool size in this process (a no-op without a JIT variant)."""
-    from cm2optics.emission.backend import is_jit
+    from cm2optics.optics.backend import is_jit
 
     if is_jit():
         import drjit as dr
@@ -362,7 +350,7 @@ def simulate_scan(
         raise ValueError(f"chunk_size = {chunk_size!r}: must be an integer within 1–64")
     settings = settings or ScanSettings()
     positions = check_positions(positions_mm)
-    out_dir = Path(out_dir)
+    out_dir = Path(os.path.abspath(out_dir))  # "." has no name: the work folder goes beside the absolute path
     if out_dir.exists() and not out_dir.is_dir():
         raise NotADirectoryError(f"{out_dir}: exists and is not a folder")
     model = EmissionModel(design, settings.source, settings=settings.psf)  # validates before any work
@@ -521,10 +509,10 @@ def _extra_meta(design: SystemDesign, settings: ScanSettings, grid: SensorGrid) 
             "of best focus), +z towards the device"
         ),
         "focal_plane": "best focus: least RMS wavefront error of the on-axis image (design wavelength)",
-        "focal_plane_height_mm": round(float(design.object_plane_z_mm), 6),
-        "paraxial_focal_plane_z_mm": round(float(-design.focus_shift_mm), 6),
-        "magnification": round(design.magnification, 6),
-        "object_pixel_um": round(design.object_pixel_um, 6),
+        "focal_plane_height_mm": round(float(first_order.object_plane_z_mm(design)), 6),
+        "paraxial_focal_plane_z_mm": round(float(-first_order.focus_shift_mm(design)), 6),
+        "magnification": round(first_order.magnification(design), 6),
+        "object_pixel_um": round(first_order.object_pixel_um(design), 6),
         "source_diameter_um": source.diameter_um,
         "source_profile": source.profile.describe(),
         "source_photons_per_ms": settings.source_photons_per_ms,
@@ -547,10 +535,7 @@ def write_montage(
     """A PNG of a scan's images (counts per ms above the dark level, square root, each tile
     scaled to its own maximum): at most ``max_tiles`` of them — for a grid, the plane nearest
     the focal plane, laid out row by row as the positions run (x fastest)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure  # no pyplot: a notebook's backend stays as it is
 
     positions_mm = np.asarray(positions_mm, dtype=float)
     xs, ys, zs = grid_axes_mm(positions_mm)
@@ -558,7 +543,8 @@ def write_montage(
     pick = [i for i, p in enumerate(positions_mm) if abs(p[2] - z_mid) < 1e-9][:max_tiles]
     nx = len(xs) if len(pick) == len(xs) * len(ys) else int(math.ceil(math.sqrt(len(pick))))
     ny = int(math.ceil(len(pick) / nx))
-    fig, axes = plt.subplots(ny, nx, figsize=(1.6 * nx + 0.4, 1.1 * ny + 0.6), squeeze=False)
+    fig = Figure(figsize=(1.6 * nx + 0.4, 1.1 * ny + 0.6))
+    axes = fig.subplots(ny, nx, squeeze=False)
     for ax in axes.ravel():
         ax.axis("off")
     for n, i in enumerate(pick):
@@ -578,10 +564,7 @@ def write_montage(
     def write(tmp: Path) -> None:
         fig.savefig(tmp, dpi=110, format="png")
 
-    try:
-        return write_atomic(Path(path), write)
-    finally:
-        plt.close(fig)
+    return write_atomic(Path(path), write)
 
 
 def positions_from_iterable(rows: Iterable[Iterable[float]]) -> np.ndarray:

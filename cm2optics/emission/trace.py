@@ -40,8 +40,10 @@ from typing import Any
 
 import numpy as np
 
-from cm2optics.emission.backend import is_jit, mitsuba
 from cm2optics.emission.optics import EmissionOptics
+from cm2optics.optics.arrays import DrJitOps, NumpyOps
+from cm2optics.optics.backend import is_jit, mitsuba
+from cm2optics.optics.interfaces import fresnel_transmittance, refract, snell_cos_t
 
 __all__ = ["ENGINES", "RayBatch", "TracedRays", "default_engine", "trace_rays"]
 
@@ -118,52 +120,14 @@ def default_engine() -> str:
     return "numpy"
 
 
-# ----------------------------------------------------------------------------- array operations
-
-
-class _NumpyOps:
-    sqrt = staticmethod(np.sqrt)
-    abs = staticmethod(np.abs)
-    select = staticmethod(np.where)
-    maximum = staticmethod(np.maximum)
-
-    @staticmethod
-    def full(value: float, like: np.ndarray) -> np.ndarray:
-        return np.full(like.shape, value, dtype=float)
-
-
-class _DrJitOps:
-    def __init__(self) -> None:
-        import drjit as dr
-
-        mi = mitsuba()
-        self.dr = dr
-        self.sqrt = dr.sqrt
-        self.abs = dr.abs
-        self.select = dr.select
-        self.maximum = dr.maximum
-        self.Float64 = mi.Float64
-
-    def full(self, value: float, like: Any) -> Any:
-        return self.dr.full(self.Float64, value, self.dr.width(like))
-
-
 def _refract(ops: Any, dx: Any, dy: Any, dz: Any, nx: Any, ny: Any, nz: Any, eta: Any):
-    """Snell's law: unit direction d through a surface of unit normal n facing the incoming ray
-    (n·d < 0), index ratio eta = n₁/n₂. Returns (tx, ty, tz, cos_i, cos_t, ok); ok False on TIR."""
+    """Snell's law, one component at a time: unit direction d through a surface of unit normal n
+    facing the incoming ray (n·d < 0), index ratio eta = n₁/n₂. Returns (tx, ty, tz, cos_i,
+    cos_t, ok); ok False on TIR."""
     cos_i = -(dx * nx + dy * ny + dz * nz)
-    k = 1.0 - eta * eta * (1.0 - cos_i * cos_i)
-    ok = k > 0.0
-    cos_t = ops.sqrt(ops.maximum(k, 0.0))
-    f = eta * cos_i - cos_t
-    return eta * dx + f * nx, eta * dy + f * ny, eta * dz + f * nz, cos_i, cos_t, ok
-
-
-def _fresnel(ops: Any, cos_i: Any, cos_t: Any, n1: Any, n2: Any) -> Any:
-    """Unpolarised power transmittance 1 − (R_s + R_p)/2 of an interface n1 → n2."""
-    rs = (n1 * cos_i - n2 * cos_t) / (n1 * cos_i + n2 * cos_t)
-    rp = (n2 * cos_i - n1 * cos_t) / (n2 * cos_i + n1 * cos_t)
-    return 1.0 - 0.5 * (rs * rs + rp * rp)
+    cos_t, _ = snell_cos_t(ops, cos_i, eta)
+    tx, ty, tz = (refract(d, n, eta, cos_i, cos_t) for d, n in ((dx, nx), (dy, ny), (dz, nz)))
+    return tx, ty, tz, cos_i, cos_t, cos_t > 0.0
 
 
 def _inside(ops: Any, x: Any, y: Any, x0: Any, x1: Any, y0: Any, y1: Any) -> Any:
@@ -225,7 +189,7 @@ def _trace(ops: Any, optics: EmissionOptics, r: dict[str, Any], test_segment: An
     n_lens = r["n_lens"]
     lx, ly, lz, cos_i, cos_t, ok = _refract(ops, dx, dy, dz, nx, ny, nz, 1.0 / n_lens)
     traced = traced & ok
-    fresnel = _fresnel(ops, cos_i, cos_t, 1.0, n_lens)
+    fresnel = fresnel_transmittance(cos_i, cos_t, 1.0, n_lens)
 
     # 4. Down through the PMMA to the flat face.
     t = (optics.flat_z_mm - hz) / lz
@@ -235,7 +199,7 @@ def _trace(ops: Any, optics: EmissionOptics, r: dict[str, Any], test_segment: An
     passed = passed & _inside(ops, px, py, x0, x1, y0, y1)
     ex, ey, ez, cos_i, cos_t, ok = _refract(ops, lx, ly, lz, 0.0, 0.0, 1.0, n_lens)
     traced = traced & ok
-    fresnel = fresnel * _fresnel(ops, cos_i, cos_t, n_lens, 1.0)
+    fresnel = fresnel * fresnel_transmittance(cos_i, cos_t, n_lens, 1.0)
     aoi_film_cos = -ez
 
     # 5-6. Air to the film, through it, and on to the sensor.
@@ -405,13 +369,13 @@ def trace_rays(optics: EmissionOptics, rays: RayBatch, engine: str | None = None
         if engine == "drjit":
             raise ValueError("engine = 'drjit' needs a JIT variant of Mitsuba (LLVM ≥ 17 or CUDA)")
         per = _per_ray(optics, rays)
-        ops = _NumpyOps()
+        ops = NumpyOps()
         with np.errstate(invalid="ignore", divide="ignore"):
             return _result(_trace(ops, optics, per, _analytic_segment_test(ops, optics)))
     from cm2optics.emission.housing import housing_scene, segment_test
 
     rows, group = _groups(optics, rays)
-    ops = _DrJitOps()
+    ops = DrJitOps()
     dr, mi = ops.dr, mitsuba()
     u, v, table = _aligned([np.asarray(rays.u, float), np.asarray(rays.v, float), rows.ravel()])
     index = mi.UInt32(_aligned_uint32(group)) * len(_GROUP_COLUMNS)

@@ -2,8 +2,6 @@
 
 Modules, one idea each:
 
-* :mod:`.backend` — which Mitsuba variant runs (LLVM ≥ 17 found and given to Dr.Jit before it
-  is imported; CUDA when present; the scalar variant, with one warning, otherwise);
 * :mod:`.source` — the LED: emitter, angular profile, spectrum, ray sampling (NumPy);
 * :mod:`.excitation` — the excitation filter's T(λ, θ) as the tracer applies it;
 * :mod:`.geometry` — the scene as triangle meshes with optical roles (collimator from the CAD
@@ -15,7 +13,7 @@ Modules, one idea each:
 * :mod:`.compare` — several designs in one setup; :mod:`.optimize` — the Dask design sweep;
 * :mod:`.report` — the demo's section; :mod:`.cli` — ``cm2 illum``.
 
-Importing this package points ``DRJIT_LIBLLVM_PATH`` at a suitable LLVM (see :mod:`.backend`).
+Importing this package points ``DRJIT_LIBLLVM_PATH`` at a suitable LLVM (see :mod:`cm2optics.optics.backend`, the Mitsuba variant choice shared with the emission tracer).
 """
 
-from cm2optics.illumination import backend as backend  # noqa: F401  (sets DRJIT_LIBLLVM_PATH first)
+from cm2optics.optics import backend as backend  # noqa: F401  (sets DRJIT_LIBLLVM_PATH first)

@@ -22,6 +22,7 @@ import numpy as np
 from scipy.optimize import linprog
 
 from cm2optics.design import SystemDesign
+from cm2optics.optics import first_order
 
 __all__ = ["etendue_bound", "spectral_ceiling", "uniform_beam_bound"]
 
@@ -29,7 +30,7 @@ __all__ = ["etendue_bound", "spectral_ceiling", "uniform_beam_bound"]
 def _clear_aperture(design: SystemDesign) -> tuple[np.ndarray, tuple[float, float], float]:
     """(pose matrix of unit 0 (4×4), half-sides of its clear aperture (mm), the aperture's
     height above the LED in the unit's frame (mm)): the opening of the housing lip over the filter."""
-    from cm2optics.layout import led_poses
+    from cm2optics.optics.layout import led_poses
 
     pose = led_poses(design)[0].matrix
     f, c = design.excitation_filter, design.mechanics.clearance_mm
@@ -73,7 +74,7 @@ def etendue_bound(
     n1 = pose[:3, 2]
     radius = design.volume.field_mm / 2
     rho, phi = radius * np.sqrt(rng.random(samples)), 2 * np.pi * rng.random(samples)
-    p2 = np.column_stack([rho * np.cos(phi), rho * np.sin(phi), np.full(samples, design.object_plane_z_mm)])
+    p2 = np.column_stack([rho * np.cos(phi), rho * np.sin(phi), np.full(samples, first_order.object_plane_z_mm(design))])
     n2 = np.array([0.0, 0.0, -1.0])
     v = p2 - p1
     r2 = np.einsum("ij,ij->i", v, v)
@@ -106,7 +107,7 @@ def _ring_footprints(
     Rays leave the centre of each unit's clear aperture, uniform in the tangent plane of
     directions within each ring (a ring of the radial intensity profile).
     """
-    from cm2optics.layout import led_poses
+    from cm2optics.optics.layout import led_poses
 
     rng = np.random.default_rng(seed)
     _, _, aperture_z = _clear_aperture(design)
@@ -126,7 +127,7 @@ def _ring_footprints(
         start = matrix[:3, :3] @ np.array([0.0, 0.0, aperture_z]) + matrix[:3, 3]
         direction = local @ matrix[:3, :3].T
         with np.errstate(divide="ignore", invalid="ignore"):
-            s = (design.object_plane_z_mm - start[2]) / direction[..., 2]
+            s = (first_order.object_plane_z_mm(design) - start[2]) / direction[..., 2]
         hit = start[:2] + s[..., None] * direction[..., :2]
         ix = np.floor((hit[..., 0] + radius) / bin_mm).astype(int)
         iy = np.floor((hit[..., 1] + radius) / bin_mm).astype(int)

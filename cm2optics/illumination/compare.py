@@ -19,7 +19,7 @@ from cm2optics.illumination.geometry import CollimatorMesh, build_scene, collima
 from cm2optics.illumination.metrics import IlluminationFigures, figures_of_merit
 from cm2optics.illumination.source import LEDSource, led_source, read_angular_profile, read_source_spectrum
 from cm2optics.illumination.tracer import DEFAULT_MAX_BOUNCES, trace
-from cm2optics.materials import Material
+from cm2optics.design.materials import Material
 
 __all__ = ["Setup", "compare_designs", "setup_from_options"]
 

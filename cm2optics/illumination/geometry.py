@@ -3,7 +3,7 @@
 Pure NumPy/trimesh: the Mitsuba tracer (:mod:`cm2optics.illumination.scene`) and the NumPy
 reference tracer (:mod:`cm2optics.illumination.reference_numpy`) both read these parts.
 
-One LED unit, in its LED frame (:mod:`cm2optics.layout`; ``z`` along the unit's axis), with
+One LED unit, in its LED frame (:mod:`cm2optics.optics.layout`; ``z`` along the unit's axis), with
 ``g = led_array.excitation_gap_mm``, ``t`` the filter's thickness, ``c = mechanics.clearance_mm``:
 
 ==================  =========================================================================
@@ -28,7 +28,7 @@ housing             absorbing square tube: the bore (filter + c on each side) fr
 ==================  =========================================================================
 
 Around the units: the MLA housing (an absorbing tower of the envelope of
-:func:`cm2optics.layout.mla_housing_envelope`, its top standing for the emission filter that
+:func:`cm2optics.optics.layout.mla_housing_envelope`, its top standing for the emission filter that
 light must not enter, on a flange plane) and the sample plane ``z = object_plane_z_mm``
 (a perfect absorber that records where each ray lands).
 """
@@ -45,8 +45,9 @@ import numpy as np
 import trimesh
 
 from cm2optics.design import SystemDesign
-from cm2optics.layout import led_poses, mla_housing_envelope
-from cm2optics.materials import Material, refractive_index
+from cm2optics.optics import first_order
+from cm2optics.optics.layout import led_poses, mla_housing_envelope
+from cm2optics.design.materials import Material, refractive_index
 
 __all__ = [
     "Absorber",
@@ -59,7 +60,6 @@ __all__ = [
     "collimator_from_design",
     "collimator_from_stl",
     "corner_normals",
-    "parse_vector",
 ]
 
 #: Crease angle of the smooth normals: neighbouring faces meeting at a sharper angle keep a
@@ -196,7 +196,7 @@ class IlluminationScene:
 
     @property
     def sample_z_mm(self) -> float:
-        return float(self.design.object_plane_z_mm)
+        return float(first_order.object_plane_z_mm(self.design))
 
     @property
     def field_radius_mm(self) -> float:
@@ -243,17 +243,6 @@ def corner_normals(vertices: np.ndarray, faces: np.ndarray, crease_deg: float = 
 
 
 # ----------------------------------------------------------------------------- collimators
-
-
-def parse_vector(text: str, name: str) -> np.ndarray:
-    """``"X,Y,Z"`` → a 3-vector; ValueError naming the option otherwise."""
-    try:
-        values = [float(v) for v in text.split(",")]
-    except ValueError:
-        values = []
-    if len(values) != 3 or not all(math.isfinite(v) for v in values):
-        raise ValueError(f"{name} = {text!r}: must be three numbers X,Y,Z (mm)")
-    return np.array(values)
 
 
 def _rotation_to_z(axis: np.ndarray) -> np.ndarray:
@@ -551,7 +540,7 @@ def build_scene(
         flange = env.flange_side_mm / 2
         v, fc = _quads(_frame(half, half, flange, flange, env.flange_top_z_mm))
         parts.append(Part("imaging_flange", v, fc, Role.ABSORBER, absorber=Absorber.IMAGING_TOWER))
-    z = design.object_plane_z_mm
+    z = first_order.object_plane_z_mm(design)
     v, fc = _quads([_rect(-SAMPLE_HALF_MM, SAMPLE_HALF_MM, -SAMPLE_HALF_MM, SAMPLE_HALF_MM, z)])
     parts.append(Part("sample_plane", v, fc, Role.SAMPLE))
     if label is None:

@@ -326,21 +326,20 @@ def figures_of_merit(
 
 def write_maps_png(figures: IlluminationFigures, path: str | Path) -> Path:
     """One PNG with the irradiance of one LED and of the array (mW/mm²), the field circle drawn."""
-    import matplotlib
+    from matplotlib.figure import Figure
+    from matplotlib.patches import Circle
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from cm2optics.io import write_atomic
+    from cm2optics.formats.atomic import write_atomic
 
     half = figures.map_half_mm
-    fig, axes = plt.subplots(1, 2, figsize=(10, 4.4), constrained_layout=True)
+    fig = Figure(figsize=(10, 4.4), constrained_layout=True)  # no pyplot: a notebook's backend stays as it is
+    axes = fig.subplots(1, 2)
     for ax, image, title in (
         (axes[0], figures.unit_map, "one LED"),
         (axes[1], figures.array_map, f"{figures.units} LEDs"),
     ):
         shown = ax.imshow(image, origin="lower", extent=(-half, half, -half, half), cmap="inferno")
-        ax.add_patch(plt.Circle((0, 0), figures.field_radius_mm, fill=False, color="cyan", lw=1.0, ls="--"))
+        ax.add_patch(Circle((0, 0), figures.field_radius_mm, fill=False, color="cyan", lw=1.0, ls="--"))
         ax.set_xlabel("x (mm)")
         ax.set_ylabel("y (mm)")
         ax.set_title(title)
@@ -351,5 +350,4 @@ def write_maps_png(figures: IlluminationFigures, path: str | Path) -> Path:
     )
     path = Path(path)
     write_atomic(path, lambda tmp: fig.savefig(tmp, dpi=110, format="png"))
-    plt.close(fig)
     return path

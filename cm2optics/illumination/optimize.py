@@ -5,7 +5,7 @@ Objective: the array's delivered fraction into the field circle, subject to its 
 :data:`PARAMETERS`: the collimator's own fields (lens angle, cavity, LED gap, entry wall,
 height; the filter stays on the exit face: ``led_array.excitation_gap_mm = led_gap_mm +
 height_mm``) and the beam-shaping fields (output spreads and mapping exponents, see
-:mod:`cm2optics.collimator_shaping`; with zero spreads a candidate is exactly the collimating
+:mod:`cm2optics.optics.collimator_shaping`; with zero spreads a candidate is exactly the collimating
 cm2-v2 architecture). Each candidate's section is computed, revolved into a mesh
 (:func:`.revolve.revolve_profile`) and traced with the LED,
 filter, housings and sample plane of the design. Candidates whose optics cannot be built in
@@ -78,7 +78,7 @@ def _changes(values: dict[str, float]) -> dict[str, Any]:
 
 def candidate_collimator(design: SystemDesign, values: dict[str, float], segments: int = SWEEP_SEGMENTS) -> Any:
     """(design with the candidate's fields, its collimator mesh, its profile)."""
-    from cm2optics.collimator import collimator_profile
+    from cm2optics.optics.collimator import collimator_profile
     from cm2optics.illumination.geometry import CollimatorMesh
     from cm2optics.illumination.revolve import revolve_profile
 
@@ -100,7 +100,7 @@ def evaluate_candidate(
 ) -> dict[str, Any]:
     """Trace one candidate (runs on a Dask worker). Returns its parameters and figures, or
     ``feasible: False`` and the reason. ``design_data``: the base design as plain data."""
-    from cm2optics.illumination.backend import mitsuba
+    from cm2optics.optics.backend import mitsuba
 
     mi = mitsuba()
     if threads is not None and not mi.variant().startswith("scalar"):
@@ -188,7 +188,7 @@ def optimize_collimator(
     """
     from rich.progress import Progress
 
-    from cm2optics.io import write_json_atomic
+    from cm2optics.formats.atomic import write_json_atomic
 
     if design.collimator is None:
         raise ValueError(f"design {design.name!r} has no collimator to optimise (use a preset with one, e.g. cm2-v2)")
@@ -289,7 +289,7 @@ def _export(design: SystemDesign, out_dir: Path) -> tuple[Path, dict[str, Any]]:
     from cm2optics.cad.collimator import build_collimator
     from cm2optics.cad.mesh_checks import check_mesh
     from cm2optics.cad.tessellate import DEFAULT_TOLERANCE_UM, export_stl
-    from cm2optics.io import write_atomic
+    from cm2optics.formats.atomic import write_atomic
 
     path = out_dir / "collimator.stl"
     solid = build_collimator(design).val()

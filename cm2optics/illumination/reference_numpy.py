@@ -18,6 +18,8 @@ import numpy as np
 
 from cm2optics.illumination.excitation import TransmissionTable
 from cm2optics.illumination.geometry import IlluminationScene, Medium, Role
+from cm2optics.optics.interfaces import fresnel_reflectance, refract, snell_cos_t
+from cm2optics.optics.interfaces import reflect as mirror
 from cm2optics.illumination.tracer import (
     DEFAULT_MAX_BOUNCES,
     TEA_ROUNDS,
@@ -112,11 +114,9 @@ def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def _directions(d: np.ndarray, facing: np.ndarray, eta: np.ndarray, reflect: np.ndarray) -> np.ndarray:
     """Reflected (where ``reflect``) or refracted directions about the normals ``facing``."""
-    ci = np.clip(-_dot(d, facing), 0.0, 1.0)
-    ct = np.sqrt(np.maximum(1 - eta**2 * (1 - ci**2), 0.0))
-    return np.where(
-        reflect[:, None], d + 2 * ci[:, None] * facing, eta[:, None] * d + (eta * ci - ct)[:, None] * facing
-    )
+    ci = np.clip(-_dot(d, facing), 0.0, 1.0)[:, None]
+    ct, _ = snell_cos_t(np, ci, eta[:, None])
+    return np.where(reflect[:, None], mirror(d, facing, ci), refract(d, facing, eta[:, None], ci, ct))
 
 
 def trace_rays_numpy(
@@ -193,13 +193,9 @@ def trace_rays_numpy(
         face_s = np.where((_dot(d, face_s) < 0)[:, None], face_s, face_g)
         cos_i = np.clip(-_dot(d, face_s), 0.0, 1.0)
         sin_i = np.sqrt(np.maximum(1 - cos_i**2, 0.0))
-        sin2_t = eta**2 * sin_i**2
-        tir = sin2_t >= 1
-        cos_t = np.sqrt(np.maximum(1 - sin2_t, 0.0))
+        cos_t, tir = snell_cos_t(np, cos_i, eta)
         with np.errstate(divide="ignore", invalid="ignore"):
-            rs = (n1 * cos_i - n2 * cos_t) / (n1 * cos_i + n2 * cos_t)
-            rp = (n2 * cos_i - n1 * cos_t) / (n2 * cos_i + n1 * cos_t)
-        reflectance = 0.5 * (rs**2 + rp**2)
+            reflectance = fresnel_reflectance(cos_i, cos_t, n1, n2)
         coated = role == int(Role.COATED)
         aoi_air = np.arcsin(np.minimum(np.where(entering, sin_i, n_solid * sin_i), 1.0))
         if coated.any():
@@ -212,7 +208,7 @@ def trace_rays_numpy(
         side = _dot(new_d, face_g)
         wrong = np.where(reflect, side <= 0, side >= 0)
         cos_g = _dot(d, face_g)
-        reflect_g = reflect | (eta**2 * (1 - cos_g**2) >= 1)
+        reflect_g = reflect | snell_cos_t(np, cos_g, eta)[1]
         new_d = np.where(wrong[:, None], _directions(d, face_g, eta, reflect_g), new_d)
         reflect = np.where(wrong, reflect_g, reflect)
         portal = role == int(Role.PORTAL)

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import trimesh
 
-from cm2optics.collimator import CollimatorProfile
+from cm2optics.optics.collimator import CollimatorProfile
 
 __all__ = ["revolve_profile"]
 

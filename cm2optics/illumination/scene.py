@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from cm2optics.illumination.backend import is_jit, mitsuba
+from cm2optics.optics.backend import is_jit, mitsuba
 from cm2optics.illumination.geometry import IlluminationScene, Part
 
 __all__ = ["MitsubaScene", "mitsuba_scene"]
@@ -61,7 +61,7 @@ def _mesh(mi: Any, part: Part) -> Any:
 
 
 def mitsuba_scene(scene: IlluminationScene) -> MitsubaScene:
-    """Load ``scene`` into Mitsuba (the variant chosen by :mod:`~cm2optics.illumination.backend`)."""
+    """Load ``scene`` into Mitsuba (the variant chosen by :mod:`~cm2optics.optics.backend`)."""
     mi = mitsuba()
     spec: dict[str, Any] = {"type": "scene"}
     for part in scene.parts:

@@ -1,7 +1,7 @@
 """The LED as a ray source: a square emitter with an angular profile and a spectrum.
 
 Pure NumPy, so that the Mitsuba tracer and the NumPy reference tracer start from the very
-same rays. LED frame (:mod:`cm2optics.layout`): origin at the centre of the emitting surface,
+same rays. LED frame (:mod:`cm2optics.optics.layout`): origin at the centre of the emitting surface,
 ``+z`` the unit's axis; the emitter is the square ``|x|, |y| ≤ emitter_mm / 2`` at ``z = 0``.
 
 Every point of the emitter radiates with the same relative radiant intensity ``I(θ)``

@@ -37,11 +37,13 @@ from typing import Any
 
 import numpy as np
 
-from cm2optics.illumination.backend import is_jit, mitsuba, variant
+from cm2optics.optics.backend import is_jit, mitsuba, variant
 from cm2optics.illumination.excitation import Transmission, TransmissionTable, tabulate_transmission
 from cm2optics.illumination.geometry import IlluminationScene, Medium, Role
 from cm2optics.illumination.scene import MitsubaScene, mitsuba_scene
 from cm2optics.illumination.source import LEDSource, sample_led_rays
+from cm2optics.optics.interfaces import fresnel_reflectance, refract, snell_cos_t
+from cm2optics.optics.interfaces import reflect as mirror
 
 __all__ = [
     "DEFAULT_MAX_BOUNCES",
@@ -230,8 +232,8 @@ class _Kernel:
         """Reflected (where ``reflect``) or refracted direction of ``d`` about the unit
         normal ``facing`` (which points against ``d``)."""
         cos_i = dr.clip(-dr.dot(d, facing), 0.0, 1.0)
-        cos_t = dr.safe_sqrt(1.0 - eta * eta * (1.0 - cos_i * cos_i))
-        return dr.select(reflect, d + 2.0 * cos_i * facing, eta * d + (eta * cos_i - cos_t) * facing)
+        cos_t, _ = snell_cos_t(dr, cos_i, eta)
+        return dr.select(reflect, mirror(d, facing, cos_i), refract(d, facing, eta, cos_i, cos_t))
 
     def step(
         self, o: Any, d: Any, ray_id: Any, depth: Any, wl: Any, n_coll: Any, n_filt: Any, passed: Any, active: Any
@@ -267,12 +269,8 @@ class _Kernel:
 
         cos_i = dr.clip(-dr.dot(d, face_s), 0.0, 1.0)
         sin_i = dr.safe_sqrt(1.0 - cos_i * cos_i)
-        sin2_t = eta * eta * sin_i * sin_i
-        tir = sin2_t >= 1.0
-        cos_t = dr.safe_sqrt(1.0 - sin2_t)
-        rs = (n1 * cos_i - n2 * cos_t) / (n1 * cos_i + n2 * cos_t)
-        rp = (n2 * cos_i - n1 * cos_t) / (n2 * cos_i + n1 * cos_t)
-        reflectance = 0.5 * (rs * rs + rp * rp)
+        cos_t, tir = snell_cos_t(dr, cos_i, eta)
+        reflectance = fresnel_reflectance(cos_i, cos_t, n1, n2)
         coated = role == int(Role.COATED)
         sin_air = dr.minimum(dr.select(entering, sin_i, n_solid * sin_i), 1.0)
         aoi_air = dr.asin(sin_air)
@@ -286,7 +284,7 @@ class _Kernel:
         side = dr.dot(new_d, face_g)
         wrong = dr.select(reflect, side <= 0.0, side >= 0.0)
         cos_g = dr.dot(d, face_g)
-        reflect_g = reflect | (eta * eta * (1.0 - cos_g * cos_g) >= 1.0)
+        reflect_g = reflect | snell_cos_t(dr, cos_g, eta)[1]
         new_d = dr.select(wrong, self._directions(dr, d, face_g, eta, reflect_g), new_d)
         reflect = dr.select(wrong, reflect_g, reflect)
         portal = role == int(Role.PORTAL)

@@ -15,6 +15,7 @@ from __future__ import annotations
 import hashlib
 import math
 import time
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from datetime import UTC, datetime
@@ -24,12 +25,12 @@ from typing import Any
 import numpy as np
 
 import cm2optics
-from cm2optics.design import SystemDesign
+from cm2optics.design import SystemDesign, default_design
+from cm2optics.formats.scan import ScanError, ScanIndex, open_scan
+from cm2optics.formats.volume import VolumeGrid
 from cm2optics.lsv.decompose import Decomposition, decompose, numerical_rank, trim_window
 from cm2optics.lsv.model import LSVModel
 from cm2optics.lsv.preprocess import Geometry, GeometryFit, estimate_geometry, extract_crops
-from cm2optics.psf_scan import ScanError, ScanIndex, open_scan
-from cm2optics.volume_io import VolumeGrid
 
 __all__ = ["BuildResult", "build_model", "default_patch_px", "model_from_crops", "scan_fingerprint"]
 
@@ -110,7 +111,7 @@ def _layout(index: ScanIndex, design: SystemDesign | None) -> tuple[int, int]:
 def _design_fallback(design: SystemDesign | None, pixel_um: float) -> Callable[[float], np.ndarray] | None:
     if design is None:
         return None
-    from cm2optics.lsv.analytic import AnalyticCM2
+    from cm2optics.lsv.toy import AnalyticCM2
 
     analytic = AnalyticCM2.from_design(design)
 
@@ -149,7 +150,7 @@ def build_model(
     rank: int = 64,
     patch_px: int | None = None,
     lateral_um: float | None = None,
-    axial_um: float = 10.0,
+    axial_um: float | None = None,
     design: SystemDesign | None = None,
     degree: int = 2,
     trim: float | None = 1e-6,
@@ -161,7 +162,8 @@ def build_model(
     patch_px: crop side per focus in image pixels (default: 160 at full resolution, scaled by
         the scan's binning).
     lateral_um, axial_um: voxel pitch of the default reconstruction grid, µm (lateral default:
-        one sensor pixel per voxel at the focal plane).
+        one sensor pixel per voxel at the focal plane; axial default: ``volume.axial_step_um`` of
+        ``design``, or of the cm2-v2 preset without one).
     design: the design to take the lenslet layout from (unless scan.yaml says ``lenslets``) and
         to fall back on for the magnification if the scan's positions cannot fix it.
     trim: share of the PSF energy the basis may lose when its crops' dark margins are cut
@@ -169,11 +171,13 @@ def build_model(
     """
     if rank < 1:
         raise ValueError(f"rank = {rank}: must be ≥ 1")
+    if axial_um is None:
+        axial_um = (design or default_design()).volume.axial_step_um
     if axial_um <= 0 or (lateral_um is not None and lateral_um <= 0):
         raise ValueError("voxel sizes must be > 0 µm")
     seconds: dict[str, float] = {}
     start = time.perf_counter()
-    index = open_scan(scan_dir)
+    index = open_scan(scan_dir, sensor_pixel_um=design.sensor.pixel_um if design is not None else None)
     rows, cols = _layout(index, design)
     patch = patch_px if patch_px is not None else default_patch_px(index.meta.binning)
     if patch < 4:
@@ -240,6 +244,12 @@ def build_model(
         provenance=provenance,
     )
     seconds["svd"] = time.perf_counter() - start
+    if model.rank < rank:
+        warnings.warn(
+            f"--rank {rank}: the scan's {len(index)} positions allow only {model.rank} basis PSFs; "
+            f"the model has rank {model.rank}",
+            stacklevel=2,
+        )
     model.provenance["seconds"] = {k: round(v, 3) for k, v in seconds.items()}
     return BuildResult(model, decomposition, replace(fit, geometry=geometry), crops, gi, seconds)
 
@@ -254,13 +264,14 @@ def model_from_crops(
     sensor_shape: tuple[int, int],
     pixel_um: float,
     lateral_um: float | None = None,
-    axial_um: float = 10.0,
+    axial_um: float | None = None,
     trim: float | None = 1e-6,
     provenance: dict[str, Any] | None = None,
 ) -> tuple[LSVModel, Decomposition]:
     """Truncated SVD of registered ``crops`` (N, J, h, w) at grid positions ``grid_index`` (N, 3)
     as (ix, iy, iz) of ``axes`` (x, y, z mm), scaled so that the in-focus on-axis image of a unit
-    source sums to 1, with a default grid spanning the axes. ``trim``: drop the crops' dark
+    source sums to 1, with a default grid spanning the axes (``axial_um`` None: the cm2-v2 preset's
+    ``volume.axial_step_um``). ``trim``: drop the crops' dark
     margins holding less than this share of the PSF energy (None: keep the full crops)."""
     xs, ys, zs = axes
     decomposition = decompose(crops, rank)
@@ -275,6 +286,8 @@ def model_from_crops(
     A0 = geometry.A(0.0)
     native_um = 1000.0 / math.sqrt(abs(float(np.linalg.det(A0))))
     dxy = lateral_um if lateral_um is not None else native_um
+    if axial_um is None:  # the cm2-v2 preset's axial step
+        axial_um = default_design().volume.axial_step_um
     shape = (
         int(math.floor((zs[-1] - zs[0]) * 1000.0 / axial_um + 1e-9)) + 1,
         int(math.floor((ys[-1] - ys[0]) * 1000.0 / dxy + 1e-9)) + 1,

@@ -8,39 +8,29 @@ with its centre pixel ``(h//2, w//2)`` on ``r0(z) + A(z)·(x, y) + o_j(z)``
 images are in the scan's normalised units scaled so that the in-focus image of a unit source on
 the axis sums to 1 (``scale`` records the factor).
 
-File layout (HDF5, ``format = "cm2optics-lsv"``, ``version = 1``): ``basis`` (K, J, h, w),
-``coefficients`` (K, nz, ny, nx), ``grid/x_mm|y_mm|z_mm``, ``geometry/r0_poly|A_poly|o_poly|layout``,
-``svd/singular_values|nmse|nmse_per_psf``, attributes ``sensor_shape``, ``pixel_um``, ``scale``,
-``default_grid`` (JSON) and ``provenance`` (JSON: scan, its fingerprint, build options,
-geometry fit, package version, time).
+File layout: :mod:`cm2optics.formats.lsv_model` (``format = "cm2optics-lsv"``).
 """
 
 from __future__ import annotations
 
-import json
+import dataclasses
+import warnings
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-import h5py
 import numpy as np
 
-from cm2optics.io import write_atomic
+from cm2optics.formats.emitters import Emitters
+from cm2optics.formats.lsv_model import ModelError, read_lsv_model, write_lsv_model
+from cm2optics.formats.volume import VolumeGrid
 from cm2optics.lsv.interpolate import chief_ray_nodes, trilinear_coefficients
 from cm2optics.lsv.preprocess import Geometry
-from cm2optics.volume_io import Emitters, VolumeGrid
 
 if TYPE_CHECKING:  # pragma: no cover
     from cm2optics.lsv.operators import LSVOperator
 
-__all__ = ["FORMAT", "LSVModel", "ModelError", "load_model"]
-
-FORMAT = "cm2optics-lsv"
-VERSION = 1
-
-
-class ModelError(ValueError):
-    """A model file that cannot be used, or a request the model cannot serve."""
+__all__ = ["LSVModel", "ModelError", "load_model"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -109,6 +99,35 @@ class LSVModel:
         """Calibration grid (x, y, z), mm."""
         return self.grid_x_mm, self.grid_y_mm, self.grid_z_mm
 
+    def outside_calibration(self, positions_mm: np.ndarray, slack: float = 0.05) -> np.ndarray:
+        """(N,) True for sources (N, 3) as (x, y, z) mm outside the calibration grid's x/y/z range
+        widened by ``slack`` of each axis's span on either side: where the model extrapolates. An
+        axis with a single node (the LSI baseline laterally) is shift invariant: no range."""
+        positions = np.asarray(positions_mm, float).reshape(-1, 3)
+        outside = np.zeros(len(positions), bool)
+        for k, axis in enumerate(self.axes):
+            if len(axis) < 2:
+                continue
+            margin = slack * (axis[-1] - axis[0])
+            outside |= (positions[:, k] < axis[0] - margin) | (positions[:, k] > axis[-1] + margin)
+        return outside
+
+    def warn_outside_calibration(self, positions_mm: np.ndarray, what: str = "emitters") -> int:
+        """Warn (``warnings.warn``) when sources lie outside the calibrated range; returns their count."""
+        count = int(np.sum(self.outside_calibration(positions_mm)))
+        if count:
+            ranges = ", ".join(
+                f"{name} {axis[0]:g}…{axis[-1]:g}"
+                for name, axis in zip(("x", "y", "z"), self.axes, strict=True)
+                if len(axis) > 1
+            )
+            warnings.warn(
+                f"{count} of {len(np.asarray(positions_mm).reshape(-1, 3))} {what} lie outside the model's calibrated "
+                f"range ({ranges} mm): their images are extrapolated",
+                stacklevel=2,
+            )
+        return count
+
     def truncated(self, rank: int) -> LSVModel:
         """The same model keeping its first ``rank`` basis PSFs."""
         if not 1 <= rank <= self.rank:
@@ -172,73 +191,19 @@ class LSVModel:
 
     # -- files ------------------------------------------------------------------------------
     def save(self, path: str | Path) -> Path:
-        """Write the model as one HDF5 file (atomically)."""
-        return write_atomic(Path(path), self._write)
-
-    def _write(self, path: Path) -> None:
-        with h5py.File(path, "w") as f:
-            f.attrs["format"] = FORMAT
-            f.attrs["version"] = VERSION
-            f.attrs["sensor_shape"] = np.array(self.sensor_shape)
-            f.attrs["pixel_um"] = self.pixel_um
-            f.attrs["scale"] = self.scale
-            f.attrs["default_grid"] = json.dumps(self.default_grid.to_dict())
-            f.attrs["provenance"] = json.dumps(self.provenance, ensure_ascii=False, default=_json_default)
-            f.create_dataset("basis", data=self.basis, compression="gzip", compression_opts=4, shuffle=True)
-            f.create_dataset("coefficients", data=self.coefficients)
-            grid = f.create_group("grid")
-            for name, values in zip(("x_mm", "y_mm", "z_mm"), self.axes, strict=True):
-                grid.create_dataset(name, data=values)
-            geometry = f.create_group("geometry")
-            for name, values in self.geometry.to_arrays().items():
-                geometry.create_dataset(name, data=values)
-            svd = f.create_group("svd")
-            svd.create_dataset("singular_values", data=self.singular_values)
-            svd.create_dataset("nmse", data=self.nmse)
-            svd.create_dataset("nmse_per_psf", data=self.nmse_per_psf)
-
-
-def _json_default(value: Any) -> Any:
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, Path):
-        return str(value)
-    raise TypeError(f"not JSON serialisable: {type(value).__name__}")
+        """Write the model as one HDF5 (or ``.npz``) file, atomically (:mod:`cm2optics.formats.lsv_model`)."""
+        fields = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        fields["geometry"] = self.geometry.to_arrays()
+        return write_lsv_model(path, fields)
 
 
 def load_model(path: str | Path) -> LSVModel:
     """Read a model file written by :meth:`LSVModel.save`; a bad file raises :class:`ModelError`."""
-    path = Path(path)
-    if not path.is_file():
-        raise ModelError(f"{path}: no such model file")
+    fields = read_lsv_model(path)
     try:
-        with h5py.File(path, "r") as f:
-            if f.attrs.get("format") != FORMAT:
-                raise ModelError(f"{path}: not a cm2optics LSV model (format = {f.attrs.get('format')!r})")
-            if int(f.attrs.get("version", 0)) > VERSION:
-                raise ModelError(
-                    f"{path}: model version {int(f.attrs['version'])} is newer than this cm2optics reads ({VERSION})"
-                )
-            geometry = Geometry.from_arrays({k: f["geometry"][k][()] for k in f["geometry"]})
-            return LSVModel(
-                basis=f["basis"][()],
-                coefficients=f["coefficients"][()],
-                grid_x_mm=f["grid/x_mm"][()],
-                grid_y_mm=f["grid/y_mm"][()],
-                grid_z_mm=f["grid/z_mm"][()],
-                geometry=geometry,
-                sensor_shape=tuple(int(v) for v in f.attrs["sensor_shape"]),
-                pixel_um=float(f.attrs["pixel_um"]),
-                default_grid=VolumeGrid.from_dict(json.loads(f.attrs["default_grid"])),
-                scale=float(f.attrs.get("scale", 1.0)),
-                singular_values=f["svd/singular_values"][()],
-                nmse=f["svd/nmse"][()],
-                nmse_per_psf=f["svd/nmse_per_psf"][()],
-                provenance=json.loads(f.attrs.get("provenance", "{}")),
-            )
-    except ModelError:
-        raise
-    except (OSError, KeyError, ValueError) as error:
+        fields["geometry"] = Geometry.from_arrays(fields["geometry"])
+        return LSVModel(**fields)
+    except ModelError as error:
+        raise ModelError(f"{path}: {error}") from None
+    except (KeyError, ValueError) as error:
         raise ModelError(f"{path}: not a readable LSV model ({error})") from None

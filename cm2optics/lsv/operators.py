@@ -44,9 +44,9 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
+from cm2optics.formats.volume import VolumeGrid
 from cm2optics.lsv.interpolate import axis_coordinate, tent_pairs
 from cm2optics.lsv.kernels import shift_kernel_dft
-from cm2optics.volume_io import VolumeGrid
 
 if TYPE_CHECKING:  # pragma: no cover
     from cm2optics.lsv.model import LSVModel

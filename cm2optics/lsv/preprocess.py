@@ -38,8 +38,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from cm2optics.formats.scan import ScanError, ScanIndex
 from cm2optics.lsv.kernels import sample_window
-from cm2optics.psf_scan import ScanError, ScanIndex
 
 __all__ = ["Geometry", "GeometryFit", "estimate_geometry", "extract_crops", "image_background", "prepared_image"]
 

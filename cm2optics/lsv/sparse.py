@@ -25,10 +25,10 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
+from cm2optics.formats.emitters import Emitters
 from cm2optics.lsv.interpolate import chief_ray_nodes
 from cm2optics.lsv.kernels import TAPS, shift_weights, split_shift
 from cm2optics.lsv.operators import fast_length
-from cm2optics.volume_io import Emitters
 
 if TYPE_CHECKING:  # pragma: no cover
     from cm2optics.lsv.model import LSVModel

@@ -20,6 +20,7 @@ more than axial.
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -27,11 +28,11 @@ from typing import Any
 import numpy as np
 import torch
 
+from cm2optics.formats.scan import ScanIndex, open_scan
 from cm2optics.lsv.build import scan_fingerprint
 from cm2optics.lsv.interpolate import chief_ray_nodes
 from cm2optics.lsv.model import LSVModel
 from cm2optics.lsv.preprocess import extract_crops, prepared_image
-from cm2optics.psf_scan import ScanIndex, open_scan
 
 __all__ = ["image_errors", "validate_model"]
 
@@ -41,6 +42,13 @@ DEFAULT_RANKS = (1, 4, 8, 16, 32, 64, 128)
 
 def _ranks(model: LSVModel, ranks: tuple[int, ...] | None, limit: int) -> list[int]:
     chosen = sorted({k for k in (ranks or DEFAULT_RANKS) if 1 <= k <= limit} | {min(model.rank, limit)})
+    dropped = sorted(k for k in ranks or () if k > limit)
+    if dropped:
+        warnings.warn(
+            f"--ranks: {', '.join(map(str, dropped))} exceed the {limit} basis PSFs this check can hold; "
+            f"using ranks {', '.join(map(str, chosen))}",
+            stacklevel=3,
+        )
     return chosen
 
 
@@ -87,6 +95,12 @@ def _leave_one_out(
     axes_mm = (model.grid_x_mm, model.grid_y_mm, model.grid_z_mm)
     candidates = _interior(gi, shape)
     rng = np.random.default_rng(seed)
+    if n_heldout > len(candidates):
+        warnings.warn(
+            f"--heldout {n_heldout}: the scan has only {len(candidates)} interior positions to hold out; "
+            f"using {len(candidates)}",
+            stacklevel=3,
+        )
     held = (
         rng.choice(candidates, size=min(n_heldout, len(candidates)), replace=False)
         if len(candidates)

@@ -10,7 +10,7 @@ breakdowns by distance from the centre, density, depth and size (Fig. 6); recall
 - :mod:`~cm2optics.metrics.scores`: scores with defined empty cases, the F1-optimal threshold.
 - :mod:`~cm2optics.metrics.breakdown`: Fig. 6 breakdowns and maps.
 - :mod:`~cm2optics.metrics.plots`: figures. :mod:`~cm2optics.metrics.evaluate`: files in, JSON out.
-- :mod:`~cm2optics.metrics.cli`: ``cm2 evaluate``.
+- :mod:`~cm2optics.cli.evaluate`: ``cm2 evaluate``.
 """
 
 from cm2optics.metrics.breakdown import BREAKDOWNS, breakdown, density_breakdown, detection_maps, merge_evaluations

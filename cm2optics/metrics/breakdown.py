@@ -181,8 +181,8 @@ def density_breakdown(
 def merge_evaluations(evaluations: Sequence[Evaluation]) -> Evaluation:
     """Several volumes on the same grid as one evaluation (emitters and pairs concatenated), for
     maps and pooled breakdowns over a test set."""
+    from cm2optics.formats.emitters import EMITTER_COLUMNS, Emitters
     from cm2optics.metrics.match import Matching
-    from cm2optics.volume_io import EMITTER_COLUMNS, Emitters
 
     if not evaluations:
         raise ValueError("nothing to merge: no evaluations")

@@ -15,7 +15,8 @@ import math
 import numpy as np
 from scipy import ndimage
 
-from cm2optics.volume_io import Emitters, VolumeGrid
+from cm2optics.formats.emitters import Emitters
+from cm2optics.formats.volume import VolumeGrid
 
 __all__ = ["CONNECTIVITY", "detect_emitters", "volume_emitters"]
 

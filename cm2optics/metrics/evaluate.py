@@ -17,10 +17,11 @@ from typing import Any
 
 import numpy as np
 
+from cm2optics.formats.emitters import Emitters, read_emitters
+from cm2optics.formats.volume import VolumeGrid, read_volume
 from cm2optics.metrics.breakdown import BREAKDOWNS, breakdown, detection_maps
 from cm2optics.metrics.detect import volume_emitters
 from cm2optics.metrics.scores import Evaluation, MatchOptions, evaluate_volume, f1_optimal_threshold
-from cm2optics.volume_io import Emitters, VolumeGrid, read_emitters, read_volume
 
 __all__ = ["evaluate_files", "load_truth", "summary"]
 
@@ -92,12 +93,12 @@ def evaluate_files(
     threshold: the global threshold; None: the F1-optimal one on ``validation`` (pairs of
     reconstruction and truth files), or without it on the evaluated pair itself."""
     options = options or MatchOptions()
-    recon, grid = read_volume(recon_path, voxel_um)
+    recon, grid = read_volume(recon_path, voxel_um, require_3d=True)
     truth = load_truth(truth_path, grid, voxel_um)
     if threshold is None and validation:
         pairs = []
         for v_recon, v_truth in validation:
-            v_volume, v_grid = read_volume(v_recon, voxel_um)
+            v_volume, v_grid = read_volume(v_recon, voxel_um, require_3d=True)
             pairs.append((v_volume, v_grid, load_truth(v_truth, v_grid, voxel_um)))
         threshold, sweep = f1_optimal_threshold(pairs, options, progress=progress)
         source = f"F1-optimal on {len(pairs)} validation pair(s)"
@@ -120,7 +121,7 @@ def evaluate_files(
     result["ground_truth"] = str(truth_path)
     result["grid"] = grid.to_dict()
     if out_dir is not None:
-        from cm2optics.io import write_json_atomic
+        from cm2optics.formats.atomic import write_json_atomic
         from cm2optics.metrics.plots import plot_breakdowns, plot_maps, plot_overlay
 
         out_dir = Path(out_dir)

@@ -20,7 +20,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from cm2optics.volume_io import Emitters
+from cm2optics.formats.emitters import Emitters
 
 __all__ = ["Matching", "gates_um", "match_emitters"]
 

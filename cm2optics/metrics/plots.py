@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from cm2optics.io import write_atomic
+from cm2optics.formats.atomic import write_atomic
 from cm2optics.metrics.breakdown import BREAKDOWNS
 from cm2optics.metrics.scores import Evaluation
 

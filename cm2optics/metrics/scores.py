@@ -25,9 +25,10 @@ from typing import Any
 
 import numpy as np
 
+from cm2optics.formats.emitters import Emitters
+from cm2optics.formats.volume import VolumeGrid
 from cm2optics.metrics.detect import detect_emitters
 from cm2optics.metrics.match import Matching, match_emitters
-from cm2optics.volume_io import Emitters, VolumeGrid
 
 __all__ = ["Evaluation", "MatchOptions", "evaluate_volume", "f1_optimal_threshold", "pooled_scores", "scores"]
 

@@ -27,42 +27,13 @@ import numpy as np
 
 from cm2optics.synth.config import SynthConfig
 
-__all__ = ["DEFAULT_RUNS", "analytic_model", "compare_baselines", "scaled_test_config"]
+__all__ = ["DEFAULT_RUNS", "compare_baselines", "scaled_test_config"]
 
 #: run name → forward model, method and options (see :class:`~cm2optics.recon.reconstruct.ReconOptions`).
 DEFAULT_RUNS: dict[str, dict[str, Any]] = {
     "lsv-fista": {"forward": "lsv", "method": "fista", "l1": 0.02, "max_iter": 60},
     "lsi-admm": {"forward": "lsi", "method": "admm", "l1": 0.02, "max_iter": 30},
 }
-
-
-def analytic_model(
-    path: str | Path, design: Any, *, binning: int = 4, rank: int = 8, lateral_nodes: int = 7, depth_nodes: int = 5
-) -> Path:
-    """Build (once) an LSV model of ``design`` from a synthetic PSF scan of the analytic CM²-like
-    PSF (:mod:`cm2optics.lsv.analytic`) on a ``lateral_nodes``² × ``depth_nodes`` grid over
-    ±3.6 mm × ±0.4 mm, binned ``binning``×; returns its path (reused if it exists). Keep the
-    lateral step ≤ 1.2 mm (7 nodes): at 1.8 mm the foci move further than the geometry fit's
-    lattice search expects and the magnification comes out wrong."""
-    from cm2optics.lsv.analytic import AnalyticCM2, write_analytic_scan
-    from cm2optics.lsv.build import build_model
-
-    path = Path(path)
-    if path.is_file():
-        return path
-    scan = path.with_name(path.stem + "-scan")
-    xs = np.linspace(-3.6, 3.6, lateral_nodes)
-    write_analytic_scan(
-        scan,
-        AnalyticCM2.from_design(design, binning=binning),
-        xs,
-        xs,
-        np.linspace(-0.4, 0.4, depth_nodes),
-        binning=binning,
-    )
-    model = build_model(scan, rank=rank, design=design).model
-    shutil.rmtree(scan, ignore_errors=True)
-    return model.save(path)
 
 
 def scaled_test_config(model: Any, factor: float = 2.0, **changes: Any) -> SynthConfig:
@@ -82,10 +53,10 @@ def _run(
     """One run in one (fresh) worker process: reconstruct every sample, write the volumes."""
     import torch
 
+    from cm2optics.formats.volume import VolumeGrid
     from cm2optics.recon.operators import load_operator
     from cm2optics.recon.reconstruct import ReconOptions, reconstruct
     from cm2optics.synth.dataset import read_sample
-    from cm2optics.volume_io import VolumeGrid
 
     torch.set_num_threads(threads)
     start = time.perf_counter()
@@ -145,7 +116,7 @@ def compare_baselines(
     """Make the test set, run every run, evaluate; returns the summary (also ``comparison.json``)."""
     from dask.distributed import Client, LocalCluster
 
-    from cm2optics.io import write_json_atomic, write_text_atomic
+    from cm2optics.formats.atomic import write_json_atomic, write_text_atomic
     from cm2optics.lsv.model import load_model
     from cm2optics.metrics import (
         density_breakdown,
@@ -359,46 +330,72 @@ def comparison_table(summary: dict[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def main(argv: list[str] | None = None) -> None:
-    """``python -m cm2optics.recon.compare MODEL OUT [--n-volumes 20] [--factor 2] [--threads 1]``."""
-    import argparse
+def demo_baselines(
+    design: Any, folder: str | Path, model_path: str | Path | None, runs: dict[str, dict[str, Any]]
+) -> dict[str, Any]:
+    """The demo's baseline comparison: one scaled-down volume made the paper's way through an LSV
+    model (``model_path``; None or missing: a small analytic model of ``design`` built into
+    ``folder``), reconstructed with each of ``runs`` (``forward`` and ReconOptions fields) and
+    evaluated at each run's F1-optimal threshold. Returns the config, grid, sample, truth,
+    chief rays (px), timings and per run its volume, record and evaluation."""
+    import torch
 
-    parser = argparse.ArgumentParser(description="LSV against LSI model-based reconstruction on a synthetic test set.")
-    parser.add_argument("model", type=Path)
-    parser.add_argument("out", type=Path)
-    parser.add_argument("--n-volumes", type=int, default=20)
-    parser.add_argument("--factor", type=float, default=2.0, help="field ÷ factor (the scaled-down equivalent)")
-    parser.add_argument("--seed", type=int, default=2024)
-    parser.add_argument("--threads", type=int, default=1)
-    parser.add_argument("--workers", type=int, default=2)
-    parser.add_argument("--runs", type=str, default=None, help="JSON of runs (default: lsv-fista and lsi-admm)")
-    parser.add_argument(
-        "--build-binning", type=int, default=4, help="if MODEL does not exist: build an analytic one at this binning"
-    )
-    parser.add_argument(
-        "--reuse", action="store_true", help="reuse runs already reconstructed in OUT (same options and samples)"
-    )
-    args = parser.parse_args(argv)
-    from cm2optics.design import load_preset
     from cm2optics.lsv.model import load_model
+    from cm2optics.lsv.toy import analytic_lsv_model_file
+    from cm2optics.metrics import evaluate_volume, f1_optimal_threshold
+    from cm2optics.recon.operators import load_operator
+    from cm2optics.recon.reconstruct import ReconOptions, reconstruct
+    from cm2optics.synth.dataset import make_dataset, read_sample
+    from cm2optics.synth.imaging import Imaging
 
-    if not args.model.is_file():
-        analytic_model(args.model, load_preset("cm2-v2"), binning=args.build_binning)
-
-    config = scaled_test_config(load_model(args.model), args.factor)
-    runs = json.loads(args.runs) if args.runs else None
-    compare_baselines(
-        args.model,
-        args.out,
-        n_volumes=args.n_volumes,
-        seed=args.seed,
-        config=config,
-        runs=runs,
-        threads=args.threads,
-        workers=args.workers,
-        reuse=args.reuse,
-    )
-
-
-if __name__ == "__main__":
-    main()
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # small tensors: one thread is faster, and kind to a shared machine
+    try:
+        start = time.perf_counter()
+        if model_path is None or not Path(model_path).is_file():
+            model_path = analytic_lsv_model_file(
+                folder / "lsv-analytic-b8.h5", design, binning=8, rank=6, lateral_nodes=7, depth_nodes=3
+            )
+            origin = "a small analytic model of this design (PSF scan of the closed-form CM²-like PSF, binned 8×)"
+        else:
+            origin = f"the LSV model {Path(model_path).name}"
+        model = load_model(model_path)
+        build_s = time.perf_counter() - start
+        config = SynthConfig.scaled(
+            2,
+            voxel_um=model.default_grid.voxel_um,
+            view_px=160,
+            patch_px=64,
+            patches_per_volume=4,
+            density_per_mm2=(30.0, 30.0),
+            fov_mm=(3.5, 3.5),
+        )
+        grid = config.grid
+        start = time.perf_counter()
+        manifest = make_dataset(config, Imaging(model, grid), folder / "synth", 1, seed=6, workers=0)
+        synth_s = time.perf_counter() - start
+        sample = read_sample(folder / "synth" / "samples" / manifest["samples"][0]["file"])
+        truth = sample["emitters"]
+        results = {}
+        for name, run in runs.items():
+            operator = load_operator(model_path, grid, forward=run["forward"])
+            options = ReconOptions(**{k: v for k, v in run.items() if k != "forward"})
+            volume, record = reconstruct(sample["measurement"], operator, options)
+            threshold, _ = f1_optimal_threshold([(volume, grid, truth)])
+            evaluation = evaluate_volume(volume, grid, truth, threshold)
+            results[name] = {"volume": volume, "record": record, "evaluation": evaluation}
+    finally:
+        torch.set_num_threads(threads)
+    return {
+        "config": config,
+        "grid": grid,
+        "sample": sample,
+        "truth": truth,
+        "chief_rays_px": np.asarray(model.geometry.focus(0.0, 0.0, 0.0)),
+        "origin": origin,
+        "build_s": build_s,
+        "synth_s": synth_s,
+        "runs": results,
+    }

@@ -19,15 +19,18 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import asdict, dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 
-from cm2optics.recon.operators import DepthwiseConvOperator
+from cm2optics.formats.operator import VolumeOperator
+from cm2optics.lsv.lsi import DepthwiseConvOperator
+from cm2optics.errors import UserError
 from cm2optics.recon.solvers import Progress, SolverResult, Stopping, admm, admm_lsi, fista, richardson_lucy
 
-__all__ = ["METHODS", "ReconOptions", "memory_estimate", "reconstruct"]
+__all__ = ["METHODS", "ReconOptions", "check_memory", "memory_estimate", "reconstruct", "reconstruct_file"]
 
 METHODS = ("fista", "admm", "rl")
 #: Volume-sized float32 arrays each method keeps (without TV, extra with TV).
@@ -78,7 +81,7 @@ class ReconOptions:
         return Stopping(self.max_iter, self.tol, self.patience)
 
 
-def _operator_bytes(operator: Any) -> int:
+def _operator_bytes(operator: VolumeOperator) -> int:
     if hasattr(operator, "memory_bytes"):
         return int(operator.memory_bytes()) + int(getattr(operator, "transient_bytes", lambda: 0)())
     if hasattr(operator, "canvas_shape") and hasattr(operator, "depth_nodes") and hasattr(operator, "n_lenslets"):
@@ -87,7 +90,7 @@ def _operator_bytes(operator: Any) -> int:
     return 0
 
 
-def memory_estimate(operator: Any, options: ReconOptions) -> dict[str, float]:
+def memory_estimate(operator: VolumeOperator, options: ReconOptions) -> dict[str, float]:
     """Estimated peak bytes: ``volume_copies`` × volume + the operator's buffers (GiB)."""
     nz, ny, nx = operator.grid.shape
     if options.method == "admm" and isinstance(operator, DepthwiseConvOperator):
@@ -108,6 +111,21 @@ def memory_estimate(operator: Any, options: ReconOptions) -> dict[str, float]:
     }
 
 
+def check_memory(grid: Any, options: ReconOptions) -> None:
+    """Refuse, before anything is allocated, a run whose volume-sized arrays alone exceed
+    ``options.max_memory_gib`` on ``grid`` (a lower bound of :func:`memory_estimate`)."""
+    if grid is None:
+        return
+    nz, ny, nx = (int(n) for n in grid.shape)
+    base, extra = _COPIES[options.method]
+    gib = (base + (extra if options.tv > 0 else 0)) * nz * ny * nx * 4 / 2**30
+    if gib > options.max_memory_gib:
+        raise UserError(
+            f"{options.method} on a {nz}×{ny}×{nx} grid needs ≥ {gib:.3g} GiB (> --max-memory-gib "
+            f"{options.max_memory_gib:g}): use a coarser or smaller grid (--grid, --voxel-um), drop --tv, or use rl/fista"
+        )
+
+
 def _background(measurement: np.ndarray, background: str | float) -> float:
     if background == "auto":
         return float(np.median(measurement))
@@ -118,7 +136,7 @@ def _background(measurement: np.ndarray, background: str | float) -> float:
 
 def reconstruct(
     measurement: np.ndarray,
-    operator: Any,
+    operator: VolumeOperator,
     options: ReconOptions = ReconOptions(),
     *,
     progress: Progress | None = None,
@@ -216,3 +234,36 @@ def reconstruct(
 def _finite(values: list[float]) -> float | None:
     finite = [v for v in values if v is not None and math.isfinite(v)]
     return finite[-1] if finite else None
+
+
+def reconstruct_file(
+    measurement_path: str | Path,
+    model_path: str | Path,
+    out_path: str | Path,
+    options,
+    *,
+    forward: str = "lsv",
+    grid=None,
+    dark_level: float = 0.0,
+    progress=None,
+) -> dict:
+    """Read, reconstruct, write the volume (TIFF/.npy) and ``<out>.json`` beside it; returns the record."""
+    from cm2optics.formats.atomic import write_json_atomic
+    from cm2optics.formats.measurement import read_measurement
+    from cm2optics.formats.volume import write_volume
+    from cm2optics.formats.models import model_grid
+    from cm2optics.recon.operators import load_operator
+
+    out_path = Path(out_path)
+    if out_path.suffix.lower() not in (".tif", ".tiff", ".npy"):
+        raise UserError(f"--out {out_path}: give a .tif or .npy file name")
+    check_memory(grid or model_grid(model_path), options)  # before anything is read or allocated
+    measurement = read_measurement(measurement_path, dark_level)
+    operator = load_operator(model_path, grid, forward=forward)
+    volume, record = reconstruct(measurement, operator, options, progress=progress)
+    write_volume(out_path, volume, operator.grid.voxel_um)
+    record.update(
+        {"measurement": str(measurement_path), "model": str(model_path), "forward": forward, "volume": str(out_path)}
+    )
+    write_json_atomic(out_path.with_suffix(".json"), record)
+    return record

@@ -37,6 +37,8 @@ from typing import Any
 import numpy as np
 import torch
 
+from cm2optics.formats.operator import VolumeOperator
+from cm2optics.lsv.lsi import DepthwiseConvOperator
 from cm2optics.recon.regularizers import TV, axis_weights, soft_nonneg
 
 __all__ = ["SolverResult", "Stopping", "admm", "admm_lsi", "fista", "lipschitz", "power_iteration", "richardson_lucy"]
@@ -107,7 +109,7 @@ def _tensor(data: Any) -> torch.Tensor:
 _LIPSCHITZ: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
-def lipschitz(operator: Any) -> float:
+def lipschitz(operator: VolumeOperator) -> float:
     """‖A‖² of ``operator`` (power iteration), cached on the operator object."""
     try:
         return _LIPSCHITZ[operator]
@@ -122,7 +124,7 @@ def lipschitz(operator: Any) -> float:
 
 
 @torch.no_grad()
-def power_iteration(operator: Any, iterations: int = 20, seed: int = 0) -> float:
+def power_iteration(operator: VolumeOperator, iterations: int = 20, seed: int = 0) -> float:
     """Estimate ‖A‖² (the largest eigenvalue of AᵀA) by power iteration; returns it × 1.02."""
     generator = torch.Generator().manual_seed(seed)
     x = torch.rand(operator.grid.shape, generator=generator, dtype=torch.float32)
@@ -137,13 +139,13 @@ def power_iteration(operator: Any, iterations: int = 20, seed: int = 0) -> float
     return 1.02 * value
 
 
-def _tv(tv_weights: tuple[float, float, float] | None, operator: Any, iterations: int) -> TV:
+def _tv(tv_weights: tuple[float, float, float] | None, operator: VolumeOperator, iterations: int) -> TV:
     return TV(tv_weights if tv_weights is not None else axis_weights(operator.grid.voxel_um), iterations)
 
 
 @torch.no_grad()
 def fista(
-    operator: Any,
+    operator: VolumeOperator,
     b: Any,
     *,
     l1: float = 0.0,
@@ -218,7 +220,7 @@ def _shrink_iso(g: torch.Tensor, threshold: float) -> torch.Tensor:
 
 @torch.no_grad()
 def admm(
-    operator: Any,
+    operator: VolumeOperator,
     b: Any,
     *,
     l1: float = 0.0,
@@ -290,7 +292,7 @@ def admm(
 _LSI_SETUP: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
-def _lsi_setup(operator: Any, nzp: int, mu: tuple[float, float, float], weights: tuple, use_tv: bool) -> tuple:
+def _lsi_setup(operator: DepthwiseConvOperator, nzp: int, mu: tuple[float, float, float], weights: tuple, use_tv: bool) -> tuple:
     """K̂ (z-padded), a = F_z conj(K̂), Λ = μ_tv·|D̂|² + μ_w, a/Λ, 1 + μ_v·aᴴΛ⁻¹a and max Σ|K̂|²."""
     key = (nzp, mu, weights, use_tv)
     cached = _LSI_SETUP.get(operator)
@@ -323,7 +325,7 @@ def _lsi_setup(operator: Any, nzp: int, mu: tuple[float, float, float], weights:
 
 @torch.no_grad()
 def admm_lsi(
-    operator: Any,
+    operator: DepthwiseConvOperator,
     b: Any,
     *,
     l1: float = 0.0,
@@ -334,7 +336,7 @@ def admm_lsi(
     tv_weights: tuple[float, float, float] | None = None,
     progress: Progress | None = None,
 ) -> SolverResult:
-    """The V1 paper's ADMM for a :class:`~cm2optics.recon.operators.DepthwiseConvOperator` (see
+    """The V1 paper's ADMM for a :class:`~cm2optics.lsv.lsi.DepthwiseConvOperator` (see
     the module docstring). mu: (μ_v, μ_tv, μ_w), the last two relative to max |K̂|² (the
     operator's ‖A‖² on the canvas)."""
     start = time.perf_counter()
@@ -422,7 +424,7 @@ def admm_lsi(
 
 @torch.no_grad()
 def richardson_lucy(
-    operator: Any,
+    operator: VolumeOperator,
     b: Any,
     *,
     background: float = 0.0,

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from cm2optics.optics import interfaces
 from cm2optics.spectra.spectrum import DEFAULT_WAVELENGTH_NM, Spectrum
 
 __all__ = [
@@ -55,9 +56,7 @@ def fresnel_transmittance(aoi_rad: float | np.ndarray, refractive_index: float) 
     n = refractive_index
     cos_i = np.cos(theta)
     cos_t = np.cos(refracted_angle_rad(theta, n))
-    r_s = ((cos_i - n * cos_t) / (cos_i + n * cos_t)) ** 2
-    r_p = ((cos_t - n * cos_i) / (cos_t + n * cos_i)) ** 2
-    result = 1.0 - 0.5 * (r_s + r_p)
+    result = np.asarray(interfaces.fresnel_transmittance(cos_i, cos_t, 1.0, n))
     return float(result) if result.ndim == 0 else result
 
 

@@ -18,14 +18,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from cm2optics.design import AbsorptionFilter, InterferenceFilter, SystemDesign
-from cm2optics.materials import refractive_index
+from cm2optics.design.materials import refractive_index
 from cm2optics.spectra.absorption import AbsorptionFilm
-from cm2optics.spectra.geometry import excitation_half_angle_rad
 from cm2optics.spectra.interference import InterferenceBandpass
 from cm2optics.spectra.library import et_bandpass, led_spectrum, wratten12_film
 from cm2optics.spectra.spectrum import DEFAULT_WAVELENGTH_NM, Spectrum
 
 __all__ = [
+    "excitation_half_angle_rad",
     "DEFAULT_FILM",
     "EmissionChain",
     "absorption_film_from_design",
@@ -36,6 +36,20 @@ __all__ = [
 
 #: The film a design without one is compared against: Wratten no. 12 class, 0.1 mm, 515 nm.
 DEFAULT_FILM = wratten12_film(515.0, 0.1)
+
+
+def excitation_half_angle_rad(design: SystemDesign) -> float:
+    """Half-angle of the cone of excitation light leaving an LED unit, rad.
+
+    With a collimator: the étendue limit of a Lambertian emitter of side e through a square exit
+    face of side b, sin δ = e / b (a perfect collimator can do no better). A bare LED: the widest
+    ray from the emitter's edge through the excitation filter's far edge.
+    """
+    led = design.led
+    if design.collimator is not None:
+        return math.asin(min(1.0, led.emitter_mm / design.collimator.footprint_mm))
+    half = max(design.excitation_filter.width_mm, design.excitation_filter.length_mm) / 2
+    return math.atan((half + led.emitter_mm / 2) / design.led_array.excitation_gap_mm)
 
 
 def interference_filter_from_design(part: InterferenceFilter) -> InterferenceBandpass:
@@ -102,7 +116,7 @@ def excitation_spectrum(design: SystemDesign, angle_samples: int = 16) -> Spectr
     """Relative spectral power of the excitation light leaving an LED unit (LED × excitation filter).
 
     The filter's transmittance is averaged over the unit's cone of half-angle
-    :func:`~cm2optics.spectra.geometry.excitation_half_angle_rad`, weighted by the projected
+    :func:`excitation_half_angle_rad`, weighted by the projected
     solid angle sin θ cos θ dθ (uniform radiance within the cone); ``angle_samples`` midpoints.
     """
     if not (isinstance(angle_samples, int) and 1 <= angle_samples <= 1000):

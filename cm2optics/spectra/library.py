@@ -45,6 +45,7 @@ __all__ = [
     "available_spectra",
     "bsi_silicon_quantum_efficiency",
     "egfp_emission",
+    "egfp_emission_band_nm",
     "egfp_excitation",
     "et_bandpass",
     "led_spectrum",
@@ -54,7 +55,7 @@ __all__ = [
     "write_library",
 ]
 
-#: Refractive index of a gelatin film base (n_D ≈ 1.53; cm2optics.materials uses the same value).
+#: Refractive index of a gelatin film base (n_D ≈ 1.53; cm2optics.design.materials uses the same value).
 GELATIN_INDEX = 1.53
 
 # ----------------------------------------------------------------------------- LED
@@ -197,6 +198,14 @@ def egfp_emission() -> Spectrum:
         quantity="relative_emission",
         source="EGFP/fluorescein class emission: log-normal 0-0 band at 508 nm + vibronic shoulder at -1300 cm-1 (Siano & Metzler 1969)",
     )
+
+
+def egfp_emission_band_nm(level: float = 0.1) -> tuple[float, float]:
+    """(low, high) wavelengths, nm, between which :func:`egfp_emission` exceeds ``level`` (0–1) of
+    its peak: the band an emission filter must pass (≈ 484–578 nm at 10 %)."""
+    spectrum = egfp_emission()
+    above = spectrum.wavelength_nm[spectrum.values >= level]
+    return float(above.min()), float(above.max())
 
 
 def egfp_excitation() -> Spectrum:

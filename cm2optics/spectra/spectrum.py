@@ -29,7 +29,7 @@ from typing import Any
 import colour
 import numpy as np
 
-from cm2optics.io import write_text_atomic
+from cm2optics.formats.atomic import write_text_atomic
 
 __all__ = [
     "DEFAULT_WAVELENGTH_NM",

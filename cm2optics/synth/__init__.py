@@ -6,7 +6,7 @@
 - :mod:`~cm2optics.synth.noise`: Poisson + Gaussian, or variance = a·I + b.
 - :mod:`~cm2optics.synth.imaging`, :mod:`~cm2optics.synth.views`, :mod:`~cm2optics.synth.generate`:
   measurement, demixed views, views at the chief rays, patches.
-- :mod:`~cm2optics.synth.dataset`: HDF5 files + manifest, made on Dask. :mod:`~cm2optics.synth.cli`: ``cm2 synth``.
+- :mod:`~cm2optics.synth.dataset`: HDF5 files + manifest, made on Dask. :mod:`~cm2optics.cli.synth`: ``cm2 synth``.
 """
 
 from cm2optics.synth.config import SynthConfig

@@ -1,7 +1,7 @@
 """Parameters of a synthetic data set: one frozen, validated dataclass; every size is a field.
 
 :meth:`SynthConfig.paper` is the paper's full-size recipe (Section 2.4): field of view
-U[6.5, 7.5] mm, 800 µm deep, 4.15 × 4.15 × 10 µm voxels, balls made on a 5× finer grid and
+U[6.5, 7.5] mm, 800 µm deep, 4.12 × 4.12 × 10 µm voxels (the cm2-v2 object pixel and axial step), balls made on a 5× finer grid and
 averaged down, diameter U[8, 20] µm, intensity ∝ diameter² × U[0.8, 1.2], density U[10, 100]
 per mm², mixed Poisson (≈ 500 peak photons) and Gaussian (mean 0.048, sd 0.017) noise, nine
 1920 × 1920 views cropped at the chief rays, 320 × 320 training patches.
@@ -18,7 +18,9 @@ import math
 from dataclasses import asdict, dataclass, fields, replace
 from typing import Any
 
-from cm2optics.volume_io import VolumeGrid
+from cm2optics.design import default_design
+from cm2optics.optics import first_order
+from cm2optics.formats.volume import VolumeGrid
 
 __all__ = ["NOISE_MODELS", "RENDER_MODES", "SynthConfig"]
 
@@ -40,7 +42,7 @@ def _pair(name: str, value: Any, low: float, high: float, unit: str) -> tuple[fl
 class SynthConfig:
     """fov_mm: (low, high) field of view per sample, mm (diameter of the disc, or side).
     field_shape: ``disk`` or ``square``. depth_um: axial extent (emitter centres within ±depth/2), µm.
-    voxel_um: (z, y, x) voxel pitch, µm. supersample: fine sub-voxels per voxel and axis.
+    voxel_um: (z, y, x) voxel pitch, µm (None: the cm2-v2 preset's axial step and object pixel). supersample: fine sub-voxels per voxel and axis.
     diameter_um: (low, high) ball diameter, µm. intensity_jitter: (low, high) factor on d².
     density_per_mm2: (low, high) emitters per mm² of the field.
     noise: ``poisson-gaussian`` (peak_photons, offset_mean, offset_sd), ``variance``
@@ -55,7 +57,7 @@ class SynthConfig:
     fov_mm: tuple[float, float] = (6.5, 7.5)
     field_shape: str = "disk"
     depth_um: float = 800.0
-    voxel_um: tuple[float, float, float] = (10.0, 4.15, 4.15)
+    voxel_um: tuple[float, float, float] | None = None
     supersample: int = 5
     diameter_um: tuple[float, float] = (8.0, 20.0)
     intensity_jitter: tuple[float, float] = (0.8, 1.2)
@@ -77,6 +79,8 @@ class SynthConfig:
         object.__setattr__(self, "diameter_um", _pair("diameter_um", self.diameter_um, 0.0, 1000.0, "µm"))
         object.__setattr__(self, "intensity_jitter", _pair("intensity_jitter", self.intensity_jitter, 0.0, 100.0, ""))
         object.__setattr__(self, "density_per_mm2", _pair("density_per_mm2", self.density_per_mm2, 0.0, 1e5, "per mm²"))
+        if self.voxel_um is None:
+            object.__setattr__(self, "voxel_um", first_order.voxel_um(default_design()))
         try:
             voxel = tuple(float(v) for v in self.voxel_um)
         except (TypeError, ValueError):

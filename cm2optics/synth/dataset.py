@@ -35,17 +35,23 @@ import h5py
 import numpy as np
 
 import cm2optics
-from cm2optics.io import write_atomic, write_json_atomic
+from cm2optics.formats.atomic import write_atomic, write_json_atomic
+from cm2optics.formats.emitters import EMITTER_COLUMNS, Emitters
 from cm2optics.synth.config import SynthConfig
 from cm2optics.synth.generate import Sample, synthesize_sample
 from cm2optics.synth.imaging import Imaging, load_imaging
-from cm2optics.volume_io import EMITTER_COLUMNS, Emitters
 
-__all__ = ["SAMPLE_FORMAT", "make_dataset", "read_sample", "write_sample"]
+__all__ = ["SAMPLE_FORMAT", "DatasetError", "make_dataset", "read_sample", "write_sample"]
 
 SAMPLE_FORMAT = "cm2optics-synth-sample"
 DATASET_FORMAT = "cm2optics-synth-dataset"
 VERSION = 1
+#: Manifest fields that fix a data set's content: a rerun into the same folder must match them.
+INPUT_FIELDS = ("seed", "config", "model_sha256")
+
+
+class DatasetError(ValueError):
+    """A data set folder or sample file that cannot be used; the message names the file and field."""
 
 
 def _dataset(group: h5py.Group, name: str, data: np.ndarray, chunks: Any = True, compress: bool = True) -> None:
@@ -80,6 +86,7 @@ def _arrays(sample: Sample) -> dict[str, np.ndarray]:
 def write_sample(path: str | Path, sample: Sample, config: SynthConfig) -> dict[str, Any]:
     """Write one sample file atomically; returns its summary with ``content_sha256``."""
     arrays = _arrays(sample)
+    digest = _content_hash(arrays)
     grid = config.grid
 
     def write(tmp: Path) -> None:
@@ -95,6 +102,7 @@ def write_sample(path: str | Path, sample: Sample, config: SynthConfig) -> dict[
             f.attrs["grid"] = json.dumps(grid.to_dict())
             f.attrs["config"] = json.dumps(config.to_dict())
             f.attrs["emitter_columns"] = ",".join(EMITTER_COLUMNS)
+            f.attrs["content_sha256"] = digest
             for name, data in arrays.items():
                 if name == "volume":
                     _dataset(f, name, data, chunks=(1,) + tuple(min(n, 256) for n in data.shape[1:]))
@@ -106,27 +114,87 @@ def write_sample(path: str | Path, sample: Sample, config: SynthConfig) -> dict[
     write_atomic(Path(path), write)
     summary = sample.summary()
     summary["file"] = Path(path).name
-    summary["content_sha256"] = _content_hash(arrays)
+    summary["content_sha256"] = digest
     return summary
 
 
-def read_sample(path: str | Path) -> dict[str, Any]:
-    """A sample file's arrays and attributes (``emitters`` as :class:`Emitters`)."""
+def read_sample(path: str | Path, *, verify: bool = True) -> dict[str, Any]:
+    """A sample file's arrays and attributes (``emitters`` as :class:`Emitters`).
+
+    verify: check the arrays against the ``content_sha256`` the file (or, for older files, the
+    data set's ``manifest.json``) records; a mismatch raises :class:`DatasetError` naming the file.
+    """
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such sample file")
-    with h5py.File(path, "r") as f:
-        if f.attrs.get("format") != SAMPLE_FORMAT:
-            raise ValueError(f"{path}: not a synthetic sample (format = {f.attrs.get('format')!r})")
-        out: dict[str, Any] = {k: (json.loads(v) if k in ("grid", "config") else v) for k, v in f.attrs.items()}
-        for name in ("measurement", "views", "demixed", "volume"):
-            if name in f:
-                out[name] = f[name][()]
-        if "patches" in f:
-            out["patches"] = {k: f["patches"][k][()] for k in f["patches"]}
-        table = f["emitters"][()]
+    try:
+        with h5py.File(path, "r") as f:
+            if f.attrs.get("format") != SAMPLE_FORMAT:
+                raise DatasetError(f"{path}: not a synthetic sample (format = {f.attrs.get('format')!r})")
+            out: dict[str, Any] = {k: (json.loads(v) if k in ("grid", "config") else v) for k, v in f.attrs.items()}
+            arrays = {name: f[name][()] for name in ("emitters", "measurement", "views", "demixed", "volume") if name in f}
+            if "patches" in f:
+                arrays |= {f"patches/{k}": f["patches"][k][()] for k in f["patches"]}
+    except OSError as error:
+        raise DatasetError(f"{path}: not a readable sample file ({error})") from None
+    if verify:
+        expected = out.get("content_sha256") or _manifest_hash(path)
+        if expected is not None and _content_hash(arrays) != expected:
+            raise DatasetError(
+                f"{path}: content_sha256 does not match the arrays (the file was changed or corrupted after it was written)"
+            )
+    table = arrays.pop("emitters")
+    out |= {k: v for k, v in arrays.items() if not k.startswith("patches/")}
+    if any(k.startswith("patches/") for k in arrays):
+        out["patches"] = {k.split("/", 1)[1]: v for k, v in arrays.items() if k.startswith("patches/")}
     out["emitters"] = Emitters(*table.T) if len(table) else Emitters(*(np.zeros(0) for _ in EMITTER_COLUMNS))
     return out
+
+
+def _manifest_hash(path: Path) -> str | None:
+    """The ``content_sha256`` that the data set's manifest records for sample ``path``, if any."""
+    manifest = path.parent.parent / "manifest.json"
+    try:
+        samples = json.loads(manifest.read_text()).get("samples", [])
+    except (OSError, ValueError):
+        return None
+    return next((s.get("content_sha256") for s in samples if s.get("file") == path.name), None)
+
+
+def _inputs(manifest: dict[str, Any]) -> dict[str, Any]:
+    return {
+        "seed": manifest.get("seed"),
+        "config": manifest.get("config"),
+        "model_sha256": (manifest.get("model") or {}).get("sha256"),
+    }
+
+
+def _check_resume(out_dir: Path, manifest: dict[str, Any]) -> None:
+    """Refuse to write into a folder whose manifest records other inputs (a rerun with the same
+    inputs remakes the same files)."""
+    path = out_dir / "manifest.json"
+    if not path.is_file():
+        return
+    try:
+        before = json.loads(path.read_text())
+    except ValueError:
+        raise DatasetError(f"{path}: not valid JSON; remove the folder or write elsewhere") from None
+    if before.get("format") != DATASET_FORMAT:
+        raise DatasetError(f"{path}: not a synthetic data set manifest; write elsewhere")
+    old, new = _inputs(before), _inputs(manifest)
+    for field in INPUT_FIELDS:
+        if field == "model_sha256" and (old[field] is None or new[field] is None):
+            continue
+        if old[field] != new[field]:
+            if field == "config":
+                changed = sorted(k for k in set(old["config"] or {}) | set(new["config"]) if (old["config"] or {}).get(k) != new["config"].get(k))
+                what = f"config ({', '.join(changed)})"
+            else:
+                what = f"{field} ({old[field]!r} there, {new[field]!r} now)"
+            raise DatasetError(
+                f"{out_dir}: holds a data set made with another {what}; samples of two runs would mix. "
+                "Rerun with the same inputs to resume, or write into a new folder"
+            )
 
 
 # ----------------------------------------------------------------------------- tasks
@@ -207,6 +275,19 @@ def make_dataset(
             "n_lenslets": imaging.n_lenslets,
         }
     config_dict = config.to_dict()
+    header = {
+        "format": DATASET_FORMAT,
+        "version": VERSION,
+        "cm2optics_version": cm2optics.__version__,
+        "created": datetime.now(UTC).isoformat(timespec="seconds"),
+        "seed": seed,
+        "n_volumes": n_volumes,
+        "config": config_dict,
+        "grid": config.grid.to_dict(),
+        "model": model_info,
+    }
+    _check_resume(out_dir, json.loads(json.dumps(header)))
+    write_json_atomic(out_dir / "manifest.json", header | {"complete": False, "samples": []})
     paths = [samples_dir / f"sample_{i:05d}.h5" for i in range(n_volumes)]
     start = time.perf_counter()
     summaries: list[dict[str, Any] | None] = [None] * n_volumes
@@ -246,16 +327,8 @@ def make_dataset(
         [(s["index"], p) for s in done_summaries for p in range(s["n_patches"])], dtype=np.int32
     ).reshape(-1, 2)
     _write_index(out_dir / "dataset.h5", config, seed, paths, patch_index)
-    manifest = {
-        "format": DATASET_FORMAT,
-        "version": VERSION,
-        "cm2optics_version": cm2optics.__version__,
-        "created": datetime.now(UTC).isoformat(timespec="seconds"),
-        "seed": seed,
-        "n_volumes": n_volumes,
-        "config": config_dict,
-        "grid": config.grid.to_dict(),
-        "model": model_info,
+    manifest = header | {
+        "complete": True,
         "workers": "in-process"
         if workers == 0 and not dask_address
         else (dask_address or f"local cluster × {workers}"),

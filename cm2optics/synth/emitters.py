@@ -18,8 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from cm2optics.formats.emitters import Emitters
 from cm2optics.synth.config import SynthConfig
-from cm2optics.volume_io import Emitters
 
 __all__ = ["EmitterDraw", "sample_emitters", "sample_rng"]
 

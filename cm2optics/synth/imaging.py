@@ -2,7 +2,7 @@
 
 :class:`Imaging` wraps either an :class:`~cm2optics.lsv.model.LSVModel` (images of emitters
 straight from the model with ``forward_sparse``, or of the rasterised volume through its
-operator) or an operator of the protocol in :mod:`cm2optics.recon.operators` with
+operator) or an operator of :class:`~cm2optics.formats.operator.VolumeOperator` with
 ``forward(volume, per_lenslet=True)`` and ``chief_rays_px()`` (the depth-wise LSI operator, a
 test's analytic operator). It gives the per-lenslet (crosstalk-free) images — their sum is the
 measurement — the chief rays of the nine views, and the in-focus mapping of voxels onto pixels.
@@ -17,7 +17,9 @@ from typing import Any
 
 import numpy as np
 
-from cm2optics.volume_io import Emitters, VolumeGrid
+from cm2optics.formats.emitters import Emitters
+from cm2optics.formats.models import load_forward_model
+from cm2optics.formats.volume import VolumeGrid
 
 __all__ = ["Imaging", "load_imaging"]
 
@@ -93,17 +95,8 @@ class Imaging:
 
 @functools.lru_cache(maxsize=2)
 def _load_cached(path: str, mtime: float, grid_key: tuple, render: str) -> Imaging:
-    from cm2optics.recon.operators import PSF_STACK_FORMAT, DepthwiseConvOperator, model_format
-
     grid = VolumeGrid(grid_key[0], grid_key[1])
-    kind = model_format(path)
-    if kind == "cm2optics-lsv":
-        from cm2optics.lsv.model import load_model
-
-        return Imaging(load_model(path), grid, render)
-    if kind == PSF_STACK_FORMAT:
-        return Imaging(DepthwiseConvOperator.load(path), grid, render)
-    raise ValueError(f"{path}: unknown model format {kind!r} (expected cm2optics-lsv or {PSF_STACK_FORMAT})")
+    return Imaging(load_forward_model(path), grid, render)
 
 
 def load_imaging(path: str | Path, grid: VolumeGrid, render: str = "auto") -> Imaging:

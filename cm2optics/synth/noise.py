@@ -18,7 +18,16 @@ import numpy as np
 
 from cm2optics.synth.config import SynthConfig
 
-__all__ = ["add_noise", "noise_variance"]
+__all__ = ["add_noise", "noise_variance", "poisson_gaussian"]
+
+
+def poisson_gaussian(
+    clean: np.ndarray, peak_photons: float, offset_mean: float, offset_sd: float, rng: np.random.Generator
+) -> np.ndarray:
+    """The paper's mixed noise on a normalised image (≥ 0): ``Poisson(I·N)/N + Normal(offset_mean,
+    offset_sd)`` with ``N = peak_photons`` (float64)."""
+    photons = rng.poisson(clean * peak_photons)
+    return photons / peak_photons + rng.normal(offset_mean, offset_sd, clean.shape)
 
 
 def add_noise(clean: np.ndarray, config: SynthConfig, rng: np.random.Generator) -> np.ndarray:
@@ -30,8 +39,7 @@ def add_noise(clean: np.ndarray, config: SynthConfig, rng: np.random.Generator) 
     if config.noise == "none":
         return clean.astype(np.float32)
     if config.noise == "poisson-gaussian":
-        photons = rng.poisson(clean * config.peak_photons)
-        noisy = photons / config.peak_photons + rng.normal(config.offset_mean, config.offset_sd, clean.shape)
+        noisy = poisson_gaussian(clean, config.peak_photons, config.offset_mean, config.offset_sd, rng)
         return noisy.astype(np.float32)
     sd = np.sqrt(config.variance_a * clean + config.variance_b)
     return (clean + sd * rng.standard_normal(clean.shape)).astype(np.float32)

@@ -25,7 +25,8 @@ import math
 
 import numpy as np
 
-from cm2optics.volume_io import Emitters, VolumeGrid
+from cm2optics.formats.emitters import Emitters
+from cm2optics.formats.volume import VolumeGrid
 
 __all__ = ["rasterize_balls", "rasterize_balls_naive"]
 

@@ -1,0 +1,261 @@
+"""``cm2 illum``: trace the illumination path and search for better collimators.
+
+Registered by :mod:`cm2optics.cli` as ``app.add_typer(illum_app, name="illum")``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+from rich.console import Console
+from rich.table import Table
+
+from cm2optics.cli.options import (
+    JsonOption,
+    OverwriteOption,
+    PresetOption,
+    check_dask_address,
+    check_output,
+    output_folder,
+    parse_float_list,
+    user_errors,
+)
+from cm2optics.errors import UserError
+from cm2optics.illumination.metrics import DEFINITIONS, IlluminationFigures
+
+__all__ = ["illum_app"]
+
+err = Console(stderr=True)
+out = Console()
+
+_DEFINITIONS_HELP = "\n\n".join(f"{name}: {text}." for name, text in DEFINITIONS.items())
+
+illum_app = typer.Typer(
+    help="Illumination: ray-trace LED → collimator → excitation filter → sample plane (Mitsuba 3 / Dr.Jit).\n\n"
+    "Figures of merit (each with its Monte Carlo standard error):\n\n" + _DEFINITIONS_HELP,
+    no_args_is_help=True,
+    context_settings={"help_option_names": ["-h", "--help"]},
+)
+
+
+def _format(estimate: Any, percent: bool = False, digits: int = 3) -> str:
+    value, stderr = estimate.value, estimate.stderr
+    if not math.isfinite(value):
+        return "–"
+    if percent:
+        return f"{100 * value:.1f} ± {100 * stderr:.1f} %"
+    return f"{value:.{digits}g} ± {stderr:.2g}"
+
+
+def figures_table(results: list[IlluminationFigures], title: str) -> Table:
+    """The comparison as a rich table: one column per design."""
+    table = Table(title=title)
+    table.add_column("figure")
+    for result in results:
+        table.add_column(result.label, justify="right")
+    rows = [
+        ("throughput", lambda f: _format(f.throughput, True)),
+        ("delivered_fraction (Ø field)", lambda f: _format(f.delivered_fraction, True)),
+        ("power_mw (array)", lambda f: _format(f.power_mw)),
+        ("uniformity_cv", lambda f: _format(f.uniformity_cv, True) + f" (noise {100 * f.uniformity_cv_noise:.1f} %)"),
+        ("uniformity_min_max", lambda f: _format(f.uniformity_min_max)),
+        ("fraction_within_30deg", lambda f: _format(f.fraction_within_30deg, True)),
+        (
+            "beam half-angle 50 % / 90 % (deg)",
+            lambda f: f"{f.beam_half_angle_50_deg.value:.1f} / {f.beam_half_angle_90_deg.value:.1f}",
+        ),
+        ("absorbed", lambda f: _format(f.ledger["absorbed"], True)),
+        ("escaped", lambda f: _format(f.ledger["escaped"], True)),
+        ("rays (all LEDs)", lambda f: f"{f.rays:,}"),
+        ("trace time (s)", lambda f: f"{f.seconds:.2f}"),
+    ]
+    for name, cell in rows:
+        table.add_row(name, *[cell(r) for r in results])
+    return table
+
+
+@illum_app.command("run")
+@user_errors
+def run(
+    preset: PresetOption = "cm2-v2",
+    collimator: Annotated[
+        Path | None,
+        typer.Option(
+            "--collimator", help="A collimator STL (mm) to trace beside the V1 baseline and the design's own part."
+        ),
+    ] = None,
+    led_position: Annotated[
+        str | None,
+        typer.Option(
+            "--led-position", help="Centre of the LED's emitting surface in the STL's frame, X,Y,Z mm (default 0,0,0)."
+        ),
+    ] = None,
+    led_axis: Annotated[
+        str | None,
+        typer.Option("--led-axis", help="Direction the LED emits in, in the STL's frame, X,Y,Z (default 0,0,1)."),
+    ] = None,
+    rays: Annotated[
+        int, typer.Option("--rays", "-n", help="LED rays per design, split over the LEDs (≥ 1000).")
+    ] = 1_000_000,
+    led_profile: Annotated[
+        Path | None,
+        typer.Option(
+            "--led-profile", help="LED angular profile CSV (angle_deg,relative_intensity); default Lambertian."
+        ),
+    ] = None,
+    led_spectrum: Annotated[
+        Path | None,
+        typer.Option(
+            "--led-spectrum",
+            help="LED spectrum CSV (wavelength_nm,relative_power); default: spectra library model at led.peak_nm.",
+        ),
+    ] = None,
+    filter_table: Annotated[
+        Path | None,
+        typer.Option(
+            "--filter-table",
+            help="Excitation filter angle table (wavelength_nm,aoi_deg,Ts,Tp or T), fitted with the spectra models; default: the model of excitation_filter.",
+        ),
+    ] = None,
+    no_filter: Annotated[
+        bool, typer.Option("--no-filter", help="Leave the excitation filter out (a bare optical trace).")
+    ] = False,
+    no_housing: Annotated[
+        bool, typer.Option("--no-housing", help="Leave the absorbing housings and imaging tower out.")
+    ] = False,
+    flat_normals: Annotated[
+        bool, typer.Option("--flat-normals", help="Trace collimators as their flat facets, not smooth surfaces.")
+    ] = False,
+    led_flux_mw: Annotated[
+        float | None, typer.Option("--led-flux-mw", help="Radiant flux of each LED, mW (default: led.radiant_flux_mw).")
+    ] = None,
+    bin_mm: Annotated[
+        float, typer.Option("--bin-mm", help="Side of the uniformity bins on the sample plane, mm.")
+    ] = 0.5,
+    seed: Annotated[int, typer.Option("--seed", help="Random seed: the same seed gives the same numbers.")] = 0,
+    out_dir: Annotated[
+        Path, typer.Option("--out", "-o", help="Folder for the irradiance maps (PNG) and illumination.json.")
+    ] = Path("out/illum"),
+    overwrite: OverwriteOption = False,
+    as_json: JsonOption = False,
+) -> None:
+    """Trace the V1 baseline (bare LED + filter), the design's collimator (CAD part) and
+    optionally an STL, all in the same setup: four LEDs at their tilt and offset, filter,
+    housings, sample plane at the nominal focal plane.
+
+    --json prints, for the last design (the STL if given, else the design's collimator):
+    throughput, delivered_fraction, power_mw, uniformity_cv, uniformity_min_max,
+    fraction_within_30deg, beam_half_angle_50_deg, beam_half_angle_90_deg (each with
+    *_stderr), uniformity_cv_noise, ledger, rays, per_led, and `designs` with every design's
+    figures. Definitions: see `cm2 illum --help`. The authors' part, for example:
+    --collimator CM2_V2_freeform_illuminator.stl --led-position 0,0,1 --led-axis 0,0,-1.
+    """
+    from cm2optics.design import load_preset
+    from cm2optics.optics.backend import variant
+    from cm2optics.illumination.run import run_illumination
+
+    design = load_preset(preset)
+    inputs = [preset, collimator, led_profile, led_spectrum, filter_table]
+    check_output(out_dir, command="illum run", kind="folder", inputs=inputs, overwrite=overwrite)
+    vector = {"n": 3, "example": "0,0,1"}
+
+    def progress(label: str) -> None:
+        if not as_json:
+            err.print(f"tracing [bold]{label}[/] ({rays:,} rays on {variant().variant})")
+
+    document, results = run_illumination(
+        design,
+        out_dir,
+        collimator=collimator,
+        led_position=parse_float_list(led_position, name="--led-position", **vector),
+        led_axis=parse_float_list(led_axis, name="--led-axis", **vector),
+        rays=rays,
+        led_profile=led_profile,
+        led_spectrum=led_spectrum,
+        filter_table=filter_table,
+        no_filter=no_filter,
+        no_housing=no_housing,
+        flat_normals=flat_normals,
+        led_flux_mw=led_flux_mw,
+        bin_mm=bin_mm,
+        seed=seed,
+        progress=progress,
+    )
+    if as_json:
+        print(json.dumps(document, indent=2, ensure_ascii=False))
+        return
+    out.print(figures_table(results, f"{design.name}: illumination, {rays:,} rays per design ({variant().variant})"))
+    out.print(f"maps and illumination.json in {out_dir}")
+
+
+@illum_app.command("optimize")
+@user_errors
+def optimize(
+    preset: PresetOption = "cm2-v2",
+    rays: Annotated[int, typer.Option("--rays", "-n", help="LED rays per candidate (all LEDs).")] = 200_000,
+    max_cv: Annotated[
+        float, typer.Option("--max-cv", help="Uniformity constraint: coefficient of variation inside the circle (0–1).")
+    ] = 0.10,
+    samples: Annotated[int, typer.Option("--samples", help="Candidates of the first (space-filling) sweep.")] = 64,
+    rounds: Annotated[int, typer.Option("--rounds", help="Refinement sweeps around the best feasible candidate.")] = 2,
+    dask_address: Annotated[
+        str | None,
+        typer.Option("--dask-address", help="An existing Dask scheduler (tcp://host:8786); default: a local cluster."),
+    ] = None,
+    workers: Annotated[int, typer.Option("--workers", help="Workers of the local Dask cluster.")] = 2,
+    seed: Annotated[int, typer.Option("--seed", help="Random seed of the sweep and of the traces.")] = 0,
+    out_dir: Annotated[
+        Path, typer.Option("--out", "-o", help="Folder for the improved design YAML, its STL and the sweep table.")
+    ] = Path("out/illum-opt"),
+    overwrite: OverwriteOption = False,
+    as_json: JsonOption = False,
+) -> None:
+    """Search the collimator's parameters for the largest delivered fraction whose array
+    uniformity (CV inside the circle) is ≤ --max-cv, as a parallel sweep on Dask, and write
+    the best design (`design.yaml`, which rebuilds the part), its CAD collimator
+    (`collimator.stl`, checked for printing: watertight, walls ≥ mechanics.min_wall_mm) and every
+    candidate (`sweep.json`). Swept: lens angle, cavity radius, LED gap, entry wall, height,
+    and the two sub-beams' output spreads and mapping exponents (collimator.lens_spread_deg …;
+    zero spreads = the collimating cm2-v2 architecture). Reports beside it the étendue bound and the most
+    any rotationally symmetric beam can deliver at that CV (`uniform_beam_bound`).
+    """
+    from cm2optics.design import load_preset
+    from cm2optics.illumination.optimize import optimize_collimator
+
+    if not 0 < max_cv < 1:
+        raise UserError(f"--max-cv = {max_cv}: must lie within 0–1")
+    if rays < 1000:
+        raise UserError(f"--rays = {rays}: must be ≥ 1000")
+    if samples < 2 or rounds < 0 or workers < 1:
+        raise UserError("--samples must be ≥ 2, --rounds ≥ 0, --workers ≥ 1")
+    design = load_preset(preset)
+    check_dask_address(dask_address)
+    output_folder(out_dir, "illum optimize", inputs=[preset], overwrite=overwrite)
+    result = optimize_collimator(
+        design,
+        out_dir,
+        rays=rays,
+        max_cv=max_cv,
+        samples=samples,
+        rounds=rounds,
+        dask_address=dask_address,
+        workers=workers,
+        seed=seed,
+        show_progress=not as_json,
+    )
+    summary = {k: v for k, v in result.items() if k != "candidates"}  # every candidate is in sweep.json
+    if as_json:
+        print(json.dumps(summary, indent=2, ensure_ascii=False))
+        return
+    out.print_json(json.dumps(summary, ensure_ascii=False))
+    verdict = "meets" if summary["meets_uniformity"] else "does NOT meet"
+    out.print(
+        f"best: delivered {summary['delivered_fraction']:.1%} ± {summary['delivered_fraction_stderr']:.2%}, "
+        f"CV {summary['uniformity_cv']:.1%} ({verdict} CV ≤ {max_cv:.0%}); étendue/filter bound "
+        f"{summary['etendue_bound']['delivered_bound']:.1%}; best symmetric beam at this CV "
+        f"{summary['uniform_beam_bound']['delivered_bound']:.1%}; printable: {summary['printability']['printable']}"
+    )

@@ -1,0 +1,328 @@
+"""``cm2 lsv build``, ``cm2 lsv validate`` and ``cm2 simulate``.
+
+Register with ``app.add_typer(lsv_app, name="lsv")`` and ``app.command("simulate")(simulate_command)``.
+The work is :func:`cm2optics.lsv.build.build_model`, :func:`cm2optics.lsv.validate.validate_model` and
+:func:`cm2optics.lsv.simulate.simulate_measurement`; these only check options and format results.
+"""
+
+from __future__ import annotations
+
+import json
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+from rich.console import Console
+from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.table import Table
+
+from cm2optics.cli.options import (
+    JsonOption,
+    OverwriteOption,
+    PresetOption,
+    check_output,
+    clamped,
+    parse_float_list,
+    parse_int_list,
+    user_errors,
+)
+from cm2optics.errors import UserError
+
+__all__ = ["lsv_app", "simulate_command"]
+
+lsv_app = typer.Typer(
+    help="The 3D linear-shift-variant (LSV) forward model: build it from a PSF scan, validate it on held-out positions.",
+    no_args_is_help=True,
+)
+
+_out = Console()
+_err = Console(stderr=True)
+
+
+@contextmanager
+def _progress(enabled: bool):
+    """A rich progress bar on stderr fed by ``callback(stage, done, total)``."""
+    if not enabled:
+        yield None
+        return
+    with Progress(
+        TextColumn("{task.description}"),
+        BarColumn(),
+        TextColumn("{task.completed}/{task.total}"),
+        TimeElapsedColumn(),
+        console=_err,
+        transient=True,
+    ) as bar:
+        tasks: dict[str, Any] = {}
+
+        def callback(stage: str, done: int, total: int) -> None:
+            if stage not in tasks:
+                tasks[stage] = bar.add_task(stage, total=total)
+            bar.update(tasks[stage], completed=done, total=total)
+
+        yield callback
+
+
+#: Largest default grid a model may carry (voxels; 2³¹ float32 voxels are 8 GiB per volume copy).
+MAX_GRID_VOXELS = 2**31
+
+
+def _check_sizes(scan_dir: Path, patch_px: int | None, lateral_um: float | None, axial_um: float) -> None:
+    """Refuse crops larger than the images and grids beyond :data:`MAX_GRID_VOXELS`, before any allocation."""
+    import math
+
+    from cm2optics.formats.scan import open_scan
+
+    if axial_um <= 0 or not math.isfinite(axial_um):
+        raise UserError(f"--axial-um = {axial_um}: must be a number > 0")
+    if lateral_um is not None and (lateral_um <= 0 or not math.isfinite(lateral_um)):
+        raise UserError(f"--lateral-um = {lateral_um}: must be a number > 0")
+    index = open_scan(scan_dir)
+    side = min(index.image(0).shape[-2:])
+    if patch_px is not None and not 4 <= patch_px <= side:
+        raise UserError(f"--patch-px = {patch_px}: must lie within 4–{side} px (the scan's images are {side} px)")
+    if lateral_um is None:
+        return
+    xs, ys, zs = index.grid_axes_mm()
+    shape = [int(math.floor(float(a[-1] - a[0]) * 1000.0 / step + 1e-9)) + 1 for a, step in
+             ((zs, axial_um), (ys, lateral_um), (xs, lateral_um))]
+    if math.prod(shape) > MAX_GRID_VOXELS:
+        raise UserError(
+            f"--lateral-um = {lateral_um:g}, --axial-um = {axial_um:g}: the default grid would be "
+            f"{' × '.join(map(str, shape))} voxels (> {MAX_GRID_VOXELS:.3g}); choose coarser voxels"
+        )
+
+
+@lsv_app.command("build")
+@user_errors
+def build(
+    scan_dir: Annotated[Path, typer.Argument(help="PSF scan folder (positions.csv, TIFFs, scan.yaml).")],
+    rank: Annotated[int, typer.Option("--rank", "-k", help="K, the number of basis PSFs.")] = 64,
+    out: Annotated[
+        Path | None, typer.Option("--out", "-o", help="Model file to write (HDF5); default SCAN_DIR.lsv.h5.")
+    ] = None,
+    report_dir: Annotated[
+        Path | None, typer.Option("--report", help="Folder for figures and report; default MODEL_report/.")
+    ] = None,
+    no_report: Annotated[bool, typer.Option("--no-report", help="Skip the figures and report.")] = False,
+    patch_px: Annotated[
+        int | None, typer.Option("--patch-px", help="Crop side per focus, px (default 160 at full resolution).")
+    ] = None,
+    lateral_um: Annotated[
+        float | None, typer.Option("--lateral-um", help="Default grid's lateral voxel, µm (default: one sensor pixel).")
+    ] = None,
+    axial_um: Annotated[
+        float | None,
+        typer.Option("--axial-um", help="Default grid's axial voxel, µm (default: the design's volume.axial_step_um)."),
+    ] = None,
+    trim: Annotated[
+        float,
+        typer.Option("--trim", help="Energy share the crops' dark margins may hold when cut (0: keep the full crops)."),
+    ] = 1e-6,
+    preset: PresetOption = "cm2-v2",
+    overwrite: OverwriteOption = False,
+    as_json: JsonOption = False,
+) -> None:
+    """Build a 3D-LSV model from a PSF scan (measured or synthetic).
+
+    Removes dark level, background and exposure; fits the imaging geometry (foci, magnification
+    against depth, the axial shear from the on-axis stack); crops the foci around their chief rays
+    with the shear undone; truncated SVD into K basis PSFs and coefficients on the calibration grid.
+    Writes one HDF5 model with its provenance, and a report with the error against K, the first
+    basis PSFs and coefficient maps. JSON keys include rank, nmse_calibration, nmse_vs_rank.
+    """
+    from cm2optics.design import load_preset
+    from cm2optics.lsv.build import build_model
+    from cm2optics.formats.outputs import claim_folder
+    from cm2optics.reports.lsv import write_build_report
+
+    if rank < 1:
+        raise UserError(f"--rank = {rank}: must be ≥ 1")
+    if trim < 0 or trim >= 1:
+        raise UserError(f"--trim = {trim}: must lie within 0 ≤ trim < 1")
+    design = load_preset(preset)
+    _check_sizes(scan_dir, patch_px, lateral_um, axial_um or design.volume.axial_step_um)
+    model_path = out or scan_dir.with_name(scan_dir.resolve().name + ".lsv.h5")
+    check_output(model_path, command="lsv build", inputs=[scan_dir, preset], overwrite=overwrite)
+    folder = report_dir or model_path.with_name(model_path.stem.replace(".lsv", "") + "_report")
+    if not no_report:
+        check_output(folder, command="lsv build", kind="folder", inputs=[scan_dir, preset, model_path], overwrite=overwrite)
+    with _progress(not as_json) as progress:
+        result = build_model(
+            scan_dir,
+            rank=rank,
+            patch_px=patch_px,
+            lateral_um=lateral_um,
+            axial_um=axial_um,
+            design=design,
+            trim=trim or None,
+            progress=progress,
+        )
+    result.model.save(model_path)
+    summary = {"model": str(model_path), **result.summary()}
+    clamped("--rank", rank, min(rank, summary["rank"]), "the scan holds no more independent basis PSFs")
+    if not no_report:
+        summary["report"] = str(write_build_report(result, folder))
+        claim_folder(folder, "lsv build")
+    if as_json:
+        print(json.dumps(summary, indent=2, ensure_ascii=False))
+        return
+    table = Table(title=f"LSV model {model_path}")
+    table.add_column("quantity")
+    table.add_column("value", justify="right")
+    for key in ("rank", "nmse_calibration", "nmse_calibration_per_psf", "numerical_rank", "n_positions", "patch_px"):
+        value = summary[key]
+        table.add_row(key, f"{value:.4g}" if isinstance(value, float) else str(value))
+    grid = summary["default_grid"]
+    table.add_row("default grid", f"{grid['shape']} × {[round(v, 3) for v in grid['voxel_um']]} µm")
+    _out.print(table)
+    if "report" in summary:
+        _out.print(f"report: {summary['report']}")
+
+
+@lsv_app.command("validate")
+@user_errors
+def validate(
+    model_path: Annotated[Path, typer.Argument(metavar="MODEL", help="Model file from `cm2 lsv build`.")],
+    scan_dir: Annotated[
+        Path, typer.Argument(help="The calibration scan (leave-one-out) or a second scan (held-out positions).")
+    ],
+    ranks: Annotated[str | None, typer.Option("--ranks", help="Ranks to report, e.g. 8,16,32,64.")] = None,
+    heldout: Annotated[int, typer.Option("--heldout", help="Held-out nodes for leave-one-out.")] = 48,
+    max_positions: Annotated[
+        int, typer.Option("--max-positions", help="Positions of a second scan to compare at most.")
+    ] = 200,
+    no_subsample: Annotated[
+        bool, typer.Option("--no-subsample", help="Skip the sparser-grid (2× lateral / 2× axial) models.")
+    ] = False,
+    seed: Annotated[int, typer.Option("--seed", help="Seed of the held-out sample.")] = 0,
+    as_json: JsonOption = False,
+) -> None:
+    """Error of a model at scan positions it was not built from.
+
+    On its own calibration scan: leave-one-out (each held-out node predicted from its neighbours
+    with the SVD redone without it). On another scan: the model's image of each position against
+    the measured one. Both: against K, and for models built on a 2× sparser grid laterally or
+    axially. JSON keys include nmse_heldout, nmse_heldout_vs_rank, nmse_subsampled.
+    """
+    from cm2optics.lsv.model import load_model
+    from cm2optics.lsv.validate import validate_model
+
+    if heldout < 1 or max_positions < 1:
+        raise UserError("--heldout and --max-positions must be ≥ 1")
+    wanted = parse_int_list(ranks or None, name="--ranks", low=1, example="8,16,32,64")
+    model = load_model(model_path)
+    with _progress(not as_json) as progress:
+        result = validate_model(
+            model,
+            scan_dir,
+            ranks=wanted,
+            n_heldout=heldout,
+            max_positions=max_positions,
+            subsample=not no_subsample,
+            seed=seed,
+            progress=progress,
+        )
+    if wanted:
+        used = [k for k in wanted if str(k) in result["nmse_heldout_vs_rank"]]
+        clamped("--ranks", ",".join(map(str, wanted)), ",".join(map(str, used)) or "none", f"K ≤ {model.rank} only")
+    if result["method"] == "leave-one-out":
+        clamped("--heldout", heldout, min(heldout, result["n_heldout"]), "the scan has no more nodes to hold out")
+    if as_json:
+        print(json.dumps(result, indent=2, ensure_ascii=False))
+        return
+    table = Table(title=f"{model_path} on {scan_dir} ({result['method']}, {result['n_heldout']} positions)")
+    table.add_column("K", justify="right")
+    table.add_column("held-out NMSE", justify="right")
+    for k, v in result["nmse_heldout_vs_rank"].items():
+        table.add_row(k, "—" if v is None else f"{v:.4g}")
+    _out.print(table)
+    if "nmse_subsampled" in result:
+        sub = result["nmse_subsampled"]
+        _out.print(
+            f"sparser grid (K = {min(model.rank, max(int(k) for k in result['nmse_heldout_vs_rank']))}): "
+            f"lateral 2× → {sub['lateral_2x']:.4g}, axial 2× → {sub['axial_2x']:.4g}"
+        )
+
+
+@user_errors
+def simulate_command(
+    out: Annotated[
+        Path, typer.Option("--out", "-o", help="Measurement TIFF to write (16-bit counts, YAML sidecar beside it).")
+    ],
+    model_path: Annotated[Path, typer.Option("--model", "-m", help="LSV model file from `cm2 lsv build`.")],
+    volume_path: Annotated[
+        Path | None, typer.Option("--volume", help="Volume (z, y, x): TIFF with ImageJ spacing or .npy.")
+    ] = None,
+    emitters_path: Annotated[
+        Path | None, typer.Option("--emitters", help="Emitter CSV: x_um,y_um,z_um,diameter_um,intensity.")
+    ] = None,
+    voxel_um: Annotated[
+        str | None, typer.Option("--voxel-um", help="Voxel pitch z,y,x in µm (for .npy, or to override).")
+    ] = None,
+    noise: Annotated[bool, typer.Option("--noise", help="Add Poisson photon noise and Gaussian read noise.")] = False,
+    peak_photons: Annotated[
+        float, typer.Option("--peak-photons", help="Photons at the brightest pixel (Poisson noise).")
+    ] = 500.0,
+    read_noise: Annotated[
+        float, typer.Option("--read-noise", help="Gaussian read noise, share of full scale.")
+    ] = 0.017,
+    offset: Annotated[float, typer.Option("--offset", help="Dark offset, share of full scale (with --noise).")] = 0.048,
+    bit_depth: Annotated[int, typer.Option("--bit-depth", help="ADC bits of the written counts.")] = 12,
+    per_lenslet: Annotated[
+        bool, typer.Option("--per-lenslet", help="Write the J crosstalk-free images as pages instead.")
+    ] = False,
+    lsi: Annotated[
+        bool, typer.Option("--lsi", help="Use the depth-wise LSI baseline of the V1 paper instead of the LSV model.")
+    ] = False,
+    seed: Annotated[int, typer.Option("--seed", help="Seed of the noise.")] = 0,
+    subpixel_steps: Annotated[
+        int,
+        typer.Option(
+            "--subpixel-steps",
+            help="Emitters: sub-pixel positions rounded to 1/N px so that emitters share shifted PSFs (fast for "
+            "thousands); 0 places every emitter exactly.",
+        ),
+    ] = 4,
+    overwrite: OverwriteOption = False,
+    as_json: JsonOption = False,
+) -> None:
+    """Simulate a CM² measurement of a volume or of emitters through an LSV model.
+
+    The image is scaled so that its brightest pixel is full scale (normalised intensity 1, as in
+    the paper); with --noise, Poisson noise at --peak-photons and Gaussian read noise plus a dark
+    offset are added (the paper's mixed noise model). Writes 16-bit counts and MEAS.yaml with the
+    model, the scale (counts per model unit) and the noise settings. A .npy volume without
+    --voxel-um is taken to be on the model's default grid spacing.
+    """
+    from cm2optics.lsv.simulate import simulate_measurement
+
+    inputs = [model_path, volume_path, emitters_path]
+    for path in (out, out.with_suffix(".yaml")):
+        check_output(path, command="simulate", inputs=inputs, overwrite=overwrite)
+    with _progress(not as_json) as progress:
+        summary = simulate_measurement(
+            out,
+            model_path,
+            volume_path=volume_path,
+            emitters_path=emitters_path,
+            voxel_um=parse_float_list(voxel_um, 3, name="--voxel-um", low=0, low_open=True, example="10,4.15,4.15"),
+            noise=noise,
+            peak_photons=peak_photons,
+            read_noise=read_noise,
+            offset=offset,
+            bit_depth=bit_depth,
+            per_lenslet=per_lenslet,
+            lsi=lsi,
+            seed=seed,
+            subpixel_steps=subpixel_steps,
+            progress=progress,
+        )
+    if as_json:
+        print(json.dumps(summary, indent=2))
+        return
+    _out.print(
+        f"[green]measurement:[/] {out} {tuple(summary['shape'])} (max {summary['max_count']} counts; "
+        f"sidecar {summary['sidecar']})"
+    )

@@ -1,0 +1,130 @@
+"""The excitation side: LED, TIR collimator and the ring of LED units."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from cm2optics.design.materials import Material
+from cm2optics.design.validation import check, in_range, non_negative, positive
+
+__all__ = ["Collimator", "LED", "LEDArray"]
+
+
+@dataclass(frozen=True)
+class LED:
+    """Surface-mount LED.
+
+    emitter_mm: side of the square emitting area, mm.
+    package_width_mm, package_length_mm: package footprint, mm.
+    package_height_mm: board to emitting surface, mm.
+    peak_nm: peak emission wavelength, nm.
+    radiant_flux_mw: radiant flux at the drive current, mW.
+    """
+
+    emitter_mm: float
+    package_width_mm: float
+    package_length_mm: float
+    package_height_mm: float
+    peak_nm: float
+    radiant_flux_mw: float
+
+    def __post_init__(self) -> None:
+        positive(self, "emitter_mm", "package_width_mm", "package_length_mm", "package_height_mm", "radiant_flux_mw")
+        in_range(self, "peak_nm", 350.0, 1000.0, " nm")
+        check(
+            "emitter_mm",
+            self.emitter_mm,
+            self.emitter_mm <= min(self.package_width_mm, self.package_length_mm),
+            "the emitter must fit on its package",
+        )
+
+
+@dataclass(frozen=True)
+class Collimator:
+    """Rotationally symmetric freeform TIR collimator in front of each LED, its focus on the
+    LED's centre; :mod:`cm2optics.optics.collimator` computes its profile from these numbers.
+
+    material: printed transparent material.
+    led_gap_mm: LED emitting surface to the collimator's entry plane (the cavity mouth), mm.
+    lens_half_angle_deg: half-angle of the cone collimated by the inner refractive lens (a
+        hyperbola on the cavity floor); rays beyond it cross the cavity wall and are
+        collimated by the outer TIR surface, degrees.
+    cavity_radius_mm: radius of the cylindrical entry cavity around the LED, mm.
+    entry_wall_mm: radial wall between the cavity and the outer TIR surface at the entry
+        plane, where the TIR surface starts, mm.
+    footprint_mm: side of the square exit flange, mm.
+    height_mm: entry plane to exit face, mm.
+    flange_mm: thickness of the square exit flange, mm.
+    lens_spread_deg: output half-angle (in air) of the lens sub-beam's edge ray, degrees;
+        0 collimates it, more spreads it into a flat-top cone (:mod:`cm2optics.optics.collimator_shaping`).
+    tir_spread_deg: output half-angle of the TIR sub-beam's edge ray, degrees (0: collimated).
+    tir_crossing: the TIR sub-beam crosses the axis rather than spreading outwards.
+    lens_exponent, tir_exponent: exponent γ of each sub-beam's ray mapping tan ψ ∝ F^γ (F the
+        sub-beam's flux fraction): 0.5 lights a disc uniformly, smaller pushes power outwards.
+    """
+
+    material: Material
+    led_gap_mm: float
+    lens_half_angle_deg: float
+    cavity_radius_mm: float
+    entry_wall_mm: float
+    footprint_mm: float
+    height_mm: float
+    flange_mm: float
+    lens_spread_deg: float
+    tir_spread_deg: float
+    tir_crossing: bool
+    lens_exponent: float
+    tir_exponent: float
+
+    @property
+    def collimates(self) -> bool:
+        """Whether both sub-beams are designed parallel to the axis (no beam shaping)."""
+        return self.lens_spread_deg == 0.0 and self.tir_spread_deg == 0.0
+
+    def __post_init__(self) -> None:
+        check("material", self.material, self.material.is_transparent, "a collimator must be transparent")
+        non_negative(self, "led_gap_mm")
+        in_range(self, "lens_half_angle_deg", 5.0, 60.0, "°")
+        positive(self, "cavity_radius_mm", "entry_wall_mm", "footprint_mm", "height_mm", "flange_mm")
+        check("flange_mm", self.flange_mm, self.flange_mm < self.height_mm, f"must be < height_mm = {self.height_mm}")
+        check(
+            "entry_wall_mm",
+            self.entry_wall_mm,
+            self.cavity_radius_mm + self.entry_wall_mm < self.footprint_mm / 2,
+            f"the cavity and its wall must fit inside footprint_mm/2 = {self.footprint_mm / 2} "
+            f"(cavity_radius_mm + entry_wall_mm = {self.cavity_radius_mm + self.entry_wall_mm})",
+        )
+        in_range(self, "lens_spread_deg", 0.0, 40.0, "°")
+        in_range(self, "tir_spread_deg", 0.0, 40.0, "°")
+        in_range(self, "lens_exponent", 0.1, 1.0)
+        in_range(self, "tir_exponent", 0.1, 1.0)
+
+
+@dataclass(frozen=True)
+class LEDArray:
+    """Placement of the LED units around the imaging axis.
+
+    count: number of units, evenly spaced in azimuth.
+    offset_mm: radial distance from the optical axis of each unit's aperture (the centre of
+        the excitation filter's lower face, where light leaves the unit), mm.
+    tilt_deg: angle between each unit's axis and the optical axis, degrees; the axis is aimed
+        at the centre of the nominal focal plane, which fixes the unit's height.
+    azimuth_deg: azimuth of the first unit from +x, degrees.
+    excitation_gap_mm: LED emitting surface to the excitation filter's lower face, mm.
+    """
+
+    count: int
+    offset_mm: float
+    tilt_deg: float
+    azimuth_deg: float
+    excitation_gap_mm: float
+
+    def __post_init__(self) -> None:
+        check("count", self.count, 1 <= self.count <= 12, "must lie within 1–12")
+        positive(self, "offset_mm", "excitation_gap_mm")
+        in_range(self, "tilt_deg", 0.0, 80.0, "°")
+        in_range(self, "azimuth_deg", -360.0, 360.0, "°")
+
+
+# ----------------------------------------------------------------------------- mechanics

@@ -1,0 +1,309 @@
+"""Training data made on the fly from a forward model, seeded per sample.
+
+Volume ``index`` of data set ``seed`` is :func:`~cm2optics.synth.generate.synthesize_sample`'s
+sample (emitters, per-lenslet images, noise, nine views at the chief rays: every random number
+from ``(seed, index)``), so any worker or rank makes the same one. Its ``patches_per_volume``
+patches are drawn from the same per-sample stream as the synth package's; each target is the
+block of voxels imaged onto the patch at the focal plane, in the views' orientation
+(:func:`~cm2optics.synth.views.volume_patch`), rasterised straight on that block (the emitters
+moved to its centre) rather than on the whole grid — the same voxels, without making a
+full-field volume per sample. The block's lateral pitch is the model's object-side pixel
+(:func:`pixel_voxel_um`; the config's voxel within 2 %), so the targets stay aligned with the
+views across the whole field.
+
+Order: per epoch the volumes are shuffled and each volume's patches shuffled (generator
+``(seed, epoch)``), and consecutive patches share a volume (one synthesis serves them). The global
+batch at step s is items ``[s·B, (s+1)·B)``; DDP rank r of w takes the r-th contiguous B/w of it.
+Epoch e uses volumes ``e·train_volumes + v`` (``fresh_volumes``) or ``v``; the curriculum sets
+the density range per epoch. Validation is a fixed set from a separate seed.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections import OrderedDict
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+from torch.utils.data import Dataset
+
+from cm2optics.formats.emitters import Emitters
+from cm2optics.formats.volume import VolumeGrid
+from cm2optics.recon.net.config import ConfigError, NetConfig
+
+__all__ = [
+    "Item",
+    "PatchDataset",
+    "PatchSource",
+    "epoch_items",
+    "forward_imaging",
+    "pixel_voxel_um",
+    "sensor_window",
+    "validation_items",
+]
+
+#: Offset between the training and validation data seeds.
+VALIDATION_SEED_OFFSET = 7919
+STREAM_PATCHES = 2  # the synth package's per-sample patch stream
+
+
+@dataclass(frozen=True)
+class Item:
+    """One training patch: data seed, volume index, patch number, density range (per mm²)."""
+
+    seed: int
+    volume: int
+    patch: int
+    density: tuple[float, float]
+
+
+def _analytic_lsv(preset: str, binning: int, grid_key: tuple, fov_mm: float, depth_um: float):
+    from cm2optics.design import load_preset
+    from cm2optics.lsv.toy import AnalyticCM2, analytic_lsv_model
+
+    design = load_preset(preset)
+    probe = AnalyticCM2.from_design(design, binning=binning)
+    # a focus narrower than a pixel cannot be sampled: σ₀ at least one (binned) pixel
+    model = AnalyticCM2.from_design(design, binning=binning, sigma0_um=max(probe.sigma0_um, probe.pixel_um))
+    half = max(fov_mm / 2.0 + 0.3, 0.6)
+    n_lateral = max(3, int(np.ceil(2 * half / 1.2)) + 1)  # ≤ 1.2 mm between nodes
+    xs = np.linspace(-half, half, n_lateral)
+    zs = np.linspace(-depth_um / 2000.0 - 0.05, depth_um / 2000.0 + 0.05, 5)
+    return analytic_lsv_model(model, xs, xs, zs, rank=8, axial_um=float(grid_key[1][0]))
+
+
+def sensor_window(model: Any, view_px: int, margin_px: int = 8) -> Any:
+    """The 3D-LSV ``model`` on the smallest sensor window that holds every view (its geometry
+    moved with the window's corner), or ``model`` itself when the window is the whole sensor.
+
+    The views cropped from the window are those of the full sensor (zeros beyond it either
+    way), and the per-sample rendering (FFTs over the sensor) costs the window's area only."""
+    from dataclasses import replace
+
+    if not (hasattr(model, "geometry") and hasattr(model, "forward_sparse")):
+        return model
+    rays = np.asarray(model.geometry.focus(0.0, 0.0, 0.0), float).reshape(-1, 2)
+    H, W = model.sensor_shape
+    half = view_px // 2 + margin_px
+    top = max(int(np.floor(rays[:, 0].min())) - half, 0)
+    left = max(int(np.floor(rays[:, 1].min())) - half, 0)
+    bottom = min(int(np.ceil(rays[:, 0].max())) + half + 1, H)
+    right = min(int(np.ceil(rays[:, 1].max())) + half + 1, W)
+    if (top, left, bottom, right) == (0, 0, H, W):
+        return model
+    g = model.geometry
+    r0 = np.array(g.r0_poly, float, copy=True)
+    r0[0] -= (top, left)
+    geometry = type(g)(r0, g.A_poly, g.o_poly, g.rows, g.cols)
+    provenance = dict(model.provenance, sensor_window=[top, left, bottom, right])
+    return replace(model, geometry=geometry, sensor_shape=(bottom - top, right - left), provenance=provenance)
+
+
+@functools.lru_cache(maxsize=4)
+def _imaging(spec: str, grid_key: tuple, toy_px: int, fov_mm: float, depth_um: float, view_px: int):
+    from cm2optics.synth.imaging import Imaging, load_imaging
+
+    grid = VolumeGrid(grid_key[0], grid_key[1])
+    if spec == "toy:gaussian":
+        from cm2optics.lsv.toy import gaussian_lsi_operator as gaussian_cm2
+
+        return Imaging(gaussian_cm2(grid, (toy_px, toy_px), defocus_px_per_um=0.006), grid)
+    if spec.startswith("analytic:"):
+        parts = spec.split(":")
+        try:
+            preset, binning = parts[1], int(parts[2]) if len(parts) > 2 else 1
+        except (IndexError, ValueError):
+            raise ConfigError(
+                f"forward_model = {spec!r}: write analytic:<preset>:<binning>, e.g. analytic:cm2-v2:8"
+            ) from None
+        return Imaging(sensor_window(_analytic_lsv(preset, binning, grid_key, fov_mm, depth_um), view_px), grid)
+    imaging = load_imaging(spec, grid)
+    windowed = sensor_window(imaging.source, view_px)
+    return imaging if windowed is imaging.source else Imaging(windowed, grid)
+
+
+def forward_imaging(config: NetConfig):
+    """The :class:`~cm2optics.synth.imaging.Imaging` of ``config.forward_model`` on the config's
+    grid (cached per process; a 3D-LSV model on its :func:`sensor_window`), checked: one view pixel must image one voxel at the focal plane
+    (the network maps a view patch onto a volume patch of the same size)."""
+    grid = config.synth.grid
+    imaging = _imaging(
+        config.forward_model,
+        (grid.shape, grid.voxel_um),
+        config.toy_sensor_px,
+        config.synth.fov_mm[1],
+        config.synth.depth_um,
+        config.synth.view_px,
+    )
+    scale = imaging.pixels_per_voxel()
+    if scale is None:
+        raise ConfigError(f"forward_model = {config.forward_model!r}: its views are rotated against the volume grid")
+    if np.any(np.abs(np.abs(scale) - 1.0) > 0.02):
+        suggestion = tuple(round(v * abs(s), 4) for v, s in zip(grid.voxel_um[1:], scale, strict=True))
+        raise ConfigError(
+            f"synth.voxel_um = {grid.voxel_um}: one view pixel spans {np.abs(scale)} voxels at the focal plane; "
+            f"CM²Net needs 1 — set the lateral voxel to the object-side pixel, (y, x) = {suggestion} µm"
+        )
+    return imaging
+
+
+def pixel_voxel_um(config: NetConfig, scale: np.ndarray) -> tuple[float, float, float]:
+    """The voxel the network actually predicts: (dz, and the object-side pixel along y and x), µm
+    — the config's lateral voxel divided by the model's pixels per voxel (within 2 % of 1)."""
+    dz, dy, dx = config.synth.grid.voxel_um
+    return (dz, dy / abs(float(scale[0])), dx / abs(float(scale[1])))
+
+
+def _block(config: NetConfig, origin: np.ndarray, scale: np.ndarray) -> tuple[np.ndarray, int]:
+    """Object-space centre (y, x) µm of the block of voxels under a view patch, and its side
+    (one voxel per view pixel, at the model's object-side pixel pitch)."""
+    p, V = config.synth.patch_px, config.synth.view_px
+    voxel = config.synth.grid.voxel_um[1:]
+    centre = [
+        (origin[axis] + (p - 1) / 2.0 - V // 2) / float(s) * d
+        for axis, (s, d) in enumerate(zip(scale, voxel, strict=True))
+    ]
+    return np.array(centre), p
+
+
+def patch_emitters(
+    emitters: Emitters, centre_um: np.ndarray, scale: np.ndarray, margin_um: float = 0.0, half_um: float | None = None
+) -> Emitters:
+    """The emitters in a patch's frame: moved to its centre and flipped as the views are; with
+    ``half_um``, only those whose centre lies within ±(half_um − margin_um) laterally."""
+    y = (emitters.y_um - centre_um[0]) * np.sign(scale[0])
+    x = (emitters.x_um - centre_um[1]) * np.sign(scale[1])
+    keep = np.ones(len(x), bool)
+    if half_um is not None:
+        lim = half_um - margin_um
+        keep = (np.abs(x) <= lim) & (np.abs(y) <= lim)
+    return Emitters(x[keep], y[keep], emitters.z_um[keep], emitters.diameter_um[keep], emitters.intensity[keep])
+
+
+class PatchSource:
+    """Makes (and keeps the last few) volumes' patches: views, demixed views, volume targets."""
+
+    def __init__(self, config: NetConfig, cache: int = 2):
+        self.config = config
+        self.imaging = forward_imaging(config)
+        self.scale = np.asarray(self.imaging.pixels_per_voxel(), float)
+        self._cache: OrderedDict[tuple, dict[str, Any]] = OrderedDict()
+        self._size = cache
+
+    def volume(self, seed: int, index: int, density: tuple[float, float]) -> dict[str, Any]:
+        key = (seed, index, density)
+        if key in self._cache:
+            self._cache.move_to_end(key)
+            return self._cache[key]
+        out = self._make(seed, index, density)
+        self._cache[key] = out
+        while len(self._cache) > self._size:
+            self._cache.popitem(last=False)
+        return out
+
+    def _make(self, seed: int, index: int, density: tuple[float, float]) -> dict[str, Any]:
+        from cm2optics.synth.emitters import sample_rng
+        from cm2optics.synth.generate import synthesize_sample
+        from cm2optics.synth.raster import rasterize_balls
+        from cm2optics.synth.views import patch_origins
+
+        c = self.config
+        synth = c.synth.with_changes(density_per_mm2=tuple(density), patches_per_volume=0)
+        sample = synthesize_sample(synth, self.imaging, index, seed)
+        p, V = synth.patch_px, synth.view_px
+        origins = patch_origins(sample_rng(seed, index, STREAM_PATCHES), V, p, c.synth.patches_per_volume)
+        grid = synth.grid
+        kind = "occupancy" if c.target == "occupancy" else "emission"
+        volumes = []
+        for origin in origins:
+            centre, q = _block(c, origin, self.scale)
+            local = patch_emitters(sample.draw.emitters, centre, self.scale)
+            near = (np.abs(local.x_um) <= q * grid.voxel_um[2]) & (np.abs(local.y_um) <= q * grid.voxel_um[1])
+            local = Emitters(*(getattr(local, n)[near] for n in ("x_um", "y_um", "z_um", "diameter_um", "intensity")))
+            block_grid = VolumeGrid((grid.shape[0], q, q), pixel_voxel_um(c, self.scale))
+            block = rasterize_balls(local, block_grid, supersample=synth.supersample, kind=kind)
+            volumes.append(np.clip(block, 0.0, 1.0))
+        return {
+            "views": np.stack([sample.views[:, r : r + p, s : s + p] for r, s in origins]).astype(np.float32),
+            "demixed": np.stack([sample.demixed[:, r : r + p, s : s + p] for r, s in origins]).astype(np.float32),
+            "volume": np.stack(volumes).astype(np.float32),
+            "origins": origins,
+            "emitters": sample.draw.emitters,
+        }
+
+    def patch(self, item: Item) -> dict[str, np.ndarray]:
+        v = self.volume(item.seed, item.volume, item.density)
+        return {k: v[k][item.patch] for k in ("views", "demixed", "volume")}
+
+    def truth(self, item: Item, border: int) -> Emitters:
+        """The true emitters of a patch in its frame, centres within the part the loss sees."""
+        v = self.volume(item.seed, item.volume, item.density)
+        centre, q = _block(self.config, v["origins"][item.patch], self.scale)
+        voxel = pixel_voxel_um(self.config, self.scale)[1]
+        return patch_emitters(v["emitters"], centre, self.scale, border * voxel, q * voxel / 2.0)
+
+
+class PatchDataset(Dataset):
+    """A list of :class:`Item` → dicts of float32 tensors (views, demixed, volume)."""
+
+    def __init__(self, config: NetConfig, items: list[Item]):
+        self.config = config
+        self.items = list(items)
+        self._source: PatchSource | None = None
+
+    def __len__(self) -> int:
+        return len(self.items)
+
+    def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
+        if self._source is None:  # made lazily: each DataLoader worker keeps its own cache
+            self._source = PatchSource(self.config)
+        return {k: torch.from_numpy(np.ascontiguousarray(v)) for k, v in self._source.patch(self.items[i]).items()}
+
+
+def density_at(config: NetConfig, epoch: int) -> tuple[float, float]:
+    """The curriculum's density range (per mm²) at ``epoch``: from ``curriculum_start_density``
+    to ``synth.density_per_mm2`` linearly over ``curriculum_epochs`` epochs."""
+    final = tuple(float(v) for v in config.synth.density_per_mm2)
+    if config.curriculum_epochs <= 0:
+        return final  # type: ignore[return-value]
+    t = min(epoch / config.curriculum_epochs, 1.0)
+    start = config.curriculum_start_density
+    return (round(start[0] + t * (final[0] - start[0]), 6), round(start[1] + t * (final[1] - start[1]), 6))
+
+
+def epoch_items(config: NetConfig, epoch: int) -> list[Item]:
+    """Every training item of ``epoch`` in its order (see the module docstring)."""
+    rng = np.random.default_rng(np.random.SeedSequence([config.seed, epoch, 17]))
+    density = density_at(config, epoch)
+    base = epoch * config.train_volumes if config.fresh_volumes else 0
+    items = []
+    for v in rng.permutation(config.train_volumes):
+        for k in rng.permutation(config.synth.patches_per_volume):
+            items.append(Item(config.seed, int(base + v), int(k), density))
+    return items
+
+
+def steps_per_epoch(config: NetConfig) -> int:
+    return (config.train_volumes * config.synth.patches_per_volume) // config.batch_size
+
+
+def rank_items(config: NetConfig, items: list[Item], rank: int, world: int, start_step: int = 0) -> list[Item]:
+    """Rank ``rank``'s share of whole global batches from step ``start_step`` on."""
+    B = config.batch_size
+    if B % world:
+        raise ConfigError(f"batch_size = {B}: must be a multiple of the {world} ranks")
+    b = B // world
+    out: list[Item] = []
+    for s in range(start_step, len(items) // B):
+        out.extend(items[s * B + rank * b : s * B + (rank + 1) * b])
+    return out
+
+
+def validation_items(config: NetConfig) -> list[Item]:
+    seed = config.seed + VALIDATION_SEED_OFFSET
+    density = tuple(float(v) for v in config.synth.density_per_mm2)
+    return [
+        Item(seed, v, k, density) for v in range(config.val_volumes) for k in range(config.synth.patches_per_volume)
+    ]

@@ -1,0 +1,215 @@
+"""Full-field reconstruction with trained CM²Net weights: one pass, no tiles.
+
+1. check the measurement (2-D, real numbers, finite, the model's sensor shape);
+2. optionally bring it to the training statistics: ``max`` (divide by its maximum) or
+   ``histogram`` (match its histogram to the training views' quantiles stored with the weights —
+   the paper's preprocessing of measured frames);
+3. crop the nine views at the chief rays of the model's geometry (zeros beyond the sensor, as in
+   training), ``view_px`` on a side (default: the training views');
+4. run the network on the whole view stack (fully convolutional), σ → [0, 1];
+5. turn the output from the views' orientation into the volume's (the image through a lenslet
+   is inverted) on a grid centred on the axis whose lateral voxel is the model's object-side
+   pixel (the config's voxel within 2 %) and axial voxel the config's, and detect emitters
+   (:func:`cm2optics.metrics.detect_emitters`).
+
+Border: nothing is cropped. The outer ``border_px`` (the largest refocusing shift) of the field
+is where the shift-and-add lacked light from beyond the views; at full field that is outside the
+illuminated disc, and the result says how wide it is.
+
+The model must be the one the weights were trained for: the same lenslet count, the same integer
+refocusing shifts recomputed from its geometry, one view pixel per voxel; anything else raises
+:class:`~.weights.GeometryMismatchError`.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from cm2optics.formats.emitters import Emitters
+from cm2optics.formats.volume import VolumeGrid
+from cm2optics.recon.net.data import pixel_voxel_um
+from cm2optics.recon.net.refocus import refocus_planes
+from cm2optics.recon.net.weights import GeometryMismatchError, LoadedNet, NetInputError, load_weights
+
+__all__ = ["NetResult", "PREPROCESS", "histogram_match", "reconstruct_with_net", "views_from_measurement"]
+
+PREPROCESS = ("none", "max", "histogram")
+
+
+@dataclass(frozen=True)
+class NetResult:
+    """volume: (z, y, x) float32 in [0, 1] on ``grid`` (voxel size in ``grid.voxel_um``);
+    emitters: detections at ``threshold``; demixed: (J, V, V) the demixed views; border_px: the
+    field margin the refocusing could not fill; seconds: timings."""
+
+    volume: np.ndarray
+    grid: VolumeGrid
+    emitters: Emitters
+    threshold: float
+    demixed: np.ndarray
+    border_px: int
+    seconds: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def voxel_um(self) -> tuple[float, float, float]:
+        return self.grid.voxel_um
+
+
+def histogram_match(image: np.ndarray, reference_quantiles: np.ndarray) -> np.ndarray:
+    """``image`` mapped so that its quantiles become ``reference_quantiles`` (levels evenly
+    spaced over 0…1), piecewise linearly; float32."""
+    ref = np.asarray(reference_quantiles, float)
+    if ref.ndim != 1 or len(ref) < 2 or not np.all(np.isfinite(ref)):
+        raise ValueError("reference_quantiles must be a 1-D array of ≥ 2 finite values")
+    levels = np.linspace(0.0, 1.0, len(ref))
+    image = np.asarray(image, float)
+    q = np.quantile(image, levels)
+    q = q + np.arange(len(q)) * 1e-12 * max(float(np.ptp(q)), 1.0)  # strictly increasing
+    return np.interp(image, q, np.maximum.accumulate(ref)).astype(np.float32)
+
+
+def _chief_rays(model: Any) -> np.ndarray:
+    if hasattr(model, "geometry") and hasattr(model.geometry, "focus"):
+        return np.asarray(model.geometry.focus(0.0, 0.0, 0.0), float).reshape(-1, 2)
+    if hasattr(model, "chief_rays_px"):
+        return np.asarray(model.chief_rays_px(), float).reshape(-1, 2)
+    raise GeometryMismatchError(
+        f"{type(model).__name__}: has no chief rays (need a 3D-LSV model or an operator with chief_rays_px)"
+    )
+
+
+def views_from_measurement(measurement: np.ndarray, model: Any, view_px: int) -> np.ndarray:
+    """(J, view_px, view_px) views of ``measurement`` cropped at ``model``'s chief rays."""
+    from cm2optics.synth.views import crop_views
+
+    return crop_views(np.asarray(measurement, np.float32), _chief_rays(model), view_px)
+
+
+def _load_model(model: Any, grid: VolumeGrid) -> Any:
+    if isinstance(model, str | Path):
+        from cm2optics.synth.imaging import load_imaging
+
+        return load_imaging(model, grid).source
+    return getattr(model, "source", model)  # an Imaging → its model
+
+
+def _check_measurement(measurement: Any, shape: tuple[int, int], name: str) -> np.ndarray:
+    array = np.asarray(measurement)
+    if array.dtype.kind not in "uif":
+        raise NetInputError(f"{name}: dtype {array.dtype} is not a real number type (need an integer or float image)")
+    if array.ndim != 2:
+        raise NetInputError(f"{name}: shape {array.shape} is not one image (y, x)")
+    if tuple(array.shape) != tuple(shape):
+        raise NetInputError(f"{name}: shape {array.shape} is not the model's sensor {tuple(shape)} (binning?)")
+    array = array.astype(np.float32)
+    if not np.all(np.isfinite(array)):
+        raise NetInputError(f"{name}: contains NaN or infinite values")
+    return array
+
+
+def check_geometry(loaded: LoadedNet, model: Any) -> tuple[np.ndarray, Any]:
+    """Refuse a model whose geometry differs from the weights'; returns (pixels per voxel, model)."""
+    from cm2optics.synth.imaging import Imaging
+
+    config = loaded.config
+    grid = config.synth.grid
+    planes = loaded.planes
+    J = int(planes.shifts_px.shape[1])
+    n_lenslets = int(getattr(model, "n_lenslets", len(_chief_rays(model))))
+    where = f"{loaded.folder}"
+    if n_lenslets != J:
+        raise GeometryMismatchError(f"{where}: trained for {J} lenslets, the model has {n_lenslets}")
+    z = planes.z_mm
+    try:
+        mine = refocus_planes(model, (float(grid.axis_mm(0)[0]), float(grid.axis_mm(0)[-1])), config.refocus_planes)
+    except ValueError as error:
+        raise GeometryMismatchError(f"{where}: the model's geometry gives no refocusing planes ({error})") from None
+    if mine.n_planes != planes.n_planes or not np.array_equal(mine.shifts_px, planes.shifts_px):
+        diff = (
+            np.abs(mine.shifts_px - planes.shifts_px).max() if mine.shifts_px.shape == planes.shifts_px.shape else None
+        )
+        raise GeometryMismatchError(
+            f"{where}: the model's refocusing ({mine.n_planes} planes"
+            + (f", shifts up to {diff} px apart" if diff is not None else "")
+            + f") is not the one the weights learned ({planes.n_planes} planes at {z.min() * 1000:.0f}…{z.max() * 1000:.0f} µm)"
+        )
+    try:
+        scale = Imaging(model, grid).pixels_per_voxel()
+    except ValueError as error:
+        raise GeometryMismatchError(f"{where}: {error}") from None
+    if scale is None or np.any(np.abs(np.abs(scale) - 1.0) > 0.02):
+        raise GeometryMismatchError(
+            f"{where}: one view pixel must image one {grid.voxel_um[1]:g}-µm voxel; this model maps {scale} pixels per voxel"
+        )
+    return np.asarray(scale, float), model
+
+
+def reconstruct_with_net(
+    measurement: np.ndarray,
+    weights: str | Path | LoadedNet,
+    model: Any,
+    *,
+    preprocess: str = "none",
+    threshold: float | None = None,
+    view_px: int | None = None,
+    device: str = "cpu",
+    name: str = "measurement",
+) -> NetResult:
+    """The volume of one measurement (see the module docstring).
+
+    measurement: (H, W) sensor frame (integers or floats; a synthetic one is already normalised).
+    weights: a weights folder (or :func:`load_weights`' result). model: the forward model (a
+    3D-LSV model or its file, or an operator with chief rays). preprocess: ``none``, ``max`` or
+    ``histogram``. threshold: detection threshold on [0, 1] (default: the config's).
+    view_px: side of the views (default: the training views'). name: how errors call the input."""
+    t0 = time.perf_counter()
+    if preprocess not in PREPROCESS:
+        raise ValueError(f"preprocess = {preprocess!r}: must be one of {', '.join(PREPROCESS)}")
+    loaded = weights if isinstance(weights, LoadedNet) else load_weights(weights, device=device)
+    config = loaded.config
+    model = _load_model(model, config.synth.grid)
+    scale, model = check_geometry(loaded, model)
+    image = _check_measurement(measurement, tuple(int(v) for v in model.sensor_shape), name)
+    if preprocess == "max":
+        image = image / max(float(image.max()), 1e-12)
+    elif preprocess == "histogram":
+        if loaded.histogram is None:
+            raise ValueError(
+                f"{loaded.folder}: these weights carry no reference histogram; use preprocess='max' or 'none'"
+            )
+        image = histogram_match(image, loaded.histogram)
+    V = int(view_px or config.synth.view_px)
+    views = views_from_measurement(image, model, V)
+    t1 = time.perf_counter()
+    net = loaded.net.to(device).eval()
+    with torch.inference_mode():
+        demix_logits, volume_logits = net(torch.from_numpy(views)[None].to(device))
+        volume = torch.sigmoid(volume_logits)[0].float().cpu().numpy()
+        demixed = torch.sigmoid(demix_logits)[0].float().cpu().numpy()
+    t2 = time.perf_counter()
+    if scale[0] < 0:
+        volume = volume[:, ::-1, :]
+    if scale[1] < 0:
+        volume = volume[:, :, ::-1]
+    volume = np.ascontiguousarray(volume)
+    grid = VolumeGrid((volume.shape[0], V, V), pixel_voxel_um(config, scale))
+    from cm2optics.metrics import detect_emitters
+
+    threshold = config.detect_threshold if threshold is None else float(threshold)
+    emitters = detect_emitters(volume, grid, threshold)
+    t3 = time.perf_counter()
+    return NetResult(
+        volume,
+        grid,
+        emitters,
+        threshold,
+        demixed,
+        loaded.planes.max_shift_px,
+        {"prepare": t1 - t0, "network": t2 - t1, "detect": t3 - t2, "total": t3 - t0},
+    )

@@ -1,0 +1,483 @@
+"""Training CM²Net: plain functions in the manner of torchvision's reference scripts.
+
+- :func:`train_one_epoch`: one pass over a DataLoader (progress bar, optional checkpoints).
+- :func:`evaluate`: validation loss and detection metrics (recall, precision, F1, Jaccard,
+  lateral/axial RMSE from :mod:`cm2optics.metrics`), pooled over the validation patches.
+- :func:`train`: the run — config in, ``out_dir`` out (``checkpoint.pt``, ``history.json``,
+  ``loss_curve.png``, ``weights/``); ``resume=True`` continues from the checkpoint exactly (same
+  data order, optimiser and scheduler states, RNG states): a run stopped after any step and
+  resumed ends with the weights of an uninterrupted one.
+
+Adam (``lr``, the paper's 1e-4) and ReduceLROnPlateau on the validation loss (×``lr_factor``
+after ``lr_patience`` stalled epochs, counted as Keras/TF does — the paper's framework).
+
+Distributed: the same script under ``torchrun --nproc_per_node=K`` (env ``WORLD_SIZE`` > 1):
+gloo on CPU, NCCL on GPUs; each rank takes its contiguous share of every global batch, batch
+norm pools its statistics over the ranks (:class:`~.model.SyncBatchNorm2d`) and DDP averages the
+gradients, so K processes follow the loss curve of one with the same global batch. Rank 0
+writes the files.
+
+``python -m cm2optics.recon.net.train CONFIG [--resume]`` runs :func:`train` (the ``cm2 train``
+command will call the same function).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+from collections.abc import Callable, Iterable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import torch.distributed as dist
+from torch.utils.data import DataLoader
+
+from cm2optics.formats.atomic import write_atomic
+from cm2optics.formats.volume import VolumeGrid
+from cm2optics.recon.net.checkpoint import load_checkpoint, save_checkpoint, set_rng_state
+from cm2optics.recon.net.config import NetConfig, load_config
+from cm2optics.recon.net.data import (
+    PatchDataset,
+    PatchSource,
+    epoch_items,
+    forward_imaging,
+    pixel_voxel_um,
+    rank_items,
+    steps_per_epoch,
+    validation_items,
+)
+from cm2optics.recon.net.loss import cm2net_loss
+from cm2optics.recon.net.model import CM2Net, build_net
+from cm2optics.recon.net.refocus import refocus_planes
+
+__all__ = ["evaluate", "make_net", "make_optimiser", "make_scheduler", "train", "train_one_epoch"]
+
+CHECKPOINT, HISTORY, CURVE = "checkpoint.pt", "history.json", "loss_curve.png"
+
+
+# ----------------------------------------------------------------------------- pieces
+def make_net(config: NetConfig) -> tuple[CM2Net, int]:
+    """A fresh network for ``config`` (its refocusing from the forward model's geometry) and the
+    loss border (px)."""
+    imaging = forward_imaging(config)
+    grid = config.synth.grid
+    z = grid.axis_mm(0)
+    planes = refocus_planes(imaging.source, (float(z[0]), float(z[-1])), config.refocus_planes)
+    border = config.border_px if config.border_px >= 0 else planes.max_shift_px
+    if 2 * border >= config.synth.patch_px:
+        raise ValueError(
+            f"the refocusing shifts reach {border} px: a {config.synth.patch_px}-px patch keeps nothing; "
+            "use larger patches or set border_px"
+        )
+    return build_net(config, planes, z), border
+
+
+def make_optimiser(net: torch.nn.Module, config: NetConfig) -> torch.optim.Optimizer:
+    return torch.optim.Adam(net.parameters(), lr=config.lr)
+
+
+def make_scheduler(optimiser: torch.optim.Optimizer, config: NetConfig):
+    # Keras counts a reduction after `patience` stalled epochs, torch after `patience + 1`
+    return torch.optim.lr_scheduler.ReduceLROnPlateau(
+        optimiser, mode="min", factor=config.lr_factor, patience=max(config.lr_patience - 1, 0)
+    )
+
+
+def _world() -> tuple[int, int]:
+    if dist.is_available() and dist.is_initialized():
+        return dist.get_rank(), dist.get_world_size()
+    return 0, 1
+
+
+def _mean_over_ranks(value: torch.Tensor) -> float:
+    value = value.detach().clone()
+    rank, world = _world()
+    if world > 1:
+        dist.all_reduce(value)
+        value /= world
+    return float(value)
+
+
+def _progress(enabled: bool):
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
+
+    return Progress(
+        TextColumn("{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        TimeRemainingColumn(),
+        TextColumn("{task.fields[info]}"),
+        disable=not enabled,
+        transient=False,
+    )
+
+
+# ----------------------------------------------------------------------------- epoch
+def train_one_epoch(
+    net: torch.nn.Module,
+    optimiser: torch.optim.Optimizer,
+    batches: Iterable[dict[str, torch.Tensor]],
+    config: NetConfig,
+    border: int,
+    *,
+    device: torch.device | str = "cpu",
+    on_step: Callable[[int, dict[str, float]], bool] | None = None,
+    total: int | None = None,
+    description: str = "train",
+    progress: bool = False,
+) -> list[dict[str, float]]:
+    """One pass over ``batches``; returns the per-step losses (means over all ranks).
+
+    on_step(i, losses) is called after step i (0-based in this pass); it may return True to stop
+    the pass there (a checkpoint-and-stop, or a time limit)."""
+    net.train()
+    out: list[dict[str, float]] = []
+    with _progress(progress) as bar:
+        task = bar.add_task(description, total=total, info="")
+        for i, batch in enumerate(batches):
+            views, demixed, volume = (batch[k].to(device, non_blocking=True) for k in ("views", "demixed", "volume"))
+            optimiser.zero_grad(set_to_none=True)
+            demix_logits, volume_logits = net(views)
+            loss, parts = cm2net_loss(demix_logits, volume_logits, demixed, volume, config, border)
+            loss.backward()
+            optimiser.step()
+            record = {
+                "loss": _mean_over_ranks(loss),
+                "demix": _mean_over_ranks(parts["demix"]),
+                "volume": _mean_over_ranks(parts["volume"]),
+            }
+            if not math.isfinite(record["loss"]):
+                raise FloatingPointError(f"the training loss became {record['loss']} at step {i} of this pass")
+            out.append(record)
+            bar.update(task, advance=1, info=f"loss {record['loss']:.4f}")
+            if on_step is not None and on_step(i, record):
+                break
+    return out
+
+
+@torch.no_grad()
+def evaluate(
+    net: torch.nn.Module,
+    config: NetConfig,
+    border: int,
+    *,
+    device: torch.device | str = "cpu",
+    items=None,
+    source: PatchSource | None = None,
+    threshold: float | None = None,
+) -> dict[str, Any]:
+    """Validation loss and detection scores over the validation patches (or ``items``).
+
+    Each patch's prediction, less the loss border, is binarised at ``threshold`` (default
+    ``config.detect_threshold``), its components matched to the true emitters whose centres lie
+    in it (:func:`cm2optics.metrics.evaluate_volume`), and the counts pooled."""
+    from cm2optics.metrics import evaluate_volume, pooled_scores
+
+    module = getattr(net, "module", net)
+    module.eval()
+    items = validation_items(config) if items is None else list(items)
+    if not items:
+        return {}
+    source = source or PatchSource(config)
+    threshold = config.detect_threshold if threshold is None else threshold
+    grid = config.synth.grid
+    p = config.synth.patch_px
+    inner = VolumeGrid((grid.shape[0], p - 2 * border, p - 2 * border), pixel_voxel_um(config, source.scale))
+    totals = {"loss": 0.0, "demix": 0.0, "volume": 0.0}
+    evaluations = []
+    for start in range(0, len(items), max(config.batch_size, 1)):
+        chunk = items[start : start + max(config.batch_size, 1)]
+        arrays = [source.patch(it) for it in chunk]
+        views, demixed, volume = (
+            torch.from_numpy(np.stack([a[k] for a in arrays])).to(device) for k in ("views", "demixed", "volume")
+        )
+        demix_logits, volume_logits = module(views)
+        loss, parts = cm2net_loss(demix_logits, volume_logits, demixed, volume, config, border)
+        totals["loss"] += float(loss) * len(chunk)
+        totals["demix"] += float(parts["demix"]) * len(chunk)
+        totals["volume"] += float(parts["volume"]) * len(chunk)
+        prob = torch.sigmoid(volume_logits).cpu().numpy()
+        for it, pred in zip(chunk, prob, strict=True):
+            crop = pred[:, border : p - border, border : p - border] if border else pred
+            evaluations.append(evaluate_volume(crop, inner, source.truth(it, border), threshold))
+    n = len(items)
+    metrics = {f"val_{k}": v / n for k, v in totals.items()}
+    scores = pooled_scores(evaluations)
+    for key in ("recall", "precision", "f1", "jaccard", "rmse_lateral_um", "rmse_axial_um", "n_tp", "n_fp", "n_fn"):
+        if key in scores:
+            metrics[key] = scores[key]
+    metrics["threshold"] = threshold
+    return metrics
+
+
+# ----------------------------------------------------------------------------- files
+def plot_history(history: dict[str, Any], path: str | Path) -> Path:
+    """The loss curve (per step) and validation loss (per epoch) as a PNG."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(7, 4), dpi=110)
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot(1, 1, 1)
+    steps = history.get("steps", [])
+    if steps:
+        x = np.arange(1, len(steps) + 1)
+        for key, style in (("loss", "-"), ("demix", ":"), ("volume", "--")):
+            ax.plot(x, [s[key] for s in steps], style, lw=1, label=f"train {key}")
+    epochs = history.get("epochs", [])
+    if epochs and any("val_loss" in e for e in epochs):
+        ax.plot(
+            [e["step"] for e in epochs if "val_loss" in e],
+            [e["val_loss"] for e in epochs if "val_loss" in e],
+            "o-",
+            label="validation loss",
+        )
+    ax.set_xlabel("step")
+    ax.set_ylabel("loss")
+    ax.set_yscale("log")
+    ax.grid(alpha=0.3)
+    if steps or epochs:
+        ax.legend(fontsize=8)
+    ax.set_title("CM²Net training")
+    fig.tight_layout()
+    return write_atomic(Path(path), lambda tmp: fig.savefig(tmp, format="png"))
+
+
+def _write_history(out: Path, history: dict[str, Any]) -> None:
+    text = json.dumps(history, indent=1)
+    write_atomic(out / HISTORY, lambda tmp: tmp.write_text(text, encoding="utf-8"))
+
+
+def _histogram(source: PatchSource, config: NetConfig, count: int = 4) -> np.ndarray:
+    """Quantiles (0…1 in 256 steps) of training views: the reference for histogram matching."""
+    values = [
+        source.volume(config.seed + 104729, i, tuple(config.synth.density_per_mm2))["views"].ravel()
+        for i in range(count)
+    ]
+    return np.quantile(np.concatenate(values), np.linspace(0.0, 1.0, 256))
+
+
+# ----------------------------------------------------------------------------- run
+def _setup_distributed(device: str | None) -> tuple[int, int, torch.device]:
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    if world > 1 and not dist.is_initialized():
+        backend = (
+            "nccl" if (device or "").startswith("cuda") or (device is None and torch.cuda.is_available()) else "gloo"
+        )
+        dist.init_process_group(backend)
+    rank, world = _world()
+    if device is None:
+        device = f"cuda:{int(os.environ.get('LOCAL_RANK', 0))}" if torch.cuda.is_available() else "cpu"
+    dev = torch.device(device)
+    if dev.type == "cuda":
+        torch.cuda.set_device(dev)
+    return rank, world, dev
+
+
+def train(
+    config: NetConfig | str | Path,
+    resume: bool = False,
+    *,
+    max_steps: int | None = None,
+    device: str | None = None,
+) -> dict[str, Any]:
+    """Train (or resume) a run; returns its summary (out_dir, steps, last losses and metrics).
+
+    config: a :class:`NetConfig` or a YAML path. resume: continue from ``out_dir/checkpoint.pt``.
+    max_steps: stop (with a checkpoint) once this many steps are done in all — a planned
+    interruption; the run resumes from there. device: ``cpu``, ``cuda:N`` (default: the rank's
+    GPU when there is one)."""
+    if not isinstance(config, NetConfig):
+        config = load_config(config)
+    if config.threads:
+        torch.set_num_threads(config.threads)
+    rank, world, dev = _setup_distributed(device)
+    out = Path(config.out_dir)
+    if rank == 0:
+        out.mkdir(parents=True, exist_ok=True)
+    net, border = make_net(config)
+    net.to(dev)
+    optimiser = make_optimiser(net, config)
+    scheduler = make_scheduler(optimiser, config)
+    history: dict[str, Any] = {"config_hash": config.hash(), "steps": [], "epochs": [], "seconds_per_step": []}
+    epoch, step_in_epoch, global_step = 0, 0, 0
+    if resume:
+        state = load_checkpoint(out / CHECKPOINT, config.hash())
+        net.load_state_dict(state["model"])
+        optimiser.load_state_dict(state["optimiser"])
+        scheduler.load_state_dict(state["scheduler"])
+        epoch, step_in_epoch, global_step = state["epoch"], state["step_in_epoch"], state["global_step"]
+        history = state["history"]
+        set_rng_state(state["rng"])
+    model: torch.nn.Module = net
+    if world > 1:
+        model = torch.nn.parallel.DistributedDataParallel(net, device_ids=[dev.index] if dev.type == "cuda" else None)
+    n_steps = steps_per_epoch(config)
+    if n_steps == 0:
+        raise ValueError(
+            f"train_volumes × patches_per_volume = {config.train_volumes * config.synth.patches_per_volume} patches "
+            f"make no batch of {config.batch_size}"
+        )
+    source = PatchSource(config) if rank == 0 or config.val_volumes else None
+    stopped = False
+    stop_at_epoch_end = False
+
+    def checkpoint(e: int, s: int) -> None:
+        if rank == 0:
+            save_checkpoint(
+                out / CHECKPOINT,
+                model=net.state_dict(),
+                optimiser=optimiser.state_dict(),
+                scheduler=scheduler.state_dict(),
+                epoch=e,
+                step_in_epoch=s,
+                global_step=global_step,
+                history=history,
+                config_hash=config.hash(),
+                config=config.to_dict(),
+            )
+        if world > 1:
+            dist.barrier()
+
+    while epoch < config.epochs and not stopped:
+        items = rank_items(config, epoch_items(config, epoch), rank, world, step_in_epoch)
+        loader = DataLoader(
+            PatchDataset(config, items),
+            batch_size=config.batch_size // world,
+            shuffle=False,
+            num_workers=config.workers,
+            persistent_workers=False,
+        )
+        last = [time.perf_counter()]
+
+        def on_step(
+            i: int, record: dict[str, float], e: int = epoch, first: int = step_in_epoch, last: list[float] = last
+        ) -> bool:
+            nonlocal global_step, stopped, stop_at_epoch_end
+            global_step += 1
+            now = time.perf_counter()
+            history["steps"].append(record)
+            history["seconds_per_step"].append(now - last[0])
+            last[0] = now
+            s = first + i + 1
+            if config.checkpoint_every and global_step % config.checkpoint_every == 0 and s < n_steps:
+                checkpoint(e, s)
+            if max_steps is not None and global_step >= max_steps:
+                if s == n_steps:  # the epoch's last step: finish the epoch (validation, checkpoint), then stop
+                    stop_at_epoch_end = True
+                    return False
+                checkpoint(e, s)
+                stopped = True
+                return True
+            return False
+
+        train_one_epoch(
+            model,
+            optimiser,
+            loader,
+            config,
+            border,
+            device=dev,
+            on_step=on_step,
+            total=n_steps - step_in_epoch,
+            description=f"epoch {epoch + 1}/{config.epochs}",
+            progress=config.progress and rank == 0,
+        )
+        if stopped:
+            break
+        metrics = evaluate(net, config, border, device=dev, source=source) if config.val_volumes else {}
+        train_losses = history["steps"][-n_steps:]
+        record = {
+            "epoch": epoch + 1,
+            "step": global_step,
+            "lr": optimiser.param_groups[0]["lr"],
+            "train_loss": float(np.mean([s["loss"] for s in train_losses])),
+            **metrics,
+        }
+        scheduler.step(metrics.get("val_loss", record["train_loss"]))
+        history["epochs"].append(record)
+        epoch, step_in_epoch = epoch + 1, 0
+        checkpoint(epoch, 0)
+        if rank == 0:
+            _write_history(out, history)
+            plot_history(history, out / CURVE)
+            if config.progress:
+                shown = {k: round(v, 4) if isinstance(v, float) else v for k, v in record.items()}
+                print(f"epoch {record['epoch']}: {shown}", flush=True)
+        if stop_at_epoch_end and epoch < config.epochs:
+            stopped = True
+    summary: dict[str, Any] = {
+        "out_dir": str(out),
+        "epochs_done": epoch,
+        "global_step": global_step,
+        "stopped": stopped,
+        "world_size": world,
+        "config_hash": config.hash(),
+        "last_loss": history["steps"][-1]["loss"] if history["steps"] else None,
+        "seconds_per_step": float(np.median(history["seconds_per_step"])) if history["seconds_per_step"] else None,
+        "metrics": history["epochs"][-1] if history["epochs"] else {},
+    }
+    if rank == 0 and not stopped and epoch >= config.epochs:
+        histogram = _histogram(source, config) if source is not None else None
+        training = {
+            "epochs": epoch,
+            "steps": global_step,
+            "processes": world,
+            "median seconds per step": summary["seconds_per_step"],
+        }
+        metrics = {k: v for k, v in summary["metrics"].items() if isinstance(v, int | float)}
+        summary["weights"] = str(save_weights_safe(net, config, out / "weights", metrics, training, histogram))
+    if world > 1:
+        dist.barrier()
+    return summary
+
+
+def save_weights_safe(net, config, folder, metrics, training, histogram) -> Path:
+    from cm2optics.recon.net.weights import save_weights
+
+    return save_weights(net, config, folder, metrics=metrics, training=training, histogram=histogram)
+
+
+def main(argv: list[str] | None = None) -> int:
+    import argparse
+
+    from cm2optics.recon.net.checkpoint import CheckpointError
+    from cm2optics.recon.net.config import ConfigError
+
+    parser = argparse.ArgumentParser(
+        prog="python -m cm2optics.recon.net.train", description="Train CM²Net from a YAML config."
+    )
+    parser.add_argument("config", help="YAML config (reconstruction/configs/cm2net-cpu.yaml, …)")
+    parser.add_argument("--resume", action="store_true", help="continue from out_dir/checkpoint.pt")
+    parser.add_argument(
+        "--max-steps", type=int, default=None, help="stop (with a checkpoint) after this many steps in all"
+    )
+    parser.add_argument("--device", default=None, help="cpu or cuda:N (default: the rank's GPU, else cpu)")
+    args = parser.parse_args(argv)
+    try:
+        summary = train(args.config, resume=args.resume, max_steps=args.max_steps, device=args.device)
+    except (ConfigError, CheckpointError, FileNotFoundError, ValueError) as error:
+        print(f"error: {error}", flush=True)
+        return 2
+    finally:
+        if dist.is_available() and dist.is_initialized():
+            dist.destroy_process_group()
+    if int(os.environ.get("RANK", "0")) == 0:
+        print(json.dumps({k: v for k, v in summary.items() if k != "metrics"}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    raise SystemExit(main())

@@ -1,0 +1,263 @@
+"""Trained CM²Net weights on disk: a folder that says what it is and proves it is intact.
+
+::
+
+    weights/
+      model.safetensors   the state dict (refocusing planes and shifts included as buffers);
+                          metadata: format, config hash, reference histogram for inference
+      config.yaml         the NetConfig that built it
+      MODEL_CARD.md       data, training, metrics, geometry, intended use, limitations
+      SHA256SUMS          SHA-256 of the two files above (``sha256sum -c`` reads it)
+
+:func:`load_weights` checks the SHA-256 sums, rebuilds the network from ``config.yaml`` and the
+stored planes and refuses weights whose tensors do not match it; every failure is a
+:class:`WeightsError` (a :class:`ValueError`) naming the file.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from cm2optics.formats.atomic import write_atomic
+from cm2optics.recon.net.config import ConfigError, NetConfig, load_config
+from cm2optics.recon.net.model import CM2Net
+from cm2optics.recon.net.refocus import RefocusPlanes
+
+__all__ = [
+    "CARD_FILE",
+    "CONFIG_FILE",
+    "FORMAT",
+    "GeometryMismatchError",
+    "LoadedNet",
+    "NetError",
+    "NetInputError",
+    "SUMS_FILE",
+    "WEIGHTS_FILE",
+    "WeightsError",
+    "load_weights",
+    "save_weights",
+]
+
+FORMAT = "cm2optics-cm2net"
+WEIGHTS_FILE, CONFIG_FILE, CARD_FILE, SUMS_FILE = "model.safetensors", "config.yaml", "MODEL_CARD.md", "SHA256SUMS"
+
+
+class NetError(ValueError):
+    """A CM²Net input a user can get wrong."""
+
+
+class WeightsError(NetError):
+    """A weights folder that cannot be used: missing file, failed hash, tensors unlike the config."""
+
+
+class NetInputError(NetError):
+    """A measurement the network cannot take (shape, dtype, non-finite values)."""
+
+
+class GeometryMismatchError(NetError):
+    """A forward model whose geometry (lenslets, refocusing shifts, pixel/voxel scale) is not the
+    one the weights were trained with."""
+
+
+@dataclass(frozen=True)
+class LoadedNet:
+    net: CM2Net
+    config: NetConfig
+    folder: Path
+    histogram: np.ndarray | None  # reference quantiles of training views (for histogram matching)
+    metadata: dict[str, str]
+
+    @property
+    def planes(self) -> RefocusPlanes:
+        return self.net.planes
+
+
+def _sha256(path: Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            digest.update(chunk)
+    return digest.hexdigest()
+
+
+def _card(net: CM2Net, config: NetConfig, metrics: dict[str, Any] | None, training: dict[str, Any] | None) -> str:
+    import cm2optics
+
+    planes = net.planes
+    s = config.synth
+    lines = [
+        "# CM²Net model card",
+        "",
+        f"Made {datetime.now(UTC).strftime('%Y-%m-%d %H:%M UTC')} with cm2optics {getattr(cm2optics, '__version__', '?')}; "
+        f"config hash `{config.hash()}`.",
+        "",
+        "## Model",
+        "",
+        f"- CM²Net (Xue et al., Optica 2022): view demixing → shift-and-add refocusing ({planes.n_planes} planes) → "
+        f"view synthesis + refocus enhancement → fusion; {config.channels} channels, {config.blocks} residual blocks "
+        f"per sub-network, {config.fusion_blocks} after fusion, norm = {config.norm}; {net.parameter_count():,} parameters.",
+        f"- Input: {net.n_views} views cropped at the chief rays (any size; trained on {s.patch_px}-px patches of "
+        f"{s.view_px}-px views), normalised like the synthetic measurements (peak of the clean image = 1).",
+        f"- Output: {config.n_planes} planes at {s.voxel_um[0]:g} µm (z) × {s.voxel_um[1]:g} × {s.voxel_um[2]:g} µm "
+        "voxels, σ(logit) ∈ [0, 1] per voxel, in the views' orientation (the inference flips it to the volume's).",
+        f"- Refocusing disparities {planes.disparity_px.min():g}…{planes.disparity_px.max():g} px, "
+        f"depths {planes.z_mm.min() * 1000:.1f}…{planes.z_mm.max() * 1000:.1f} µm, largest shift {planes.max_shift_px} px.",
+        "",
+        "## Training data",
+        "",
+        f"- Forward model: `{config.forward_model}`; synthetic volumes made on the fly (cm2optics.synth), seed {config.seed}.",
+        f"- Field {s.fov_mm[0]:g}–{s.fov_mm[1]:g} mm, depth {s.depth_um:g} µm, emitters {s.diameter_um[0]:g}–{s.diameter_um[1]:g} µm, "
+        f"density {s.density_per_mm2[0]:g}–{s.density_per_mm2[1]:g} per mm², noise {s.noise}"
+        + (f" ({s.peak_photons:g} peak photons)" if s.noise == "poisson-gaussian" else "")
+        + ".",
+        f"- {config.train_volumes} volumes × {s.patches_per_volume} patches per epoch"
+        + (", new volumes each epoch" if config.fresh_volumes else "")
+        + (
+            f"; density curriculum over {config.curriculum_epochs} epochs from {config.curriculum_start_density}"
+            if config.curriculum_epochs
+            else ""
+        )
+        + ".",
+        f"- Loss: {config.alpha_demix:g}·BCE(demixed) + {config.alpha_volume:g}·{config.volume_loss}(volume), "
+        f"Adam {config.lr:g}, ×{config.lr_factor:g} after {config.lr_patience} stalled epochs, global batch {config.batch_size}.",
+        "",
+    ]
+    if training:
+        lines += ["## Training run", ""] + [f"- {k}: {v}" for k, v in training.items()] + [""]
+    lines += ["## Validation metrics", ""]
+    if metrics:
+        lines += ["| metric | value |", "|---|---|"]
+        lines += [f"| {k} | {v:.4g} |" if isinstance(v, float) else f"| {k} | {v} |" for k, v in metrics.items()]
+    else:
+        lines.append("None recorded.")
+    lines += [
+        "",
+        "## Intended use and limitations",
+        "",
+        "- Sparse fluorescent emitters (cells, beads) imaged by the CM² whose forward model made the training data; "
+        "another device or a re-fitted model must match its geometry (checked at load: lenslets, refocusing shifts, "
+        "one view pixel per voxel).",
+        "- Trained on simulated data only; measured frames should be histogram-matched to the training statistics.",
+        "- Dense or continuous structures (vessels) come out fragmented: the BCE loss on sparse beads biases towards sparsity.",
+        "",
+        "## Files",
+        "",
+        f"`{WEIGHTS_FILE}` (safetensors), `{CONFIG_FILE}`, this card; SHA-256 in `{SUMS_FILE}`.",
+        "",
+    ]
+    return "\n".join(lines)
+
+
+def save_weights(
+    net: CM2Net,
+    config: NetConfig,
+    folder: str | Path,
+    *,
+    metrics: dict[str, Any] | None = None,
+    training: dict[str, Any] | None = None,
+    histogram: np.ndarray | None = None,
+) -> Path:
+    """Write the weights folder (each file atomically, the sums last); returns the folder."""
+    from safetensors.torch import save_file
+
+    folder = Path(folder)
+    net = getattr(net, "module", net)
+    state = {k: v.detach().cpu().contiguous() for k, v in net.state_dict().items()}
+    metadata = {"format": FORMAT, "config_hash": config.hash()}
+    if histogram is not None:
+        metadata["histogram"] = json.dumps([float(v) for v in np.asarray(histogram, float)])
+    write_atomic(folder / WEIGHTS_FILE, lambda tmp: save_file(state, str(tmp), metadata=metadata))
+    config.save(folder / CONFIG_FILE)
+    card = _card(net, config, metrics, training)
+    write_atomic(folder / CARD_FILE, lambda tmp: tmp.write_text(card, encoding="utf-8"))
+    sums = "".join(f"{_sha256(folder / name)}  {name}\n" for name in (WEIGHTS_FILE, CONFIG_FILE))
+    write_atomic(folder / SUMS_FILE, lambda tmp: tmp.write_text(sums, encoding="utf-8"))
+    return folder
+
+
+def _check_sums(folder: Path) -> None:
+    sums = folder / SUMS_FILE
+    if not sums.is_file():
+        raise WeightsError(f"{sums}: missing (a weights folder lists the SHA-256 of its files)")
+    listed = {}
+    for line in sums.read_text(encoding="utf-8").splitlines():
+        parts = line.split()
+        if len(parts) == 2:
+            listed[parts[1].lstrip("*")] = parts[0].lower()
+    for name in (WEIGHTS_FILE, CONFIG_FILE):
+        path = folder / name
+        if not path.is_file():
+            raise WeightsError(f"{path}: missing")
+        if name not in listed:
+            raise WeightsError(f"{sums}: lists no SHA-256 for {name}")
+        actual = _sha256(path)
+        if actual != listed[name]:
+            raise WeightsError(
+                f"{path}: SHA-256 {actual[:16]}… does not match {SUMS_FILE} ({listed[name][:16]}…): corrupt or edited"
+            )
+
+
+def load_weights(folder: str | Path, device: str = "cpu") -> LoadedNet:
+    """The network of a weights folder, checked (see the module docstring), in eval mode."""
+    from safetensors import SafetensorError
+    from safetensors.torch import load_file
+
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise WeightsError(f"{folder}: no such weights folder")
+    _check_sums(folder)
+    try:
+        config = load_config(folder / CONFIG_FILE)
+    except ConfigError as error:
+        raise WeightsError(str(error)) from None
+    path = folder / WEIGHTS_FILE
+    try:
+        tensors = load_file(str(path), device="cpu")
+        from safetensors import safe_open
+
+        with safe_open(str(path), framework="pt") as f:
+            metadata = dict(f.metadata() or {})
+    except (SafetensorError, OSError, ValueError) as error:
+        raise WeightsError(f"{path}: not a readable safetensors file ({error})") from None
+    if metadata.get("format") != FORMAT:
+        raise WeightsError(f"{path}: not CM²Net weights (format = {metadata.get('format')!r})")
+    if metadata.get("config_hash") != config.hash():
+        raise WeightsError(
+            f"{path}: trained with config {metadata.get('config_hash', '?')[:12]}…, {CONFIG_FILE} is {config.hash()[:12]}…"
+        )
+    try:
+        planes = RefocusPlanes(
+            tensors["refocus_z_mm"].numpy(), tensors["refocus_disparity_px"].numpy(), tensors["refocus.shifts"].numpy()
+        )
+        z_out = tensors["volume_z_mm"].numpy()
+        net = CM2Net(config, planes, z_out)
+    except (KeyError, ValueError) as error:
+        raise WeightsError(f"{path}: does not describe a CM²Net of {folder / CONFIG_FILE} ({error})") from None
+    expected = net.state_dict()
+    missing = sorted(set(expected) - set(tensors))
+    unexpected = sorted(set(tensors) - set(expected))
+    wrong = sorted(k for k in set(expected) & set(tensors) if tuple(expected[k].shape) != tuple(tensors[k].shape))
+    if missing or unexpected or wrong:
+        detail = "; ".join(
+            part
+            for part in (
+                f"missing {', '.join(missing[:4])}" if missing else "",
+                f"unexpected {', '.join(unexpected[:4])}" if unexpected else "",
+                ", ".join(
+                    f"{k} is {tuple(tensors[k].shape)}, the config needs {tuple(expected[k].shape)}" for k in wrong[:3]
+                ),
+            )
+            if part
+        )
+        raise WeightsError(f"{path}: tensors do not match {folder / CONFIG_FILE}: {detail}")
+    net.load_state_dict(tensors)
+    net.to(device).eval()
+    histogram = np.asarray(json.loads(metadata["histogram"]), float) if "histogram" in metadata else None
+    return LoadedNet(net, config, folder, histogram, metadata)

@@ -1,0 +1,321 @@
+"""CM²Net: config validation and hash, refocusing shifts from the model geometry (and their
+sign), the network's shapes at any size, the losses, on-the-fly patches (aligned with the synth
+package's volume patches, reproducible), weights files (hash, config mismatch) and full-field
+inference with its input and geometry checks. Tiny sizes: each test takes a few seconds."""
+
+from __future__ import annotations
+
+import types
+
+import numpy as np
+import pytest
+import torch
+
+from cm2optics.lsv.toy import gaussian_lsi_operator as gaussian_cm2
+from cm2optics.recon.net.config import ConfigError, NetConfig, load_config
+from cm2optics.recon.net.data import PatchSource, epoch_items
+from cm2optics.recon.net.infer import histogram_match, reconstruct_with_net
+from cm2optics.recon.net.loss import cm2net_loss, volume_loss
+from cm2optics.recon.net.model import CM2Net
+from cm2optics.recon.net.refocus import ShiftAndAdd, refocus_planes
+from cm2optics.recon.net.train import make_net
+from cm2optics.recon.net.weights import (
+    SUMS_FILE,
+    WEIGHTS_FILE,
+    GeometryMismatchError,
+    NetInputError,
+    WeightsError,
+    load_weights,
+    save_weights,
+)
+from cm2optics.synth.config import SynthConfig
+
+SYNTH = SynthConfig.scaled(20, voxel_um=(100.0, 8.0, 8.0), view_px=64, patch_px=32, patches_per_volume=4)
+
+
+def tiny(**changes) -> NetConfig:
+    values = dict(
+        channels=8,
+        blocks=1,
+        n_planes=SYNTH.grid.shape[0],
+        forward_model="toy:gaussian",
+        synth=SYNTH,
+        train_volumes=2,
+        val_volumes=1,
+        epochs=1,
+        threads=1,
+        progress=False,
+    )
+    values.update(changes)
+    return NetConfig(**values)
+
+
+@pytest.fixture(autouse=True, scope="module")
+def one_thread():
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+# ----------------------------------------------------------------------------- config
+def test_config_validates_fields_and_round_trips_through_yaml(tmp_path):
+    with pytest.raises(ConfigError, match="channels"):
+        tiny(channels=0)
+    with pytest.raises(ConfigError, match="n_planes"):
+        tiny(n_planes=80)
+    with pytest.raises(ConfigError, match="volume_loss"):
+        tiny(volume_loss="dice")
+    with pytest.raises(ConfigError, match="unknown CM²Net parameter"):
+        NetConfig.from_dict({"width": 3})
+    config = tiny(volume_loss="focal", curriculum_epochs=3)
+    path = config.save(tmp_path / "c.yaml")
+    again = load_config(path)
+    assert again == config and again.hash() == config.hash()
+    # runtime fields do not change the hash, the rest does
+    assert config.with_changes(epochs=99, out_dir="elsewhere", threads=2).hash() == config.hash()
+    assert config.with_changes(channels=16).hash() != config.hash()
+    (tmp_path / "bad.yaml").write_text("channels: many\n")
+    with pytest.raises(ConfigError, match="bad.yaml.*channels"):
+        load_config(tmp_path / "bad.yaml")
+
+
+# ----------------------------------------------------------------------------- refocusing
+def test_refocusing_planes_from_the_geometry_match_the_paper_at_full_size(v2):
+    """The analytic CM² V2's geometry at full resolution: the paper's fixed 36 planes have
+    disparities −18…+17 px and the neighbouring views shift by the disparity; auto planes span
+    the 800-µm depth at one pixel of disparity each; depths increase with the plane index."""
+    from cm2optics.lsv.toy import AnalyticCM2, analytic_geometry
+
+    model = AnalyticCM2.from_design(v2)
+    source = types.SimpleNamespace(geometry=analytic_geometry(model, np.linspace(-0.8, 0.8, 9)))
+    planes = refocus_planes(source, (-0.4, 0.4), 36)
+    assert planes.n_planes == 36 and planes.disparity_px.min() == -18 and planes.disparity_px.max() == 17
+    assert np.all(np.diff(planes.z_mm) > 0)
+    # centre lenslet (index 4) never moves; a side neighbour moves by ≈ the disparity
+    assert np.all(planes.shifts_px[:, 4] == 0)
+    side = np.abs(planes.shifts_px[:, 5]).sum(axis=1)
+    np.testing.assert_allclose(side, np.abs(planes.disparity_px), atol=1)
+    auto = refocus_planes(source, (-0.4, 0.4), 0)
+    assert 15 <= auto.n_planes <= 40  # one plane per pixel of disparity over 0.8 mm
+    assert auto.z_mm.min() >= -0.4 - 1e-9 and auto.z_mm.max() <= 0.4 + 1e-9
+
+
+def test_shift_and_add_brings_a_point_into_focus_at_its_depth():
+    grid = SYNTH.grid
+    op = gaussian_cm2(grid, (160, 160), defocus_px_per_um=0.006)
+    planes = refocus_planes(op, (grid.axis_mm(0)[0], grid.axis_mm(0)[-1]), 0)
+    from cm2optics.synth.views import crop_views
+
+    for k in (0, planes.n_planes // 2, planes.n_planes - 1):
+        iz = int(np.argmin(np.abs(grid.axis_mm(0) - planes.z_mm[k])))
+        volume = np.zeros(grid.shape, np.float32)
+        volume[iz, 20, 27] = 1.0
+        views = crop_views(np.asarray(op.forward(volume, per_lenslet=True)), op.chief_rays_px(), 64)
+        stack = ShiftAndAdd(planes.shifts_px)(torch.from_numpy(views)[None])[0].numpy()
+        best = int(np.argmax(stack.reshape(len(stack), -1).max(axis=1)))
+        assert abs(planes.z_mm[best] - grid.axis_mm(0)[iz]) <= 0.5 * np.diff(planes.z_mm).mean() + 1e-9
+
+
+def test_shift_and_add_fills_zeros_rather_than_wrapping():
+    shifts = np.zeros((1, 2, 2), np.int64)
+    shifts[0, 1] = (0, 3)
+    views = torch.zeros(1, 2, 4, 6)
+    views[0, 1, :, -1] = 1.0  # the last column of view 1
+    out = ShiftAndAdd(shifts)(views)[0, 0]
+    assert float(out[:, -1].sum()) == 0.0 and float(out[:, 2].sum()) == pytest.approx(4 * 0.5)
+
+
+# ----------------------------------------------------------------------------- network
+def test_the_network_is_fully_convolutional_and_its_first_enhancement_layer_resamples_planes():
+    config = tiny()
+    net, border = make_net(config)
+    assert isinstance(net, CM2Net) and border == net.planes.max_shift_px
+    net.eval()
+    with torch.no_grad():
+        demix, volume = net(torch.rand(1, 9, 40, 56))
+    assert demix.shape == (1, 9, 40, 56) and volume.shape == (1, config.n_planes, 40, 56)
+    W = net.resample.weight[:, :, 0, 0].detach().numpy()
+    assert W.shape == (config.n_planes, net.planes.n_planes)
+    np.testing.assert_allclose(W.sum(axis=1), 1.0, atol=1e-6)  # linear interpolation in z
+    assert float(torch.sigmoid(volume).mean()) < 0.1  # sparse prior at the start
+    with pytest.raises(ValueError, match="views must be"):
+        net(torch.rand(1, 4, 8, 8))
+
+
+def test_losses_are_finite_and_the_border_is_left_out():
+    config = tiny()
+    logits = torch.randn(2, 9, 16, 16)
+    target = (torch.rand(2, 9, 16, 16) > 0.95).float()
+    for kind in ("bce", "weighted-bce", "focal"):
+        assert torch.isfinite(volume_loss(logits, target, kind))
+    assert volume_loss(logits, target, "focal") < volume_loss(logits, target, "bce")
+    vol_logits = torch.full((1, 3, 16, 16), -5.0)
+    vol_logits[..., 0, :] = 5.0  # wrong only on the border
+    total, parts = cm2net_loss(
+        torch.zeros(1, 9, 16, 16), vol_logits, torch.zeros(1, 9, 16, 16), torch.zeros(1, 3, 16, 16), config, 2
+    )
+    assert float(parts["volume"]) < 0.01 and torch.isfinite(total)
+
+
+# ----------------------------------------------------------------------------- data
+def test_patch_targets_are_the_synth_volume_patches_and_reproducible():
+    from cm2optics.synth.raster import rasterize_balls
+    from cm2optics.synth.views import volume_patch
+
+    config = tiny()
+    source = PatchSource(config)
+    item = epoch_items(config, 0)[0]
+    made = source.volume(item.seed, item.volume, item.density)
+    full = np.clip(rasterize_balls(made["emitters"], config.synth.grid, kind="occupancy"), 0, 1)
+    for k, origin in enumerate(made["origins"]):
+        expected, _ = volume_patch(full, origin, config.synth.view_px, config.synth.patch_px, source.scale)
+        np.testing.assert_allclose(made["volume"][k], expected, atol=1e-5)
+    other = PatchSource(config).volume(item.seed, item.volume, item.density)
+    for key in ("views", "demixed", "volume"):
+        np.testing.assert_array_equal(made[key], other[key])
+    # the true emitters in a patch's frame sit where the target's voxels are
+    k = int(np.argmax(made["volume"].reshape(4, -1).sum(1)))
+    truth = source.truth(type(item)(item.seed, item.volume, k, item.density), 0)
+    if len(truth):
+        g = config.synth.grid
+        iy = np.round(truth.y_um / g.voxel_um[1] + (config.synth.patch_px - 1) / 2).astype(int)
+        ix = np.round(truth.x_um / g.voxel_um[2] + (config.synth.patch_px - 1) / 2).astype(int)
+        iz = np.round(truth.z_um / g.voxel_um[0] + (g.shape[0] - 1) / 2).astype(int)
+        ok = (iz >= 0) & (iz < g.shape[0])
+        hit = made["volume"][k][iz[ok], iy[ok], ix[ok]] > 0
+        # balls thinner than the 100-µm z voxels may miss every fine sub-voxel: most must hit
+        assert hit.mean() >= 0.5
+
+
+def test_curriculum_grows_the_density():
+    from cm2optics.recon.net.data import density_at
+
+    config = tiny(curriculum_epochs=4, curriculum_start_density=(1.0, 2.0))
+    assert density_at(config, 0) == (1.0, 2.0)
+    assert density_at(config, 4) == tuple(config.synth.density_per_mm2) == density_at(config, 9)
+    lows = [density_at(config, e)[1] for e in range(5)]
+    assert all(b > a for a, b in zip(lows, lows[1:], strict=False))
+
+
+# ----------------------------------------------------------------------------- weights, inference
+@pytest.fixture(scope="module")
+def weights(tmp_path_factory):
+    config = tiny()
+    net, _ = make_net(config)
+    return save_weights(
+        net, config, tmp_path_factory.mktemp("w") / "weights", metrics={"f1": 0.5}, histogram=np.linspace(0, 1, 256)
+    )
+
+
+def test_weights_round_trip_and_refuse_a_failed_hash_or_another_config(weights, tmp_path):
+    import shutil
+
+    loaded = load_weights(weights)
+    assert "CM²Net model card" in (weights / "MODEL_CARD.md").read_text()
+    x = torch.rand(1, 9, 32, 32)
+    again = load_weights(weights)
+    with torch.no_grad():
+        np.testing.assert_array_equal(loaded.net(x)[1].numpy(), again.net(x)[1].numpy())
+    bad = shutil.copytree(weights, tmp_path / "corrupt")
+    data = bytearray((bad / WEIGHTS_FILE).read_bytes())
+    data[-5] ^= 0xFF
+    (bad / WEIGHTS_FILE).write_bytes(bytes(data))
+    with pytest.raises(WeightsError, match=r"model\.safetensors.*SHA-256"):
+        load_weights(bad)
+    # another config (sums recomputed so that only the mismatch remains)
+    other = shutil.copytree(weights, tmp_path / "other")
+    text = (other / "config.yaml").read_text().replace("channels: 8", "channels: 16")
+    (other / "config.yaml").write_text(text)
+    import hashlib
+
+    sums = "".join(
+        f"{hashlib.sha256((other / n).read_bytes()).hexdigest()}  {n}\n" for n in (WEIGHTS_FILE, "config.yaml")
+    )
+    (other / SUMS_FILE).write_text(sums)
+    with pytest.raises(WeightsError, match="config"):
+        load_weights(other)
+    (other / SUMS_FILE).unlink()
+    with pytest.raises(WeightsError, match=SUMS_FILE):
+        load_weights(other)
+
+
+def test_full_field_inference_checks_its_inputs_and_returns_a_volume(weights):
+    from cm2optics.synth.generate import synthesize_sample
+    from cm2optics.synth.imaging import Imaging
+
+    config = load_weights(weights).config
+    grid = config.synth.grid
+    op = gaussian_cm2(grid, (160, 160), defocus_px_per_um=0.006)
+    sample = synthesize_sample(config.synth.with_changes(patches_per_volume=0), Imaging(op, grid), 0, 3)
+    result = reconstruct_with_net(sample.measurement, weights, op, preprocess="histogram", threshold=0.2)
+    assert result.volume.shape == (config.n_planes, 64, 64) and result.grid.voxel_um == grid.voxel_um
+    assert result.volume.dtype == np.float32 and 0 <= result.volume.min() and result.volume.max() <= 1
+    assert result.border_px == load_weights(weights).planes.max_shift_px and result.demixed.shape == (9, 64, 64)
+    with pytest.raises(NetInputError, match="shape"):
+        reconstruct_with_net(sample.measurement[:100], weights, op)
+    with pytest.raises(NetInputError, match="dtype"):
+        reconstruct_with_net(sample.measurement.astype(complex), weights, op)
+    with pytest.raises(NetInputError, match="NaN"):
+        reconstruct_with_net(np.full((160, 160), np.nan), weights, op)
+    other = gaussian_cm2(grid, (160, 160), defocus_px_per_um=0.006, shear_per_um=6e-4)
+    with pytest.raises(GeometryMismatchError, match="refocusing"):
+        reconstruct_with_net(sample.measurement, weights, other)
+
+
+def test_histogram_matching_maps_quantiles():
+    rng = np.random.default_rng(0)
+    image = rng.exponential(3.0, (64, 64))
+    ref = np.quantile(rng.normal(0.1, 0.02, 10_000), np.linspace(0, 1, 256))
+    out = histogram_match(image, ref)
+    assert abs(np.median(out) - np.median(ref)) < 0.005
+    assert np.all(np.diff(out.ravel()[np.argsort(image.ravel())]) >= -1e-7)  # order kept
+
+
+def test_the_sensor_window_gives_the_full_sensors_views(v2):
+    """The 3D-LSV model cut to the window the views need renders the same views (analytic CM²
+    V2, binned 8×), on a smaller sensor."""
+    from cm2optics.lsv.toy import AnalyticCM2, analytic_lsv_model
+    from cm2optics.recon.net.data import sensor_window
+    from cm2optics.synth.generate import synthesize_sample
+    from cm2optics.synth.imaging import Imaging
+
+    analytic = AnalyticCM2.from_design(v2, binning=8, sigma0_um=19.2)
+    xs = np.linspace(-1.2, 1.2, 3)
+    model = analytic_lsv_model(analytic, xs, xs, np.linspace(-0.2, 0.2, 3), rank=4)
+    window = sensor_window(model, 48)
+    assert window.sensor_shape[0] * window.sensor_shape[1] < 0.8 * model.sensor_shape[0] * model.sensor_shape[1]
+    voxel = model.default_grid.voxel_um[1]
+    synth = SynthConfig.scaled(
+        8, voxel_um=(50.0, voxel, voxel), view_px=48, patch_px=16, patches_per_volume=0, noise="none", depth_um=300.0
+    )
+    a = synthesize_sample(synth, Imaging(model, synth.grid), 0, 5)
+    b = synthesize_sample(synth, Imaging(window, synth.grid), 0, 5)
+    assert a.views.max() > 0
+    np.testing.assert_allclose(
+        b.views * b.image_scale, a.views * a.image_scale, atol=1e-4 * a.image_scale * a.views.max()
+    )
+    np.testing.assert_allclose(
+        b.demixed * b.image_scale, a.demixed * a.image_scale, atol=1e-4 * a.image_scale * a.views.max()
+    )
+
+
+def test_the_learning_rate_drops_by_the_factor_after_two_stalled_epochs():
+    from cm2optics.recon.net.train import make_optimiser, make_scheduler
+
+    config = tiny()
+    net, _ = make_net(config)
+    optimiser = make_optimiser(net, config)
+    scheduler = make_scheduler(optimiser, config)
+    lrs = []
+    for loss in (1.0, 1.0, 1.0, 1.0, 1.0):
+        scheduler.step(loss)
+        lrs.append(optimiser.param_groups[0]["lr"])
+    assert lrs[:2] == [1e-4, 1e-4] and lrs[2] == pytest.approx(0.9e-4)  # best, stalled, stalled → ×0.9
+
+
+def test_the_training_entry_point_reports_a_bad_config_without_a_traceback(tmp_path, capsys):
+    from cm2optics.recon.net.train import main
+
+    assert main([str(tmp_path / "missing.yaml")]) == 2
+    assert "no such config file" in capsys.readouterr().out

@@ -1,0 +1,116 @@
+"""CM²Net training: a tiny run writes its files; a run stopped after some steps and resumed ends
+with the weights of an uninterrupted run; two DDP processes (torchrun, gloo) follow the loss curve
+of one process with the same global batch; a resume with another config is refused."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from cm2optics.recon.net.checkpoint import CheckpointError
+from cm2optics.recon.net.config import NetConfig
+from cm2optics.recon.net.train import train
+from cm2optics.recon.net.weights import load_weights
+from cm2optics.synth.config import SynthConfig
+
+SYNTH = SynthConfig.scaled(20, voxel_um=(100.0, 8.0, 8.0), view_px=64, patch_px=32, patches_per_volume=4)
+REPO = Path(__file__).resolve().parents[1]
+
+
+def tiny(out: Path, **changes) -> NetConfig:
+    values = dict(
+        channels=8,
+        blocks=1,
+        n_planes=SYNTH.grid.shape[0],
+        forward_model="toy:gaussian",
+        synth=SYNTH,
+        train_volumes=2,
+        val_volumes=1,
+        epochs=2,
+        threads=1,
+        progress=False,
+        out_dir=str(out),
+    )
+    values.update(changes)
+    return NetConfig(**values)
+
+
+@pytest.fixture(autouse=True, scope="module")
+def one_thread():
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def _state(folder: Path) -> dict[str, torch.Tensor]:
+    return load_weights(folder / "weights").net.state_dict()
+
+
+def test_a_stopped_and_resumed_run_ends_with_the_weights_of_an_uninterrupted_one(tmp_path):
+    whole = train(tiny(tmp_path / "whole"))
+    assert whole["global_step"] == 8 and not whole["stopped"]
+    for name in (
+        "checkpoint.pt",
+        "history.json",
+        "loss_curve.png",
+        "weights/model.safetensors",
+        "weights/MODEL_CARD.md",
+    ):
+        assert (tmp_path / "whole" / name).is_file()
+    history = json.loads((tmp_path / "whole" / "history.json").read_text())
+    assert len(history["steps"]) == 8 and len(history["epochs"]) == 2 and "recall" in history["epochs"][0]
+
+    config = tiny(tmp_path / "parts", volume_loss="bce")
+    first = train(config, max_steps=3)  # stopped mid-epoch (4 steps per epoch)
+    assert first["stopped"] and first["global_step"] == 3
+    assert not (tmp_path / "parts" / "weights").exists()
+    second = train(config, max_steps=5, resume=True)  # into the second epoch
+    assert second["stopped"] and second["global_step"] == 5
+    third = train(config, resume=True)
+    assert third["global_step"] == 8 and not third["stopped"]
+    a, b = _state(tmp_path / "whole"), _state(tmp_path / "parts")
+    for key in a:
+        torch.testing.assert_close(a[key], b[key], rtol=0, atol=0, msg=key)
+    resumed = json.loads((tmp_path / "parts" / "history.json").read_text())
+    np.testing.assert_array_equal([s["loss"] for s in resumed["steps"]], [s["loss"] for s in history["steps"]])
+
+    with pytest.raises(CheckpointError, match="config"):
+        train(config.with_changes(channels=4), resume=True)
+
+
+def test_the_loss_curve_of_two_ddp_processes_equals_one_process(tmp_path):
+    one = tiny(tmp_path / "one", epochs=1, val_volumes=0)
+    two = one.with_changes(out_dir=str(tmp_path / "two"))
+    train(one)
+    config_path = two.save(tmp_path / "two.yaml")
+    env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    command = [
+        sys.executable,
+        "-m",
+        "torch.distributed.run",
+        "--standalone",
+        "--nproc_per_node=2",
+        "-m",
+        "cm2optics.recon.net.train",
+        str(config_path),
+        "--device",
+        "cpu",
+    ]
+    run = subprocess.run(command, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-3000:]
+    h1 = json.loads((tmp_path / "one" / "history.json").read_text())
+    h2 = json.loads((tmp_path / "two" / "history.json").read_text())
+    assert len(h1["steps"]) == len(h2["steps"]) == 4
+    for key in ("loss", "demix", "volume"):
+        np.testing.assert_allclose([s[key] for s in h2["steps"]], [s[key] for s in h1["steps"]], rtol=1e-5, atol=1e-7)
+    a, b = _state(tmp_path / "one"), _state(tmp_path / "two")
+    for key in a:
+        torch.testing.assert_close(a[key].float(), b[key].float(), rtol=1e-4, atol=1e-5, msg=key)
