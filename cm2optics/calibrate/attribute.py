@@ -20,12 +20,11 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.fft as sfft
 
 from cm2optics.calibrate.effects import Effect, apply_image_effects, leakage_counts
 from cm2optics.calibrate.features import focus_features, window_radii
 from cm2optics.calibrate.noise import SensorNoise, estimate_noise
-from cm2optics.calibrate.register import Registration, register, shift_spectra
+from cm2optics.calibrate.register import Registration, register
 from cm2optics.calibrate.simulate import Simulator, Values
 
 #: ΔBIC a candidate must gain to be kept ("very strong" evidence on Kass & Raftery's scale).
@@ -196,29 +195,22 @@ class Problem:
         space.sigma = _feature_sigma(space, model_signal, self.noise)
         self.space = space
         self.use = np.isfinite(space.data) & np.isfinite(space.sigma) & (space.sigma > 0)
-        self._spectra: dict[str, np.ndarray] = {}
-        self._shifted: dict[tuple, np.ndarray] = {}
+        self._rates: dict[tuple, np.ndarray] = {}
 
     def start(self) -> State:
         r = self.registration
         return State(np.array([r.offset_px[0], r.offset_px[1], r.flux_scale, r.dark_level], float))
 
     def _shifted_rate(self, state: State) -> np.ndarray:
-        """The simulator's images with the optical effects, moved by the state's offset (cached)."""
+        """The simulator's images with the optical effects and the state's frame offset (cached)."""
         optical = {k: v for k, v in state.values.items() if not _is_image_side(k)}
-        key = repr(sorted((k, sorted(v.items())) for k, v in optical.items()))
-        spectra = self._spectra.get(key)
-        if spectra is None:
-            if len(self._spectra) > 16:
-                self._spectra.clear()
-            spectra = self._spectra[key] = sfft.rfft2(self.simulator.rates(self.positions, optical), workers=-1)
         offset = (round(float(state.nuisance[0]), 9), round(float(state.nuisance[1]), 9))
-        shifted_key = (key, offset)
-        if shifted_key not in self._shifted:
-            if len(self._shifted) > 16:
-                self._shifted.clear()
-            self._shifted[shifted_key] = shift_spectra(spectra, self.counts.shape[-2:], offset)
-        return self._shifted[shifted_key]
+        key = (repr(sorted((k, sorted(v.items())) for k, v in optical.items())), offset)
+        if key not in self._rates:
+            if len(self._rates) > 24:
+                self._rates.clear()
+            self._rates[key] = self.simulator.rates(self.positions, optical, offset)
+        return self._rates[key]
 
     def model_counts(self, state: State) -> np.ndarray:
         """Expected raw counts (N, y, x) of the data under ``state``."""

@@ -2,10 +2,12 @@
 include the effects of :mod:`.effects`.
 
 A simulator returns, for source positions (N, 3) mm and effect values (effect key → parameters),
-the images (N, y, x) in counts per ms of a unit source, with the optical effects included; the
+the images (N, y, x) in counts per ms of a unit source, with the optical effects included and the
+sensor displaced by a frame offset (rendered in place: a resampled image of ≈ 1-px foci would be
+wrong); the
 sensor-side effects (stray light, crosstalk, leakage) are added by :mod:`.effects` on top of any
 simulator. :class:`AnalyticSimulator` is the fast closed-form CM²-like model
-(:mod:`cm2optics.lsv.analytic`), used by the tests and as the quick first pass.
+(:mod:`cm2optics.lsv.toy`), used by the tests and as the quick first pass.
 """
 
 from __future__ import annotations
@@ -17,7 +19,7 @@ from typing import Protocol
 import numpy as np
 
 from cm2optics.calibrate.effects import Effect
-from cm2optics.lsv.analytic import AnalyticCM2
+from cm2optics.lsv.toy import AnalyticCM2
 
 Values = dict[str, dict[str, float]]
 
@@ -31,7 +33,9 @@ class Simulator(Protocol):
 
     def supports(self, effect: Effect) -> bool: ...
 
-    def rates(self, positions_mm: np.ndarray, values: Values) -> np.ndarray: ...
+    def rates(
+        self, positions_mm: np.ndarray, values: Values, offset_px: tuple[float, float] = (0.0, 0.0)
+    ) -> np.ndarray: ...
 
     def focus_centres_px(self, positions_mm: np.ndarray) -> np.ndarray: ...
 
@@ -116,8 +120,13 @@ class AnalyticSimulator:
         changes["lenslet_centres_mm"] = tuple(map(tuple, centres))
         return replace(self.model, **changes), weights, falloff
 
-    def rates(self, positions_mm: np.ndarray, values: Values) -> np.ndarray:
+    def rates(
+        self, positions_mm: np.ndarray, values: Values, offset_px: tuple[float, float] = (0.0, 0.0)
+    ) -> np.ndarray:
+        """Images (N, y, x) in counts per ms of a unit source, the sensor displaced by ``offset_px``
+        (row, col) px: rendered there, not resampled, so undersampled foci stay exact."""
         model, weights, falloff = self._model_with(values)
+        model = replace(model, offset_px=(float(offset_px[0]), float(offset_px[1])))
         centres = np.asarray(model.lenslet_centres_mm, float)
         out = np.empty((len(positions_mm),) + model.shape, np.float32)
         for i, (x, y, z) in enumerate(np.asarray(positions_mm, float)):
