@@ -71,6 +71,8 @@ class AnalyticCM2:
     distortion_um_per_mm3: b, radial displacement of a focus on the sensor per mm³, µm.
     vignetting_mm: ρ_v, off-axis distance where a focus is half as bright, mm.
     vignetting_soft_mm: width of the vignetting edge, mm.
+    offset_px: (row, col) displacement of the whole image on the sensor, px (a sensor placed off
+        its nominal position).
     """
 
     magnification: float
@@ -88,6 +90,7 @@ class AnalyticCM2:
     distortion_um_per_mm3: float = 0.3
     vignetting_mm: float = 3.2
     vignetting_soft_mm: float = 0.25
+    offset_px: tuple[float, float] = (0.0, 0.0)
 
     def __post_init__(self) -> None:
         if self.sigma0_um is None:
@@ -126,8 +129,8 @@ class AnalyticCM2:
         s_mm = c - m * rel
         direction = -rel / np.maximum(rho, 1e-9)[:, None]  # on the sensor the image is inverted
         s_mm = s_mm + direction * (self.distortion_um_per_mm3 * rho**3 / 1000.0)[:, None]
-        row = (self.shape[0] - 1) / 2.0 + s_mm[:, 1] * 1000.0 / self.pixel_um
-        col = (self.shape[1] - 1) / 2.0 + s_mm[:, 0] * 1000.0 / self.pixel_um
+        row = (self.shape[0] - 1) / 2.0 + self.offset_px[0] + s_mm[:, 1] * 1000.0 / self.pixel_um
+        col = (self.shape[1] - 1) / 2.0 + self.offset_px[1] + s_mm[:, 0] * 1000.0 / self.pixel_um
         sigma_um = math.hypot(self.sigma0_um, 0.5 * self.object_na * abs(z_mm) * 1000.0 * m)
         sigma_t = sigma_um / self.pixel_um
         sigma_r = sigma_t * (1.0 + self.aberration_per_mm2 * rho**2)
@@ -154,11 +157,22 @@ class AnalyticCM2:
         _add_gaussian(out, offset, covs[j], fluxes[j])
         return out
 
-    def image(self, x_mm: float, y_mm: float, z_mm: float, *, lenslets: np.ndarray | None = None) -> np.ndarray:
+    def image(
+        self,
+        x_mm: float,
+        y_mm: float,
+        z_mm: float,
+        *,
+        lenslets: np.ndarray | None = None,
+        weights: np.ndarray | None = None,
+    ) -> np.ndarray:
         """The image (y, x) of a unit point source, float64, each focus integrated over its pixels
-        (3×3 sub-samples per pixel); ``lenslets`` restricts it to some foci."""
+        (3×3 sub-samples per pixel); ``lenslets`` restricts it to some foci, ``weights`` (J,)
+        scales each focus's flux (transmission, source profile)."""
         out = np.zeros(self.shape)
         centres, covs, fluxes = self.foci(x_mm, y_mm, z_mm)
+        if weights is not None:
+            fluxes = fluxes * np.asarray(weights, float)
         for j in range(len(centres)) if lenslets is None else lenslets:
             _add_gaussian(out, centres[j], covs[j], fluxes[j])
         return out

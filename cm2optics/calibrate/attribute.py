@@ -1,0 +1,401 @@
+"""Attribution: which physical effects explain the residual, with what values.
+
+The comparison happens on compact features measured in fixed windows (:mod:`.features`): every
+focus's energy, centroid and width, and each frame's background in 4 × 4 blocks outside the
+foci. Each feature's noise follows from the sensor's noise model, so a misfit is a χ².
+
+Starting from the nominal design, every candidate effect is fitted to the residual (linearised
+by finite differences, nuisance registration parameters — offset, flux scale, dark — free
+alongside); the one that lowers the Bayesian information criterion most is kept if it lowers it
+by more than ``BIC_THRESHOLD``; all kept parameters are then refitted jointly by Gauss–Newton
+with the simulator in the loop; and the search repeats until χ² reaches the noise floor or no
+candidate is significant. Uncertainties are the square roots of the covariance's diagonal,
+scaled by the reduced χ² where it exceeds 1.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from cm2optics.calibrate.effects import Effect, apply_image_effects, leakage_counts
+from cm2optics.calibrate.features import focus_features, window_radii
+from cm2optics.calibrate.noise import SensorNoise, estimate_noise
+from cm2optics.calibrate.register import Registration, register
+from cm2optics.calibrate.simulate import Simulator, Values
+
+#: ΔBIC a candidate must gain to be kept ("very strong" evidence on Kass & Raftery's scale).
+BIC_THRESHOLD = 10.0
+#: Reduced χ² at which the loop stops: the model explains the data to the noise.
+CHI2_FLOOR = 1.2
+#: Background blocks per side outside the foci.
+BLOCKS = 4
+NUISANCE = ("offset_row_px", "offset_col_px", "flux_scale", "dark_level")
+NUISANCE_STEPS = (0.05, 0.05, 1e-3, 0.5)
+
+Progress = Callable[[str], None]
+
+
+@dataclass
+class FeatureSpace:
+    """Fixed windows, the data's features and their noise."""
+
+    centres: np.ndarray
+    radii: np.ndarray
+    block_of: np.ndarray  # (N, y, x) block index of every pixel outside the foci, −1 inside
+    data: np.ndarray
+    sigma: np.ndarray
+    exposure_ms: np.ndarray
+
+    def features(self, counts: np.ndarray, dark: float) -> np.ndarray:
+        signal = counts - np.float32(dark)
+        f = focus_features(signal, self.centres, self.radii)
+        blocks = _block_means(signal, self.block_of)
+        return np.concatenate(
+            [f.energy.ravel(), f.centroid_px[..., 0].ravel(), f.centroid_px[..., 1].ravel(), f.width_px.ravel(), blocks.ravel()]
+        )
+
+
+def _block_means(signal: np.ndarray, block_of: np.ndarray) -> np.ndarray:
+    n = len(signal)
+    out = np.full((n, BLOCKS * BLOCKS), np.nan)
+    for i in range(n):
+        labels = block_of[i].ravel()
+        keep = labels >= 0
+        sums = np.bincount(labels[keep], weights=signal[i].ravel()[keep], minlength=BLOCKS * BLOCKS)
+        counts = np.bincount(labels[keep], minlength=BLOCKS * BLOCKS)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            out[i] = np.where(counts > 20, sums / counts, np.nan)
+    return out
+
+
+def _blocks(shape: tuple[int, int], centres: np.ndarray, radii: np.ndarray) -> np.ndarray:
+    rows = np.arange(shape[0])[:, None]
+    cols = np.arange(shape[1])[None, :]
+    label = (rows * BLOCKS // shape[0]) * BLOCKS + (cols * BLOCKS // shape[1])
+    out = np.broadcast_to(label, (len(centres),) + tuple(shape)).copy()
+    for j in range(centres.shape[1]):
+        inside = np.hypot(rows - centres[:, j, 0, None, None], cols - centres[:, j, 1, None, None]) <= 2.5 * radii[
+            :, j, None, None
+        ]
+        out[inside] = -1
+    return out
+
+
+def _feature_sigma(space: FeatureSpace, model_signal: np.ndarray, noise: SensorNoise) -> np.ndarray:
+    """σ of every feature propagated from the pixel noise of the model's expected counts."""
+    var = noise.variance(model_signal).astype(np.float64)
+    n, j = space.centres.shape[:2]
+    half = int(np.ceil(np.nanmax(space.radii)))
+    offsets = np.arange(-half, half + 1)
+    base = np.rint(space.centres).astype(int)
+    rows = np.clip(base[..., 0, None, None] + offsets[:, None], 0, model_signal.shape[1] - 1)
+    cols = np.clip(base[..., 1, None, None] + offsets[None, :], 0, model_signal.shape[2] - 1)
+    rows, cols = np.broadcast_arrays(rows, cols)
+    idx = np.arange(n)[:, None, None, None]
+    inside = np.hypot(rows - space.centres[..., 0, None, None], cols - space.centres[..., 1, None, None]) <= space.radii[
+        ..., None, None
+    ]
+    v = np.where(inside, var[idx, rows, cols], 0.0)
+    signal = np.where(inside, np.clip(model_signal[idx, rows, cols], 0, None), 0.0)
+    energy = signal.sum(axis=(-2, -1))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        r0 = (signal * rows).sum(axis=(-2, -1)) / energy
+        c0 = (signal * cols).sum(axis=(-2, -1)) / energy
+        dr2 = (rows - r0[..., None, None]) ** 2
+        dc2 = (cols - c0[..., None, None]) ** 2
+        w2 = (signal * (dr2 + dc2)).sum(axis=(-2, -1)) / energy
+        s_e = np.sqrt(v.sum(axis=(-2, -1)))
+        s_r = np.sqrt((v * dr2).sum(axis=(-2, -1))) / energy
+        s_c = np.sqrt((v * dc2).sum(axis=(-2, -1))) / energy
+        s_w2 = np.sqrt((v * (dr2 + dc2 - w2[..., None, None]) ** 2).sum(axis=(-2, -1))) / energy
+        s_w = s_w2 / (2.0 * np.sqrt(w2))
+    blocks = np.full((n, BLOCKS * BLOCKS), np.nan)
+    for i in range(n):
+        labels = space.block_of[i].ravel()
+        keep = labels >= 0
+        sums = np.bincount(labels[keep], weights=var[i].ravel()[keep], minlength=BLOCKS * BLOCKS)
+        counts = np.bincount(labels[keep], minlength=BLOCKS * BLOCKS)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            blocks[i] = np.where(counts > 20, np.sqrt(sums) / counts, np.nan)
+    return np.concatenate([s_e.ravel(), s_r.ravel(), s_c.ravel(), s_w.ravel(), blocks.ravel()])
+
+
+@dataclass
+class State:
+    """Current parameter values: nuisance (4) and the kept effects' parameters."""
+
+    nuisance: np.ndarray
+    values: Values = field(default_factory=dict)
+
+    def copy(self) -> State:
+        return State(self.nuisance.copy(), {k: dict(v) for k, v in self.values.items()})
+
+
+@dataclass(frozen=True)
+class Step:
+    """One round of the loop: what was added and the misfit after it."""
+
+    added: str | None
+    chi2: float
+    bic: float
+
+
+@dataclass(frozen=True)
+class Attribution:
+    effects: dict[str, dict[str, float]]
+    uncertainties: dict[str, dict[str, float]]
+    steps: tuple[Step, ...]
+    registration: Registration
+    noise: SensorNoise
+    chi2_before: float
+    chi2_after: float
+    feature_residual: np.ndarray  # normalised residuals (data − model)/σ after the fit
+    feature_shape: tuple[int, int]
+
+
+class Problem:
+    """The data, the simulator and the candidates: evaluates features for a parameter state."""
+
+    def __init__(
+        self,
+        simulator: Simulator,
+        counts: np.ndarray,
+        exposure_ms: np.ndarray,
+        positions_mm: np.ndarray,
+        valid: np.ndarray,
+        candidates: tuple[Effect, ...],
+        counts_per_electron: float | None,
+    ):
+        self.simulator = simulator
+        self.counts = counts.astype(np.float32)
+        self.exposure = np.asarray(exposure_ms, np.float32)
+        self.positions = np.asarray(positions_mm, float)
+        self.valid = valid
+        self.candidates = tuple(c for c in candidates if simulator.supports(c))
+        nominal = simulator.rates(self.positions, {})
+        self.registration, model_counts = register(self.counts, self.exposure, nominal, valid)
+        model_signal = model_counts - np.float32(self.registration.dark_level)
+        residual = self.counts - model_counts
+        lit = model_signal > 1e-3 * float(model_signal.max())
+        self.noise = estimate_noise(residual[valid], model_signal[valid], (valid & ~lit)[valid], counts_per_electron)
+        centres = simulator.focus_centres_px(self.positions) + np.asarray(self.registration.offset_px)
+        pitch = simulator.pitch_px()
+        wide = np.full(centres.shape[:2], max(3.0, 0.45 * pitch))
+        refined = focus_features(model_signal, centres, wide).centroid_px
+        centres = np.where(np.isnan(refined), centres, refined)
+        radii = window_radii(model_signal, centres, pitch)
+        block_of = _blocks(self.counts.shape[-2:], centres, radii)
+        block_of[~valid] = -1
+        space = FeatureSpace(centres, radii, block_of, np.empty(0), np.empty(0), self.exposure)
+        space.data = space.features(self.counts, self.registration.dark_level)
+        space.sigma = _feature_sigma(space, model_signal, self.noise)
+        self.space = space
+        self.use = np.isfinite(space.data) & np.isfinite(space.sigma) & (space.sigma > 0)
+        self._rates: dict[tuple, np.ndarray] = {}
+
+    def start(self) -> State:
+        r = self.registration
+        return State(np.array([r.offset_px[0], r.offset_px[1], r.flux_scale, r.dark_level], float))
+
+    def _shifted_rate(self, state: State) -> np.ndarray:
+        """The simulator's images with the optical effects and the state's frame offset (cached)."""
+        optical = {k: v for k, v in state.values.items() if not _is_image_side(k)}
+        offset = (round(float(state.nuisance[0]), 9), round(float(state.nuisance[1]), 9))
+        key = (repr(sorted((k, sorted(v.items())) for k, v in optical.items())), offset)
+        if key not in self._rates:
+            if len(self._rates) > 24:
+                self._rates.clear()
+            self._rates[key] = self.simulator.rates(self.positions, optical, offset)
+        return self._rates[key]
+
+    def model_counts(self, state: State) -> np.ndarray:
+        """Expected raw counts (N, y, x) of the data under ``state``."""
+        rate = apply_image_effects(self._shifted_rate(state), state.values, self.simulator.pixel_um)
+        leak = leakage_counts(state.values, self.exposure)[:, None, None]
+        scale, dark = state.nuisance[2], state.nuisance[3]
+        return (dark + self.exposure[:, None, None] * (scale * rate) + leak).astype(np.float32)
+
+    def features(self, state: State) -> np.ndarray:
+        """The model's features under ``state``, measured like the data's (the same windows, the
+        same dark level subtracted, so that a change of the fitted dark shows)."""
+        return self.space.features(self.model_counts(state), self.registration.dark_level)
+
+    def chi2(self, f: np.ndarray) -> float:
+        r = ((self.space.data - f) / self.space.sigma)[self.use]
+        return float(np.sum(r[np.isfinite(r)] ** 2))
+
+    @property
+    def n_features(self) -> int:
+        return int(self.use.sum())
+
+
+def _is_image_side(key: str) -> bool:
+    return key in {"stray_light", "pixel_crosstalk", "leakage_background"}
+
+
+def _columns(problem: Problem, state: State, params: list[tuple[str, str]], base: np.ndarray) -> np.ndarray:
+    """Finite-difference Jacobian columns (features × params) at ``state``; params are
+    (effect key, parameter name) or ("nuisance", index)."""
+    cols = []
+    for key, name in params:
+        trial = state.copy()
+        if key == "nuisance":
+            k = int(name)
+            trial.nuisance[k] += NUISANCE_STEPS[k]
+            h = NUISANCE_STEPS[k]
+        else:
+            effect = _effect(problem, key)
+            parameter = next(p for p in effect.parameters if p.name == name)
+            values = trial.values.setdefault(key, effect.defaults())
+            h = parameter.step
+            values[name] = values[name] + h
+        cols.append((problem.features(trial) - base) / h)
+    return np.stack(cols, axis=1) if cols else np.zeros((len(base), 0))
+
+
+def _effect(problem: Problem, key: str) -> Effect:
+    return next(e for e in problem.candidates if e.key == key)
+
+
+def _parameters(problem: Problem, keys: list[str]) -> list[tuple[str, str]]:
+    out = [("nuisance", str(k)) for k in range(len(NUISANCE))]
+    for key in keys:
+        out += [(key, p.name) for p in _effect(problem, key).parameters]
+    return out
+
+
+def _solve(problem: Problem, jac: np.ndarray, residual: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
+    """Weighted linear least squares: step, predicted χ², covariance."""
+    use = problem.use & np.all(np.isfinite(jac), axis=1) & np.isfinite(residual)
+    w = 1.0 / problem.space.sigma[use]
+    a = jac[use] * w[:, None]
+    b = residual[use] * w
+    scale = np.linalg.norm(a, axis=0)
+    scale[scale == 0] = 1.0
+    step, *_ = np.linalg.lstsq(a / scale, b, rcond=1e-10)
+    step = step / scale
+    chi2 = float(np.sum((b - a @ step) ** 2))
+    cov = np.linalg.pinv((a / scale).T @ (a / scale)) / np.outer(scale, scale)
+    return step, chi2, cov
+
+
+def _apply(problem: Problem, state: State, params: list[tuple[str, str]], step: np.ndarray) -> State:
+    trial = state.copy()
+    for (key, name), delta in zip(params, step, strict=True):
+        if key == "nuisance":
+            trial.nuisance[int(name)] += delta
+            continue
+        effect = _effect(problem, key)
+        parameter = next(p for p in effect.parameters if p.name == name)
+        values = trial.values.setdefault(key, effect.defaults())
+        values[name] = float(np.clip(values[name] + delta, parameter.low, parameter.high))
+    return trial
+
+
+def _refine(problem: Problem, state: State, keys: list[str], iterations: int = 6) -> tuple[State, float, np.ndarray]:
+    """Gauss–Newton on the nuisance and the kept effects, with step halving."""
+    params = _parameters(problem, keys)
+    base = problem.features(state)
+    chi2 = problem.chi2(base)
+    cov = np.zeros((len(params), len(params)))
+    for _ in range(iterations):
+        jac = _columns(problem, state, params, base)
+        step, _, cov = _solve(problem, jac, problem.space.data - base)
+        for _halving in range(6):
+            trial = _apply(problem, state, params, step)
+            f = problem.features(trial)
+            c = problem.chi2(f)
+            if c < chi2:
+                break
+            step = step / 2
+        else:
+            break
+        improvement = chi2 - c
+        state, base, chi2 = trial, f, c
+        if improvement < 1e-3 * chi2:
+            break
+    return state, chi2, cov
+
+
+def _probe_values(effect: Effect) -> list[dict[str, float]]:
+    """Starting points for an effect whose derivative vanishes at its default (a halo of zero
+    strength has no width to fit): the default, plus a few widths for the stray-light halo."""
+    if effect.name == "stray_light":
+        return [dict(effect.defaults(), fraction=0.02, width_um=w) for w in (60.0, 200.0, 600.0)]
+    return [effect.defaults()]
+
+
+def attribute(problem: Problem, *, max_effects: int = 6, progress: Progress | None = None) -> Attribution:
+    """Run the loop of the module docstring on ``problem``."""
+    say = progress or (lambda message: None)
+    state = problem.start()
+    kept: list[str] = []
+    state, chi2, cov = _refine(problem, state, kept, iterations=2)
+    n = problem.n_features
+    chi2_before = chi2
+    steps = [Step(None, chi2, chi2 + len(NUISANCE) * math.log(n))]
+    say(f"nominal design: χ²/n = {chi2 / n:.3f}")
+    while len(kept) < max_effects and chi2 / n > CHI2_FLOOR:
+        base = problem.features(state)
+        params = _parameters(problem, kept)
+        k_now = len(params)
+        best: tuple[float, str, State] | None = None
+        base_jac = _columns(problem, state, params, base)
+        for effect in problem.candidates:
+            if effect.key in kept:
+                continue
+            for start in _probe_values(effect):
+                trial = state.copy()
+                trial.values[effect.key] = dict(start)
+                extra = [(effect.key, p.name) for p in effect.parameters]
+                if start == effect.defaults():  # the effect is absent: the other columns are the state's
+                    trial_base = base
+                    jac = np.hstack([base_jac, _columns(problem, trial, extra, trial_base)])
+                else:
+                    trial_base = problem.features(trial)
+                    jac = _columns(problem, trial, params + extra, trial_base)
+                step, predicted, _ = _solve(problem, jac, problem.space.data - trial_base)
+                candidate = _apply(problem, trial, params + extra, step)
+                c = problem.chi2(problem.features(candidate))
+                bic = c + (k_now + len(extra)) * math.log(n)
+                if best is None or bic < best[0]:
+                    best = (bic, effect.key, candidate)
+        current_bic = chi2 + k_now * math.log(n)
+        if best is None or current_bic - best[0] < BIC_THRESHOLD:
+            say("no further effect is significant")
+            break
+        kept.append(best[1])
+        state, chi2, cov = _refine(problem, best[2], kept)
+        steps.append(Step(best[1], chi2, chi2 + len(_parameters(problem, kept)) * math.log(n)))
+        say(f"added {best[1]}: χ²/n = {chi2 / n:.3f}")
+    params = _parameters(problem, kept)
+    inflate = max(1.0, chi2 / max(n - len(params), 1))
+    sigma = np.sqrt(np.clip(np.diag(cov), 0, None) * inflate) if cov.size else np.zeros(len(params))
+    effects = {key: dict(state.values[key]) for key in kept}
+    uncertainties: dict[str, dict[str, float]] = {key: {} for key in kept}
+    for (key, name), s in zip(params, sigma, strict=False):
+        if key != "nuisance":
+            uncertainties[key][name] = float(s)
+    final = problem.features(state)
+    residual = (problem.space.data - final) / problem.space.sigma
+    registration = Registration(
+        (float(state.nuisance[0]), float(state.nuisance[1])), float(state.nuisance[2]), float(state.nuisance[3])
+    )
+    return Attribution(
+        effects=effects,
+        uncertainties=uncertainties,
+        steps=tuple(steps),
+        registration=registration,
+        noise=problem.noise,
+        chi2_before=chi2_before / n,
+        chi2_after=chi2 / n,
+        feature_residual=residual,
+        feature_shape=problem.space.centres.shape[:2],
+    )
+
+
+__all__ = ["Attribution", "Problem", "attribute"]

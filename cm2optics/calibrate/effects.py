@@ -1,0 +1,131 @@
+"""The effect library: physical effects a model may lack, each a named parameter set with units,
+ranges and defaults (the value at which the effect is absent).
+
+Adding an effect to the model means the model gains its parameters and their fitted values.
+Geometric and optical effects change where and how the foci form and need the simulator;
+the sensor-side effects (stray light, leakage, pixel crosstalk) act on the images themselves and
+are applied here, by :func:`apply_image_effects`, to any simulator's output.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+
+
+@dataclass(frozen=True)
+class Parameter:
+    """One fitted quantity.
+
+    name: key in the effect's ``parameters`` (unit in the name where it has one).
+    default: the value at which the effect is absent.
+    low, high: the physically sensible range.
+    step: finite-difference step for derivatives (in the parameter's unit).
+    """
+
+    name: str
+    default: float
+    low: float
+    high: float
+    step: float
+
+
+@dataclass(frozen=True)
+class Effect:
+    """A physical effect: its vocabulary name, parameters and what it does."""
+
+    name: str
+    parameters: tuple[Parameter, ...]
+    description: str
+    lenslet: int | None = None  # for per-lenslet effects: which lenslet (row-major index)
+
+    @property
+    def key(self) -> str:
+        return self.name if self.lenslet is None else f"{self.name}[{self.lenslet}]"
+
+    def defaults(self) -> dict[str, float]:
+        return {p.name: p.default for p in self.parameters}
+
+
+def _p(name: str, default: float, low: float, high: float, step: float) -> Parameter:
+    return Parameter(name, default, low, high, step)
+
+
+GLOBAL_EFFECTS: tuple[Effect, ...] = (
+    Effect("mla_decenter", (_p("dx_mm", 0, -0.2, 0.2, 0.002), _p("dy_mm", 0, -0.2, 0.2, 0.002)),
+           "the lenslet array displaced across the sensor"),
+    Effect("mla_rotation", (_p("angle_deg", 0, -3, 3, 0.05),), "the lenslet array rotated about the optical axis"),
+    Effect("mla_spacing", (_p("delta_mm", 0, -0.3, 0.3, 0.005),),
+           "the lenslet array's distance from the sensor differs from the design"),
+    Effect("lenslet_pitch", (_p("delta_mm", 0, -0.05, 0.05, 0.0005),), "the lenslet pitch differs from the design"),
+    Effect("source_profile", (_p("falloff_per_rad2", 0, 0, 150, 0.5),),
+           "the calibration source emits into a cone rather than isotropically: its intensity falls as "
+           "exp(−2·falloff·θ²), a Gaussian of half-angle 1/√falloff at 1/e²"),
+    Effect("stray_light", (_p("fraction", 0, 0, 0.5, 0.01), _p("width_um", 200, 20, 2000, 20.0)),
+           "a fraction of each focus's light spread into a wide halo (scatter in the housing and filters)"),
+    Effect("leakage_background", (_p("counts_per_ms", 0, 0, 1e4, 0.05),),
+           "uniform light reaching the sensor in proportion to the exposure (excitation leaking through the filters)"),
+    Effect("pixel_crosstalk", (_p("fraction", 0, 0, 0.5, 0.02),),
+           "a fraction of each pixel's signal shared with its four neighbours"),
+    Effect("vignetting", (_p("radius_delta_mm", 0, -1, 1, 0.05),),
+           "the clear aperture that cuts off the foci of sources far off a lenslet's axis differs from the design"),
+)
+
+
+def per_lenslet_effects(lenslets: int) -> tuple[Effect, ...]:
+    """Effects of one lenslet each: its transmission and its decentre."""
+    out = []
+    for j in range(lenslets):
+        out.append(Effect("lenslet_transmission", (_p("transmission", 1, 0, 1.5, 0.02),),
+                          "one lenslet passes less (or more) light than the others: dust, a defect", j))
+        out.append(Effect("lenslet_decenter", (_p("dx_mm", 0, -0.1, 0.1, 0.002), _p("dy_mm", 0, -0.1, 0.1, 0.002)),
+                          "one lenslet displaced within the array", j))
+    return tuple(out)
+
+
+def library(lenslets: int) -> tuple[Effect, ...]:
+    """Every candidate effect for an array of ``lenslets`` lenslets."""
+    return GLOBAL_EFFECTS + per_lenslet_effects(lenslets)
+
+
+# ----------------------------------------------------------------------------- image-side effects
+
+
+def _halo(images: np.ndarray, fraction: float, width_px: float) -> np.ndarray:
+    if fraction <= 0:
+        return images
+    blurred = ndimage.gaussian_filter(images, sigma=(0, width_px, width_px), mode="constant")
+    return (1.0 - fraction) * images + fraction * blurred
+
+
+def _crosstalk(images: np.ndarray, fraction: float) -> np.ndarray:
+    if fraction <= 0:
+        return images
+    kernel = np.array([[0, 0.25, 0], [0.25, 0, 0.25], [0, 0.25, 0]]) * fraction
+    kernel[1, 1] = 1.0 - fraction
+    return ndimage.convolve(images, kernel[None], mode="constant")
+
+
+def apply_image_effects(images: np.ndarray, values: dict[str, dict[str, float]], pixel_um: float) -> np.ndarray:
+    """The sensor-side effects in ``values`` (effect name → parameters) applied to images
+    (N, y, x) in counts per ms of a unit source; effects not named are absent."""
+    out = np.asarray(images, np.float32)
+    if "stray_light" in values:
+        p = values["stray_light"]
+        out = _halo(out, p["fraction"], p["width_um"] / pixel_um)
+    if "pixel_crosstalk" in values:
+        out = _crosstalk(out, values["pixel_crosstalk"]["fraction"])
+    return out
+
+
+def leakage_counts(values: dict[str, dict[str, float]], exposure_ms: np.ndarray) -> np.ndarray:
+    """(N,) uniform leakage counts added to each frame."""
+    rate = values.get("leakage_background", {}).get("counts_per_ms", 0.0)
+    return rate * np.asarray(exposure_ms, float)
+
+
+def is_absent(effect: Effect, parameters: dict[str, float]) -> bool:
+    return all(math.isclose(parameters[p.name], p.default, abs_tol=1e-12) for p in effect.parameters)

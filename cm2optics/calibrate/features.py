@@ -1,0 +1,80 @@
+"""Per-focus features: energy, centroid and width of every focus in matching windows.
+
+Every image holds one focus per lenslet. A focus is measured in a circular window around its
+predicted position: its energy (sum of the signal above dark, counts), its centroid (row, col
+px) and its RMS radius (px, the square root of the second central moment). Data and model are
+measured in the same windows, so their ratios and differences isolate what differs between them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class FocusFeatures:
+    """Features of J foci in N images (NaN where a window falls off the frame or holds no light).
+
+    energy: (N, J) counts.
+    centroid_px: (N, J, 2) (row, col).
+    width_px: (N, J) RMS radius.
+    """
+
+    energy: np.ndarray
+    centroid_px: np.ndarray
+    width_px: np.ndarray
+
+
+def _windows(shape: tuple[int, int], centres: np.ndarray, half: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Row and col indices (N, J, w, w) of square windows, and which pixels lie on the frame."""
+    offsets = np.arange(-half, half + 1)
+    base = np.rint(centres).astype(int)
+    rows = base[..., 0, None, None] + offsets[:, None]
+    cols = base[..., 1, None, None] + offsets[None, :]
+    rows, cols = np.broadcast_arrays(rows, cols)
+    inside = (rows >= 0) & (rows < shape[0]) & (cols >= 0) & (cols < shape[1])
+    return np.clip(rows, 0, shape[0] - 1), np.clip(cols, 0, shape[1] - 1), inside
+
+
+def focus_features(signal: np.ndarray, centres: np.ndarray, radius_px: np.ndarray) -> FocusFeatures:
+    """Measure the foci of ``signal`` (N, y, x) (counts above dark).
+
+    centres: (N, J, 2) window centres (row, col) px.
+    radius_px: (N, J) window radii, px.
+    """
+    n, j = centres.shape[:2]
+    half = int(np.ceil(np.nanmax(radius_px)))
+    rows, cols, inside = _windows(signal.shape[-2:], centres, half)
+    image_index = np.arange(n)[:, None, None, None]
+    values = signal[image_index, rows, cols].astype(np.float64)
+    distance = np.hypot(rows - centres[..., 0, None, None], cols - centres[..., 1, None, None])
+    weight = (distance <= radius_px[..., None, None]) & inside
+    values = np.where(weight, values, 0.0)
+    energy = values.sum(axis=(-2, -1))
+    complete = np.all(inside | (distance > radius_px[..., None, None]), axis=(-2, -1))
+    # moments of the signal as it is (noise below zero included), so that noise averages out
+    # and data and model are measured alike
+    mass = energy
+    with np.errstate(invalid="ignore", divide="ignore"):
+        row_c = (values * rows).sum(axis=(-2, -1)) / mass
+        col_c = (values * cols).sum(axis=(-2, -1)) / mass
+        second = (values * ((rows - row_c[..., None, None]) ** 2 + (cols - col_c[..., None, None]) ** 2)).sum(
+            axis=(-2, -1)
+        ) / mass
+    second = np.where(second > 0, second, np.nan)
+    dark = ~complete | (mass <= 0)
+    energy = np.where(complete, energy, np.nan)
+    centroid = np.where(dark[..., None], np.nan, np.stack([row_c, col_c], axis=-1))
+    width = np.where(dark, np.nan, np.sqrt(second))
+    return FocusFeatures(energy, centroid, width)
+
+
+def window_radii(model_signal: np.ndarray, centres: np.ndarray, pitch_px: float) -> np.ndarray:
+    """Window radii (N, J) px that hold each model focus: 3× its RMS radius plus 2 px, at most
+    0.45 of the lenslet pitch (so neighbouring lenslets' foci stay out), at least 3 px."""
+    limit = max(3.0, 0.45 * pitch_px)
+    first = focus_features(model_signal, centres, np.full(centres.shape[:2], limit))
+    radii = 3.0 * np.nan_to_num(first.width_px, nan=limit) + 2.0
+    return np.clip(radii, 3.0, limit)
