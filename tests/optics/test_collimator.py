@@ -18,7 +18,7 @@ from cm2optics.optics.collimator import Surface, collimator_profile, profile_fro
 from cm2optics.design import Collimator, DesignError, load_preset
 from cm2optics.design.materials import Material, refractive_index
 
-REFERENCE = Path(__file__).resolve().parents[1].parent / "shared/reference/cm2-v2"
+REFERENCE = Path(__file__).resolve().parents[2].parent / "shared/reference/cm2-v2"
 
 
 @pytest.fixture(scope="module")

@@ -21,7 +21,7 @@ from cm2optics.recon.net.weights import load_weights
 from cm2optics.synth.config import SynthConfig
 
 SYNTH = SynthConfig.scaled(20, voxel_um=(100.0, 8.0, 8.0), view_px=64, patch_px=32, patches_per_volume=4)
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def tiny(out: Path, **changes) -> NetConfig:

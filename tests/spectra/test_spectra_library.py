@@ -19,7 +19,7 @@ from cm2optics.spectra.library import (
     wratten12_film,
 )
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def half_maximum_nm(wavelength: np.ndarray, values: np.ndarray) -> tuple[float, float]:

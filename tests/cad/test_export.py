@@ -16,7 +16,7 @@ from cm2optics.cad import assembly
 from cm2optics.cad.export import export_design
 from cm2optics.design import load_preset
 
-COMMITTED = Path(__file__).resolve().parents[1] / "cad"
+COMMITTED = Path(__file__).resolve().parents[2] / "cad"
 
 
 @pytest.fixture(scope="module")
