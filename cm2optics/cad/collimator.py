@@ -20,8 +20,8 @@ import cadquery as cq
 import numpy as np
 import trimesh
 
-from cm2optics.optics.collimator import CollimatorProfile, collimator_profile
 from cm2optics.design import SystemDesign
+from cm2optics.optics.collimator import CollimatorProfile, collimator_profile
 
 SPLINE_POINTS = 41
 """Points of the computed curves that each CAD spline passes through."""

@@ -4,5 +4,13 @@ name the physical effect the model lacks, add it, and report the error before an
 - :mod:`.noise`: the sensor's noise model (read noise, conversion gain) estimated from the data;
 - :mod:`.register`: model-to-data registration (flux scale, dark level, leakage, one sub-pixel offset);
 - :mod:`.features`: per-focus features (energy, centroid, width) in matching windows;
-- :mod:`.residual`: the residual analysis of a scan against its model, as one document.
+- :mod:`.residual`: the residual analysis of a scan against its model, as one document;
+- :mod:`.effects`: the effect library (named physical parameters with units, ranges, defaults)
+  and the sensor-side effects applied to any simulator's images;
+- :mod:`.simulate`: the simulators the loop can drive (the analytic CM²-like model today);
+- :mod:`.attribute`: which effects explain the residual (finite-difference Jacobians of the
+  features, greedy selection under the BIC, joint Gauss–Newton refits, uncertainties).
+
+Not yet here (issue 14): the emission tracer as a simulator (effects in the design YAML),
+``cm2 calibrate``, the unexplained-residual signature and its low-rank correction, the report.
 """

@@ -25,6 +25,7 @@ import numpy as np
 from cm2optics.calibrate.features import FocusFeatures, focus_features, window_radii
 from cm2optics.calibrate.noise import SensorNoise, estimate_noise
 from cm2optics.calibrate.register import Registration, register
+from cm2optics.errors import UserError
 
 #: A focus whose data centroid sits farther than this fraction of the lenslet pitch from the
 #: model's marks its image as one whose position does not match its content.
@@ -33,7 +34,7 @@ MISPLACED_FRACTION = 0.25
 EMPTY_FRACTION = 0.05
 
 
-class CalibrationError(ValueError):
+class CalibrationError(UserError):
     """Data that cannot be compared with the model; the message says what and where."""
 
 

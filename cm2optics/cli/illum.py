@@ -155,8 +155,8 @@ def run(
     --collimator CM2_V2_freeform_illuminator.stl --led-position 0,0,1 --led-axis 0,0,-1.
     """
     from cm2optics.design import load_preset
-    from cm2optics.optics.backend import variant
     from cm2optics.illumination.run import run_illumination
+    from cm2optics.optics.backend import variant
 
     design = load_preset(preset)
     inputs = [preset, collimator, led_profile, led_spectrum, filter_table]

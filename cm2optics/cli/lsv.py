@@ -133,8 +133,8 @@ def build(
     basis PSFs and coefficient maps. JSON keys include rank, nmse_calibration, nmse_vs_rank.
     """
     from cm2optics.design import load_preset
-    from cm2optics.lsv.build import build_model
     from cm2optics.formats.outputs import claim_folder
+    from cm2optics.lsv.build import build_model
     from cm2optics.reports.lsv import write_build_report
 
     if rank < 1:

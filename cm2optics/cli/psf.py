@@ -199,8 +199,8 @@ def image(
     """
     from cm2optics.design import load_preset
     from cm2optics.emission.image import render_emitters, write_traced_measurement
-    from cm2optics.formats.emitters import read_emitters
     from cm2optics.emission.psf import PSFSettings
+    from cm2optics.formats.emitters import read_emitters
 
     design = load_preset(preset)
     for path in (out_path, out_path.with_suffix(".yaml")):

@@ -11,7 +11,14 @@ from typing import Annotated, Any
 
 import typer
 
-from cm2optics.cli.options import JsonOption, OverwriteOption, check_output, parse_float_list, parse_int_list, user_errors
+from cm2optics.cli.options import (
+    JsonOption,
+    OverwriteOption,
+    check_output,
+    parse_float_list,
+    parse_int_list,
+    user_errors,
+)
 from cm2optics.errors import UserError
 
 __all__ = ["reconstruct_command"]

@@ -15,10 +15,10 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from cm2optics.optics.checks import check_design
-from cm2optics.spectra.library import egfp_emission_band_nm
 from cm2optics.cli.options import JsonOption, OverwriteOption, PresetOption, check_output, parse_float_list, user_errors
 from cm2optics.errors import UserError
+from cm2optics.optics.checks import check_design
+from cm2optics.spectra.library import egfp_emission_band_nm
 
 __all__ = ["spectra_app"]
 

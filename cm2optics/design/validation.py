@@ -4,7 +4,6 @@ the value and what is allowed.
 
 from __future__ import annotations
 
-
 import math
 from typing import Any
 

@@ -18,13 +18,12 @@ Mitsuba and Dr.Jit are imported only inside this subpackage, :mod:`cm2optics.ill
 the variant choice both share, :mod:`~cm2optics.optics.backend`.
 """
 
-from cm2optics.optics import backend as backend  # noqa: F401  (sets DRJIT_LIBLLVM_PATH first)
-
 from cm2optics.emission.optics import EmissionOptics, emission_optics
 from cm2optics.emission.psf import EmissionModel, Focus, PSFSettings, Pupil, SensorGrid
 from cm2optics.emission.scan import ScanSettings, calibration_grid_mm, simulate_scan
 from cm2optics.emission.source import AngularProfile, PointSource, ProfileKind, calibration_pinhole, fluorescent_bead
 from cm2optics.emission.spectral import SpectralBands, spectral_bands
+from cm2optics.optics import backend as backend  # noqa: F401  (sets DRJIT_LIBLLVM_PATH first)
 
 __all__ = [
     "AngularProfile",

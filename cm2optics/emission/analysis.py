@@ -24,8 +24,8 @@ import numpy as np
 from scipy.optimize import minimize_scalar
 
 from cm2optics.design import paraxial
-from cm2optics.emission.psf import EmissionModel, Focus
 from cm2optics.design.materials import refractive_index
+from cm2optics.emission.psf import EmissionModel, Focus
 from cm2optics.optics import first_order
 
 __all__ = [

@@ -42,12 +42,12 @@ from typing import Any
 import numpy as np
 
 from cm2optics.design import SystemDesign
+from cm2optics.design.materials import refractive_index
 from cm2optics.emission.analysis import central_lenslet
 from cm2optics.emission.psf import EmissionModel, PSFSettings, Pupil
 from cm2optics.emission.source import PointSource
 from cm2optics.emission.trace import paraxial_reach_mm, trace_rays
 from cm2optics.emission.wavefront import solve_least_squares
-from cm2optics.design.materials import refractive_index
 from cm2optics.optics import first_order
 
 __all__ = ["METHODS", "Comparison", "classical_pupil", "compare_with_optiland", "optiland_lenslet", "optiland_psf"]

@@ -16,8 +16,8 @@ from typing import Any
 
 import numpy as np
 
-from cm2optics.optics.backend import mitsuba
 from cm2optics.emission.optics import Bore, EmissionOptics
+from cm2optics.optics.backend import mitsuba
 
 __all__ = ["OUTER_MM", "bore_mesh", "housing_scene", "segment_test"]
 

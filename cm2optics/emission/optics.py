@@ -45,10 +45,10 @@ import math
 from dataclasses import dataclass
 
 from cm2optics.design import Side, SystemDesign
+from cm2optics.design.materials import Material
 from cm2optics.optics import first_order
 from cm2optics.optics.housing import Bore, housing_bores, mla_tabs
 from cm2optics.optics.lenslets import lens_cells
-from cm2optics.design.materials import Material
 
 __all__ = ["Bore", "EmissionOptics", "Lenslet", "Plate", "emission_optics", "housing_bores", "lenslets", "mla_tabs"]
 

@@ -36,12 +36,12 @@ from scipy.ndimage import gaussian_filter
 from scipy.signal import fftconvolve
 
 from cm2optics.design import SystemDesign
+from cm2optics.design.materials import refractive_index
 from cm2optics.emission.optics import EmissionOptics, emission_optics
 from cm2optics.emission.source import PointSource, calibration_pinhole
 from cm2optics.emission.spectral import SpectralBands, spectral_bands
 from cm2optics.emission.trace import RayBatch, TracedRays, default_engine, paraxial_reach_mm, trace_rays
 from cm2optics.emission.wavefront import PupilMap, debye_fft, fft_size, fit_pupil_map, mft, solve_least_squares
-from cm2optics.design.materials import refractive_index
 from cm2optics.optics import first_order
 from cm2optics.spectra.spectrum import Spectrum
 

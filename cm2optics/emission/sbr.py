@@ -36,7 +36,6 @@ from typing import Any
 import numpy as np
 
 from cm2optics.design import SystemDesign
-from cm2optics.spectra.chain import EmissionChain, emission_chain, excitation_spectrum
 from cm2optics.emission.filter_angles import (
     EmissionRays,
     Emitter,
@@ -47,6 +46,7 @@ from cm2optics.emission.filter_angles import (
     trace_from_sources,
     trace_rays,
 )
+from cm2optics.spectra.chain import EmissionChain, emission_chain, excitation_spectrum
 from cm2optics.spectra.library import load_spectrum
 from cm2optics.spectra.spectrum import DEFAULT_WAVELENGTH_NM
 

@@ -39,9 +39,9 @@ import cm2optics
 from cm2optics.design import SystemDesign
 from cm2optics.emission.psf import EmissionModel, Focus, PSFSettings, SensorGrid
 from cm2optics.emission.source import PointSource, calibration_pinhole
-from cm2optics.optics import first_order
 from cm2optics.formats.atomic import write_atomic, write_json_atomic
 from cm2optics.formats.scan import ScanError, ScanMeta, grid_axes_mm, write_scan
+from cm2optics.optics import first_order
 
 __all__ = [
     "ScanSettings",

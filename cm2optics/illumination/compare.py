@@ -14,12 +14,12 @@ from typing import Any
 import numpy as np
 
 from cm2optics.design import SystemDesign
+from cm2optics.design.materials import Material
 from cm2optics.illumination.excitation import Transmission, design_filter_transmission, filter_from_table
 from cm2optics.illumination.geometry import CollimatorMesh, build_scene, collimator_from_design, collimator_from_stl
 from cm2optics.illumination.metrics import IlluminationFigures, figures_of_merit
 from cm2optics.illumination.source import LEDSource, led_source, read_angular_profile, read_source_spectrum
 from cm2optics.illumination.tracer import DEFAULT_MAX_BOUNCES, trace
-from cm2optics.design.materials import Material
 
 __all__ = ["Setup", "compare_designs", "setup_from_options"]
 

@@ -45,9 +45,9 @@ import numpy as np
 import trimesh
 
 from cm2optics.design import SystemDesign
+from cm2optics.design.materials import Material, refractive_index
 from cm2optics.optics import first_order
 from cm2optics.optics.layout import led_poses, mla_housing_envelope
-from cm2optics.design.materials import Material, refractive_index
 
 __all__ = [
     "Absorber",

@@ -78,9 +78,9 @@ def _changes(values: dict[str, float]) -> dict[str, Any]:
 
 def candidate_collimator(design: SystemDesign, values: dict[str, float], segments: int = SWEEP_SEGMENTS) -> Any:
     """(design with the candidate's fields, its collimator mesh, its profile)."""
-    from cm2optics.optics.collimator import collimator_profile
     from cm2optics.illumination.geometry import CollimatorMesh
     from cm2optics.illumination.revolve import revolve_profile
+    from cm2optics.optics.collimator import collimator_profile
 
     candidate = design.with_changes(_changes(values))
     profile = collimator_profile(candidate)

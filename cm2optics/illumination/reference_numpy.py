@@ -18,8 +18,6 @@ import numpy as np
 
 from cm2optics.illumination.excitation import TransmissionTable
 from cm2optics.illumination.geometry import IlluminationScene, Medium, Role
-from cm2optics.optics.interfaces import fresnel_reflectance, refract, snell_cos_t
-from cm2optics.optics.interfaces import reflect as mirror
 from cm2optics.illumination.tracer import (
     DEFAULT_MAX_BOUNCES,
     TEA_ROUNDS,
@@ -28,6 +26,8 @@ from cm2optics.illumination.tracer import (
     Status,
     random_stream,
 )
+from cm2optics.optics.interfaces import fresnel_reflectance, refract, snell_cos_t
+from cm2optics.optics.interfaces import reflect as mirror
 
 __all__ = ["sample_tea_float32", "trace_rays_numpy"]
 

@@ -87,7 +87,8 @@ def run_illumination(
     """Returns the document (figures of the last design, ``designs``, ``setup``, ``definitions``,
     ``maps``) and the per-design results. led_position (mm) and led_axis place the LED in the
     STL's frame (defaults 0,0,0 and 0,0,1)."""
-    from cm2optics.optics.backend import mitsuba
+    from cm2optics.formats.atomic import write_json_atomic
+    from cm2optics.formats.outputs import claim_folder
     from cm2optics.illumination.compare import (
         Setup,
         compare_designs,
@@ -97,8 +98,7 @@ def run_illumination(
     )
     from cm2optics.illumination.geometry import build_scene
     from cm2optics.illumination.metrics import DEFINITIONS, write_maps_png
-    from cm2optics.formats.outputs import claim_folder
-    from cm2optics.formats.atomic import write_json_atomic
+    from cm2optics.optics.backend import mitsuba
 
     _check_options(design, collimator, led_position, led_axis, rays, led_flux_mw, bin_mm)
     stl = None

@@ -15,8 +15,8 @@ from typing import Any
 
 import numpy as np
 
-from cm2optics.optics.backend import is_jit, mitsuba
 from cm2optics.illumination.geometry import IlluminationScene, Part
+from cm2optics.optics.backend import is_jit, mitsuba
 
 __all__ = ["MitsubaScene", "mitsuba_scene"]
 

@@ -37,11 +37,11 @@ from typing import Any
 
 import numpy as np
 
-from cm2optics.optics.backend import is_jit, mitsuba, variant
 from cm2optics.illumination.excitation import Transmission, TransmissionTable, tabulate_transmission
 from cm2optics.illumination.geometry import IlluminationScene, Medium, Role
 from cm2optics.illumination.scene import MitsubaScene, mitsuba_scene
 from cm2optics.illumination.source import LEDSource, sample_led_rays
+from cm2optics.optics.backend import is_jit, mitsuba, variant
 from cm2optics.optics.interfaces import fresnel_reflectance, refract, snell_cos_t
 from cm2optics.optics.interfaces import reflect as mirror
 

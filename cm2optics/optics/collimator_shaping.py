@@ -39,9 +39,9 @@ import math
 import numpy as np
 from scipy.integrate import solve_ivp
 
-from cm2optics.optics.collimator import CollimatorProfile, enclosed_profile
 from cm2optics.design import Collimator, DesignError
 from cm2optics.design.materials import refractive_index
+from cm2optics.optics.collimator import CollimatorProfile, enclosed_profile
 
 __all__ = ["shaped_profile"]
 

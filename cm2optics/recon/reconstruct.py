@@ -25,9 +25,9 @@ from typing import Any
 import numpy as np
 import torch
 
+from cm2optics.errors import UserError
 from cm2optics.formats.operator import VolumeOperator
 from cm2optics.lsv.lsi import DepthwiseConvOperator
-from cm2optics.errors import UserError
 from cm2optics.recon.solvers import Progress, SolverResult, Stopping, admm, admm_lsi, fista, richardson_lucy
 
 __all__ = ["METHODS", "ReconOptions", "check_memory", "memory_estimate", "reconstruct", "reconstruct_file"]
@@ -265,8 +265,8 @@ def reconstruct_file(
     """Read, reconstruct, write the volume (TIFF/.npy) and ``<out>.json`` beside it; returns the record."""
     from cm2optics.formats.atomic import write_json_atomic
     from cm2optics.formats.measurement import read_measurement
-    from cm2optics.formats.volume import write_volume
     from cm2optics.formats.models import model_grid
+    from cm2optics.formats.volume import write_volume
     from cm2optics.recon.operators import load_operator
 
     out_path = Path(out_path)

@@ -16,11 +16,11 @@ from pathlib import Path
 from rich.console import Console
 
 from cm2optics.design import SystemDesign
+from cm2optics.reports.document import Report
 from cm2optics.reports.emission import add_psf_section
 from cm2optics.reports.illumination import add_illumination_section
 from cm2optics.reports.lsv import add_lsv_section
 from cm2optics.reports.recon import add_baseline_section
-from cm2optics.reports.document import Report
 from cm2optics.reports.spectra import add_spectra_section
 
 #: Where the original device's reference data sits in a developer checkout (absent for users).

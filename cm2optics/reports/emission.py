@@ -20,8 +20,8 @@ from cm2optics.emission import analysis
 from cm2optics.emission.psf import EmissionModel, PSFSettings
 from cm2optics.emission.scan import ScanSettings, calibration_grid_mm, simulate_scan
 from cm2optics.emission.source import calibration_pinhole
-from cm2optics.optics import first_order
 from cm2optics.formats.atomic import write_atomic
+from cm2optics.optics import first_order
 from cm2optics.reports.document import Report
 
 __all__ = ["add_psf_section", "psf_numbers"]

@@ -74,10 +74,10 @@ def add_illumination_section(
     out_dir: the report's folder; maps go to ``out_dir/illumination/``. rays: rays per design.
     Returns the figures as JSON-able data (``illumination/illumination.json`` too).
     """
-    from cm2optics.optics.backend import mitsuba, variant
     from cm2optics.formats.atomic import write_json_atomic
     from cm2optics.illumination.compare import compare_designs, configurations, setup_from_options, stl_collimator
     from cm2optics.illumination.metrics import DEFINITIONS, write_maps_png
+    from cm2optics.optics.backend import mitsuba, variant
 
     folder = Path(out_dir) / "illumination"
     mitsuba()

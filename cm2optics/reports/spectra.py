@@ -14,13 +14,13 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from cm2optics.design import SystemDesign
+from cm2optics.emission.filter_angles import excitation_half_angle_rad
+from cm2optics.emission.sbr import CHAINS, SBRResult, signal_and_background
 from cm2optics.formats.atomic import write_atomic
 from cm2optics.reports.document import Report
 from cm2optics.spectra.chain import emission_chain, excitation_spectrum, interference_filter_from_design
 from cm2optics.spectra.fit import predict_edges_nm
-from cm2optics.emission.filter_angles import excitation_half_angle_rad
 from cm2optics.spectra.library import load_spectrum
-from cm2optics.emission.sbr import CHAINS, SBRResult, signal_and_background
 from cm2optics.spectra.spectrum import DEFAULT_WAVELENGTH_NM
 
 __all__ = ["FIGURES", "add_spectra_section", "spectra_report"]

@@ -19,8 +19,8 @@ from dataclasses import asdict, dataclass, fields, replace
 from typing import Any
 
 from cm2optics.design import default_design
-from cm2optics.optics import first_order
 from cm2optics.formats.volume import VolumeGrid
+from cm2optics.optics import first_order
 
 __all__ = ["NOISE_MODELS", "RENDER_MODES", "SynthConfig"]
 

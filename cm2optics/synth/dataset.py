@@ -35,6 +35,7 @@ import h5py
 import numpy as np
 
 import cm2optics
+from cm2optics.errors import UserError
 from cm2optics.formats.atomic import write_atomic, write_json_atomic
 from cm2optics.formats.emitters import EMITTER_COLUMNS, Emitters
 from cm2optics.synth.config import SynthConfig
@@ -50,7 +51,7 @@ VERSION = 1
 INPUT_FIELDS = ("seed", "config", "model_sha256")
 
 
-class DatasetError(ValueError):
+class DatasetError(UserError):
     """A data set folder or sample file that cannot be used; the message names the file and field."""
 
 

@@ -114,3 +114,28 @@ def test_the_loss_curve_of_two_ddp_processes_equals_one_process(tmp_path):
     a, b = _state(tmp_path / "one"), _state(tmp_path / "two")
     for key in a:
         torch.testing.assert_close(a[key].float(), b[key].float(), rtol=1e-4, atol=1e-5, msg=key)
+
+
+def test_cm2_train_runs_resumes_and_refuses_a_users_folder(tmp_path: Path):
+    """`cm2 train CONFIG` writes the run, `--resume` continues it, and a folder that holds a
+    user's files is refused (exit 2) unless --overwrite."""
+    from typer.testing import CliRunner
+
+    from cm2optics.cli import app
+
+    runner = CliRunner()
+    config = tiny(tmp_path / "run", epochs=1, val_volumes=0).save(tmp_path / "tiny.yaml")
+    first = runner.invoke(app, ["train", str(config), "--max-steps", "1", "--json"])
+    assert first.exit_code == 0, first.output
+    resumed = runner.invoke(app, ["train", str(config), "--resume", "--json"])
+    assert resumed.exit_code == 0, resumed.output
+    assert (tmp_path / "run" / "weights").is_dir()
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("keep")
+    other = tiny(mine, epochs=1, val_volumes=0).save(tmp_path / "other.yaml")
+    refused = runner.invoke(app, ["train", str(other)])
+    assert refused.exit_code == 2 and "out_dir" in refused.output
+    assert (mine / "notes.txt").read_text() == "keep"
+    missing = runner.invoke(app, ["train", str(tmp_path / "nope.yaml")])
+    assert missing.exit_code == 2 and "nope.yaml" in missing.output

@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from cm2optics.errors import UserError
 from cm2optics.formats.atomic import write_atomic
 
 __all__ = ["CheckpointError", "load_checkpoint", "rng_state", "save_checkpoint", "set_rng_state"]
@@ -22,7 +23,7 @@ __all__ = ["CheckpointError", "load_checkpoint", "rng_state", "save_checkpoint",
 VERSION = 1
 
 
-class CheckpointError(ValueError):
+class CheckpointError(UserError):
     """A checkpoint that cannot be resumed (missing, unreadable, or another config)."""
 
 

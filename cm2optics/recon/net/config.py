@@ -23,6 +23,7 @@ from typing import Any
 
 import yaml
 
+from cm2optics.errors import UserError
 from cm2optics.synth.config import SynthConfig
 
 __all__ = ["LOSSES", "NORMS", "RUNTIME_FIELDS", "ConfigError", "NetConfig", "load_config"]
@@ -34,7 +35,7 @@ TARGETS = ("occupancy", "emission")
 RUNTIME_FIELDS = frozenset({"out_dir", "epochs", "workers", "threads", "checkpoint_every", "progress"})
 
 
-class ConfigError(ValueError):
+class ConfigError(UserError):
     """A configuration that cannot be used (names the field, the value and what is allowed)."""
 
 

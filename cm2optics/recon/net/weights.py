@@ -25,6 +25,7 @@ from typing import Any
 
 import numpy as np
 
+from cm2optics.errors import UserError
 from cm2optics.formats.atomic import write_atomic
 from cm2optics.recon.net.config import ConfigError, NetConfig, load_config
 from cm2optics.recon.net.model import CM2Net
@@ -49,7 +50,7 @@ FORMAT = "cm2optics-cm2net"
 WEIGHTS_FILE, CONFIG_FILE, CARD_FILE, SUMS_FILE = "model.safetensors", "config.yaml", "MODEL_CARD.md", "SHA256SUMS"
 
 
-class NetError(ValueError):
+class NetError(UserError):
     """A CM²Net input a user can get wrong."""
 
 
