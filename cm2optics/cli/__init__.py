@@ -9,6 +9,8 @@ are in :mod:`cm2optics.cli.options`; the output policy in :mod:`cm2optics.format
 
 from __future__ import annotations
 
+import sys
+import warnings
 from typing import Annotated
 
 import typer
@@ -71,3 +73,9 @@ def main(
 ) -> None:
     """cm2optics command line."""
     set_debug(debug)
+    warnings.showwarning = _warning_line
+
+
+def _warning_line(message, category, filename, lineno, file=None, line=None) -> None:  # noqa: ANN001
+    """Show a warning to a user as one line on stderr (no source file and line)."""
+    print(f"warning: {message}", file=sys.stderr, flush=True)

@@ -22,7 +22,6 @@ from cm2optics.cli.options import (
     OverwriteOption,
     PresetOption,
     check_output,
-    clamped,
     parse_float_list,
     parse_int_list,
     user_errors,
@@ -161,7 +160,6 @@ def build(
         )
     result.model.save(model_path)
     summary = {"model": str(model_path), **result.summary()}
-    clamped("--rank", rank, min(rank, summary["rank"]), "the scan holds no more independent basis PSFs")
     if not no_report:
         summary["report"] = str(write_build_report(result, folder))
         claim_folder(folder, "lsv build")
@@ -229,11 +227,6 @@ def validate(
             seed=seed,
             progress=progress,
         )
-    if wanted:
-        used = [k for k in wanted if str(k) in result["nmse_heldout_vs_rank"]]
-        clamped("--ranks", ",".join(map(str, wanted)), ",".join(map(str, used)) or "none", f"K ≤ {model.rank} only")
-    if result["method"] == "leave-one-out":
-        clamped("--heldout", heldout, min(heldout, result["n_heldout"]), "the scan has no more nodes to hold out")
     if as_json:
         print(json.dumps(result, indent=2, ensure_ascii=False))
         return

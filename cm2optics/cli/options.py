@@ -40,7 +40,6 @@ __all__ = [
     "check_dask_address",
     "check_output",
     "output_folder",
-    "clamped",
     "parse_float_list",
     "parse_names",
     "parse_int_list",
@@ -172,11 +171,6 @@ def parse_int_list(text: str | None, n: int | tuple[int, int] | None = None, **k
 # ----------------------------------------------------------------------------- checks
 
 
-def clamped(option: str, given: Any, used: Any, why: str = "") -> Any:
-    """Say on stderr that ``option`` was clamped from ``given`` to ``used``; return ``used``."""
-    if given != used:
-        err.print(f"[yellow]warning:[/] {option} = {given} is out of range; using {used}{f' ({why})' if why else ''}")
-    return used
 
 
 def output_folder(

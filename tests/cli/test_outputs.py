@@ -278,5 +278,5 @@ def test_clamped_options_are_said_aloud(tmp_path):
     )
     result = runner.invoke(app, ["lsv", "build", str(scan), "--rank", "500", "--no-report", "--json"])
     assert result.exit_code == 0, result.output
-    assert "warning: --rank = 500 is out of range; using" in result.stderr
+    assert "warning: --rank 500: the scan's 18 positions allow only 18 basis PSFs" in result.stderr
     assert json.loads(result.stdout)["rank"] < 500  # stdout stays JSON
