@@ -83,3 +83,34 @@ def test_tilts_are_recorded_but_not_traced(v2: SystemDesign):
     assert tilted.as_built.sensor_tilt_x_deg == 0.5
     with pytest.raises(UserError, match="as_built.sensor_tilt_x_deg = 0.5: .*not yet traced"):
         EmissionModel(tilted, fluorescent_bead(0.0), settings=SETTINGS)
+
+
+def test_scan_applies_the_sensor_side_effects(v2: SystemDesign, tmp_path):
+    from cm2optics.emission.scan import ScanSettings, simulate_scan
+    from cm2optics.formats.scan import read_scan
+
+    settings = ScanSettings(psf=SETTINGS, source=fluorescent_bead(5.0))
+    built = v2.with_changes(
+        {
+            "as_built.leakage_counts_per_ms": 3.0,
+            "as_built.pixel_crosstalk_fraction": 0.3,
+            "as_built.stray_light_fraction": 0.2,
+        }
+    )
+    images = {}
+    for name, design in (("nominal", v2), ("built", built)):
+        simulate_scan(design, np.zeros((1, 3)), tmp_path / name, settings, workers=1, processes=False, progress=False)
+        images[name] = read_scan(tmp_path / name).normalised()[0]
+    nominal, measured = images["nominal"], images["built"]
+    assert np.median(nominal) == 0.0
+    assert math.isclose(float(np.median(measured)), 3.0, abs_tol=0.1)  # leakage: counts per ms on every pixel
+    peak = np.unravel_index(np.argmax(nominal), nominal.shape)
+    # crosstalk and the halo take light from the brightest pixel of each focus into its neighbours
+    assert _peak_share(measured, peak, 3.0) < 0.9 * _peak_share(nominal, peak, 0.0)
+
+
+def _peak_share(image: np.ndarray, peak: tuple[int, int], background: float) -> float:
+    """The brightest pixel's share of its 3 × 3 neighbourhood, background removed."""
+    r, c = peak
+    window = image[r - 1 : r + 2, c - 1 : c + 2] - background
+    return float(window[1, 1] / window.sum())
