@@ -7,10 +7,11 @@ name the physical effect the model lacks, add it, and report the error before an
 - :mod:`.residual`: the residual analysis of a scan against its model, as one document;
 - :mod:`.effects`: the effect library (named physical parameters with units, ranges, defaults)
   and the sensor-side effects applied to any simulator's images;
-- :mod:`.simulate`: the simulators the loop can drive (the analytic CM²-like model today);
+- :mod:`.simulate`: the simulators the loop can drive and the analytic CM²-like model;
+- :mod:`.tracer`: the emission tracer as a simulator, the effects written into the design's
+  ``as_built`` section (:class:`cm2optics.design.AsBuilt`) so a fitted effect is a design value;
 - :mod:`.attribute`: which effects explain the residual (finite-difference Jacobians of the
   features, greedy selection under the BIC, joint Gauss–Newton refits, uncertainties).
 
-Not yet here (issue 14): the emission tracer as a simulator (effects in the design YAML),
-``cm2 calibrate``, the unexplained-residual signature and its low-rank correction, the report.
+Not yet here (issue 14): ``cm2 calibrate``, the unexplained-residual signature and its low-rank correction, the report.
 """

@@ -13,7 +13,8 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import ndimage
+
+from cm2optics.optics.sensor_effects import crosstalk, halo
 
 
 @dataclass(frozen=True)
@@ -94,30 +95,16 @@ def library(lenslets: int) -> tuple[Effect, ...]:
 # ----------------------------------------------------------------------------- image-side effects
 
 
-def _halo(images: np.ndarray, fraction: float, width_px: float) -> np.ndarray:
-    if fraction <= 0:
-        return images
-    blurred = ndimage.gaussian_filter(images, sigma=(0, width_px, width_px), mode="constant")
-    return (1.0 - fraction) * images + fraction * blurred
-
-
-def _crosstalk(images: np.ndarray, fraction: float) -> np.ndarray:
-    if fraction <= 0:
-        return images
-    kernel = np.array([[0, 0.25, 0], [0.25, 0, 0.25], [0, 0.25, 0]]) * fraction
-    kernel[1, 1] = 1.0 - fraction
-    return ndimage.convolve(images, kernel[None], mode="constant")
-
-
 def apply_image_effects(images: np.ndarray, values: dict[str, dict[str, float]], pixel_um: float) -> np.ndarray:
     """The sensor-side effects in ``values`` (effect name → parameters) applied to images
-    (N, y, x) in counts per ms of a unit source; effects not named are absent."""
+    (N, y, x) in counts per ms of a unit source; effects not named are absent. The same
+    functions as a design's ``as_built`` section (:mod:`cm2optics.optics.sensor_effects`)."""
     out = np.asarray(images, np.float32)
     if "stray_light" in values:
         p = values["stray_light"]
-        out = _halo(out, p["fraction"], p["width_um"] / pixel_um)
+        out = halo(out, p["fraction"], p["width_um"] / pixel_um)
     if "pixel_crosstalk" in values:
-        out = _crosstalk(out, values["pixel_crosstalk"]["fraction"])
+        out = crosstalk(out, values["pixel_crosstalk"]["fraction"])
     return out
 
 

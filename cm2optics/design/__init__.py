@@ -7,13 +7,15 @@ code. Construct parts directly (``MicrolensArray(...)``) or load a YAML preset
 naming the field, the value and what is allowed.
 
 One idea per module: :mod:`~.validation` (errors), :mod:`~.sensor`, :mod:`~.mla`, :mod:`~.filters`,
-:mod:`~.imaging`, :mod:`~.illumination`, :mod:`~.mechanics` (the parts), :mod:`~.system` (the
+:mod:`~.imaging`, :mod:`~.illumination`, :mod:`~.mechanics` (the parts), :mod:`~.as_built`
+(how the assembled device departs from them), :mod:`~.system` (the
 device and its cross-part checks), :mod:`~.coerce` and :mod:`~.io` (YAML), :mod:`~.materials`
 (refractive indices) and :mod:`~.paraxial` (ABCD matrices). Derived optics (best focus,
 magnification, object pixel, NA) are functions in :mod:`cm2optics.optics.first_order`; this
 package imports no other part of cm2optics.
 """
 
+from cm2optics.design.as_built import AsBuilt
 from cm2optics.design.filters import AbsorptionFilter, InterferenceFilter
 from cm2optics.design.illumination import LED, Collimator, LEDArray
 from cm2optics.design.imaging import ImagedVolume, ImagingLayout
@@ -36,6 +38,7 @@ __all__ = [
     "DEFAULT_PRESET",
     "LED",
     "AbsorptionFilter",
+    "AsBuilt",
     "ApertureMask",
     "BasePlate",
     "Collimator",

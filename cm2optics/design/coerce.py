@@ -9,7 +9,7 @@ import os
 import tempfile
 import types
 import typing
-from dataclasses import fields
+from dataclasses import MISSING, fields
 from enum import Enum
 from pathlib import Path
 from typing import Any, Union
@@ -86,6 +86,8 @@ def _coerce(tp: Any, value: Any, path: str) -> Any:
 
 
 def dataclass_from_dict(cls: type, data: Any, path: str) -> Any:
+    """``cls`` from a mapping of its fields; a field with a default may be left out (the
+    optional ``as_built`` section and its fields), every other one must be given."""
     prefix = f"{path}." if path else ""
     if not isinstance(data, dict):
         raise DesignError(path or "<design>", data, "must be a mapping of fields")
@@ -98,10 +100,11 @@ def dataclass_from_dict(cls: type, data: Any, path: str) -> Any:
             raise DesignError(
                 f"{prefix}{key}", data[key], f"unknown field{hint}; {cls.__name__} has: {', '.join(names)}"
             )
+    optional = {f.name for f in fields(cls) if f.default is not MISSING or f.default_factory is not MISSING}
     for name in names:
-        if name not in data:
+        if name not in data and name not in optional:
             raise DesignError(f"{prefix}{name}", None, f"missing; expected {_type_name(hints[name])}")
-    kwargs = {name: _coerce(hints[name], data[name], f"{prefix}{name}") for name in names}
+    kwargs = {name: _coerce(hints[name], data[name], f"{prefix}{name}") for name in names if name in data}
     try:
         return cls(**kwargs)
     except DesignError as error:

@@ -13,7 +13,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from enum import Enum
 from pathlib import Path
 from typing import Any
@@ -21,6 +21,7 @@ from typing import Any
 import yaml
 
 from cm2optics.design import paraxial
+from cm2optics.design.as_built import AsBuilt
 from cm2optics.design.coerce import dataclass_from_dict, to_plain, write_text_atomic
 from cm2optics.design.filters import AbsorptionFilter, InterferenceFilter
 from cm2optics.design.illumination import LED, Collimator, LEDArray
@@ -35,7 +36,12 @@ __all__ = ["SystemDesign"]
 
 @dataclass(frozen=True)
 class SystemDesign:
-    """One CM² device. ``absorption_filter`` and ``collimator`` may be ``None`` (a V1 device)."""
+    """One CM² device. ``absorption_filter`` and ``collimator`` may be ``None`` (a V1 device).
+
+    ``as_built`` (optional in YAML): how the assembled device departs from the design
+    (:class:`~cm2optics.design.as_built.AsBuilt`); absent or all-default, it leaves the design's
+    YAML and parameter hash as they were.
+    """
 
     name: str
     sensor: Sensor
@@ -54,8 +60,10 @@ class SystemDesign:
     mla_housing: MLAHousing
     led_housing: LEDHousing
     base_plate: BasePlate
+    as_built: AsBuilt = field(default_factory=AsBuilt)
 
     def __post_init__(self) -> None:
+        self._check_as_built()
         self._check_mla_on_sensor()
         self._check_filter_bands()
         self._check_film()
@@ -67,6 +75,18 @@ class SystemDesign:
             paraxial.has_real_image(self),
             "the sensor must lie beyond the lenslets' back focus (no real image of the sample otherwise)",
         )
+
+    def _check_as_built(self) -> None:
+        """Per-lenslet lists have one entry per full lenslet (or none)."""
+        count = self.mla.rows * self.mla.cols
+        for name in ("lenslet_decenter_mm", "lenslet_transmission"):
+            value = getattr(self.as_built, name)
+            check(
+                f"as_built.{name}",
+                [list(v) if isinstance(v, tuple) else v for v in value],
+                len(value) in (0, count),
+                f"must list one value per lenslet ({count} = mla.rows × mla.cols, row by row) or be empty",
+            )
 
     def _check_mla_on_sensor(self) -> None:
         """The MLA fits the sensor's active area."""
@@ -217,7 +237,15 @@ class SystemDesign:
 
     # -- files ------------------------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:
-        return to_plain(self)
+        """Plain data of the design; ``as_built`` holds only its non-default fields and is left
+        out when the device is built as designed (so the parameter hash is the design's)."""
+        data = to_plain(self)
+        changed = self.as_built.changed()
+        if changed:
+            data["as_built"] = changed
+        else:
+            del data["as_built"]
+        return data
 
     def to_yaml(self) -> str:
         return yaml.safe_dump(self.to_dict(), sort_keys=False, allow_unicode=True)
@@ -232,8 +260,9 @@ class SystemDesign:
         return hashlib.sha256(text.encode()).hexdigest()[:16]
 
     def with_changes(self, changes: dict[str, Any]) -> SystemDesign:
-        """A copy with dotted-path fields replaced (``{"mla.radius_mm": 1.7}``), validated anew."""
-        data = self.to_dict()
+        """A copy with dotted-path fields replaced (``{"mla.radius_mm": 1.7}``,
+        ``{"as_built.mla_rotation_deg": 0.5}``), validated anew."""
+        data = to_plain(self)
         for path, value in changes.items():
             node = data
             *parents, leaf = path.split(".")

@@ -28,6 +28,7 @@ from cm2optics.emission.psf import EmissionModel, PSFSettings, add_focus
 from cm2optics.emission.source import fluorescent_bead
 from cm2optics.formats.emitters import Emitters
 from cm2optics.formats.measurement import write_measurement
+from cm2optics.optics.sensor_effects import apply_as_built
 
 __all__ = ["MAX_DIAMETER_UM", "render_emitters", "write_traced_measurement"]
 
@@ -42,7 +43,8 @@ def render_emitters(
     progress: bool = False,
 ) -> np.ndarray:
     """The frame of ``emitters`` (float64, (rows, cols) of the binned sensor): Σ intensity × PSF,
-    in photons detected per unit of intensity."""
+    in photons detected per unit of intensity; the design's as-built stray light and pixel
+    crosstalk applied (its leakage needs an exposure, which this frame has not)."""
     if len(emitters) == 0:
         raise ValueError("no emitters to trace")
     if np.any(emitters.diameter_um > MAX_DIAMETER_UM):
@@ -64,7 +66,7 @@ def render_emitters(
                 for focus in model.foci(position / 1000.0, diameter_um=diameter):
                     add_focus(frame, focus, intensity)
             bar.advance(task)
-    return frame
+    return apply_as_built(frame, design.as_built, model.grid.pitch_mm * 1000.0)
 
 
 def write_traced_measurement(

@@ -42,10 +42,11 @@ mask right on the lenses would: ≈ 5 % less light at the edge of the 8-mm field
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
-from cm2optics.design import Side, SystemDesign
+from cm2optics.design import SystemDesign
 from cm2optics.design.materials import Material
+from cm2optics.errors import UserError
 from cm2optics.optics import first_order
 from cm2optics.optics.housing import Bore, housing_bores, mla_tabs
 from cm2optics.optics.lenslets import lens_cells
@@ -75,6 +76,8 @@ class Lenslet:
 
     index: position in :attr:`EmissionOptics.lenslets`. row, col: cell indices (row along +y,
     col along +x; −1 or rows/cols for partial cells). partial: a partial cell left by dicing.
+    transmission: the fraction of its nominal light the lenslet passes (``as_built.lenslet_transmission``;
+    1 for partial cells), applied to its focus.
     """
 
     index: int
@@ -87,6 +90,7 @@ class Lenslet:
     y0_mm: float
     y1_mm: float
     partial: bool
+    transmission: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -94,7 +98,7 @@ class EmissionOptics:
     """The emission path of one design (see the module docstring); heights in the device frame, mm.
 
     filter: the interference filter's plate. mask_z0_mm, mask_z1_mm: mask faces; mask_half_mm:
-    half the side of its square opening. vertex_z_mm: height of the lenslet vertices; land_z_mm: height of the lowest point of
+    half the side of its square opening (as built: + ``as_built.vignetting_radius_delta_mm``). vertex_z_mm: height of the lenslet vertices; land_z_mm: height of the lowest point of
     the lens surface (the corner creases);
     radius_mm: lenslet radius; lens_material: array material; flat_z_mm: the MLA's flat face;
     mla_x_mm, mla_y_mm: (low, high) extent of the diced array, partial cells included. film: the absorption film or None.
@@ -132,15 +136,16 @@ def lenslets(design: SystemDesign) -> tuple[Lenslet, ...]:
     :func:`cm2optics.optics.lenslets.lens_cells` adds on ``partial_sides``), in the device frame.
 
     A lenslet's clear aperture is its cell intersected with the square of side
-    ``mla.aperture_mm`` around its vertex.
+    ``mla.aperture_mm`` around its vertex. The array is placed as built (``design.as_built``:
+    decentre, rotation, pitch, single lenslets displaced; see :mod:`cm2optics.optics.lenslets`).
     """
     half = design.mla.aperture_mm / 2
-    rows, cols = design.mla.rows, design.mla.cols
+    as_built, cols = design.as_built, design.mla.cols
     return tuple(
         Lenslet(
             index=index,
-            row=round(cell.vertex_y / design.mla.pitch_mm + (rows - 1) / 2),
-            col=round(cell.vertex_x / design.mla.pitch_mm + (cols - 1) / 2),
+            row=cell.row,
+            col=cell.col,
             vertex_x_mm=cell.vertex_x,
             vertex_y_mm=cell.vertex_y,
             x0_mm=max(cell.x_min, cell.vertex_x - half),
@@ -148,17 +153,42 @@ def lenslets(design: SystemDesign) -> tuple[Lenslet, ...]:
             y0_mm=max(cell.y_min, cell.vertex_y - half),
             y1_mm=min(cell.y_max, cell.vertex_y + half),
             partial=cell.partial,
+            transmission=1.0 if cell.partial else as_built.transmission(cell.row * cols + cell.col),
         )
-        for index, cell in enumerate(lens_cells(design.mla))
+        for index, cell in enumerate(lens_cells(design.mla, as_built))
     )
 
 
-def _extent(design: SystemDesign, count: int, low_side: Side, high_side: Side) -> tuple[float, float]:
-    mla = design.mla
-    border = mla.partial_border_mm
-    low = -count * mla.pitch_mm / 2 - (border if low_side in mla.partial_sides else 0.0)
-    high = count * mla.pitch_mm / 2 + (border if high_side in mla.partial_sides else 0.0)
-    return low, high
+def _extent(design: SystemDesign, axis: str) -> tuple[float, float]:
+    """(low, high) extent of the diced array along ``axis`` ("x" or "y"), partial cells included,
+    as placed (mm): the cells' footprints, not the lenslets' apertures."""
+    footprints = lens_cells(design.mla, design.as_built)
+    if axis == "x":
+        return min(c.x_min for c in footprints), max(c.x_max for c in footprints)
+    return min(c.y_min for c in footprints), max(c.y_max for c in footprints)
+
+
+def _bores(design: SystemDesign, mask_half_mm: float) -> tuple[Bore, ...]:
+    """The housing's openings, the mask's with the as-built half-width ``mask_half_mm`` (mm):
+    ``as_built.vignetting_radius_delta_mm`` widens or narrows the aperture that vignettes the
+    foci of sources far off a lenslet's axis."""
+    bores = housing_bores(design)
+    if design.as_built.vignetting_radius_delta_mm == 0:
+        return bores
+    return tuple(
+        replace(b, half_x_mm=mask_half_mm, half_y_mm=mask_half_mm) if b.name == "mask opening" else b for b in bores
+    )
+
+
+def _check_traceable(design: SystemDesign) -> None:
+    """Refuse what the tracer cannot honour yet: tilted parts (its surfaces are axis-aligned)."""
+    tilts = design.as_built.traced_tilts
+    if tilts:
+        listed = ", ".join(f"as_built.{name} = {value:g}" for name, value in tilts.items())
+        raise UserError(
+            f"{listed}: tilts of the MLA or the sensor are recorded in the design but not yet traced "
+            "(the emission tracer's surfaces are perpendicular to the axis); set them to 0 to trace"
+        )
 
 
 def emission_optics(design: SystemDesign) -> EmissionOptics:
@@ -168,24 +198,31 @@ def emission_optics(design: SystemDesign) -> EmissionOptics:
     if film is not None:
         z0 = design.imaging.film_to_sensor_mm
         film_plate = Plate(z0, z0 + film.thickness_mm, film.width_mm / 2, film.length_mm / 2, film.material)
+    _check_traceable(design)
     z_filter = design.emission_filter_z_mm
     cells = lenslets(design)
+    mask_half = design.aperture_mask.opening_mm / 2 + design.as_built.vignetting_radius_delta_mm
+    if mask_half <= 0:
+        raise UserError(
+            f"as_built.vignetting_radius_delta_mm = {design.as_built.vignetting_radius_delta_mm:g}: closes the mask's "
+            f"opening (half-width {design.aperture_mask.opening_mm / 2:g} mm)"
+        )
     if not math.isfinite(first_order.object_plane_z_mm(design)):
         raise ValueError(f"the design has no finite focal plane (object_plane_z_mm = {first_order.object_plane_z_mm(design)})")
     return EmissionOptics(
         filter=Plate(z_filter, z_filter + filt.thickness_mm, filt.width_mm / 2, filt.length_mm / 2, filt.material),
         mask_z0_mm=design.mask_z_mm,
         mask_z1_mm=design.mask_z_mm + design.aperture_mask.thickness_mm,
-        mask_half_mm=design.aperture_mask.opening_mm / 2,
+        mask_half_mm=mask_half,
         vertex_z_mm=design.mla_vertex_z_mm,
         land_z_mm=design.mla_vertex_z_mm - design.mla.corner_sag_mm,
         radius_mm=design.mla.radius_mm,
         lens_material=design.mla.material,
         flat_z_mm=design.imaging.mla_to_sensor_mm,
-        mla_x_mm=_extent(design, design.mla.cols, Side.MINUS_X, Side.PLUS_X),
-        mla_y_mm=_extent(design, design.mla.rows, Side.MINUS_Y, Side.PLUS_Y),
+        mla_x_mm=_extent(design, "x"),
+        mla_y_mm=_extent(design, "y"),
         film=film_plate,
-        bores=housing_bores(design),
+        bores=_bores(design, mask_half),
         lenslets=cells,
         sensor_half_x_mm=design.sensor.active_width_mm / 2,
         sensor_half_y_mm=design.sensor.active_length_mm / 2,

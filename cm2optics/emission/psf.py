@@ -65,13 +65,17 @@ class SensorGrid:
     width_px, height_px: sensor pixels along x and y. pixel_um: sensor pitch, µm. binning: sensor
     pixels per saved pixel along each axis (1–16); trailing sensor pixels that do not fill a
     binned pixel are dropped. Binned pixel (row, col) covers sensor rows row·B … row·B + B − 1;
-    its centre lies at x = (col·B + (B − 1)/2 − (width_px − 1)/2) · pixel (and likewise y).
+    its centre lies at x = (col·B + (B − 1)/2 − (width_px − 1)/2) · pixel + offset_x (and likewise y).
+    offset_x_um, offset_y_um: the sensor displaced along +x, +y relative to the optics, µm
+    (``as_built.sensor_offset_*_um``; the image moves the other way on the pixel grid).
     """
 
     width_px: int
     height_px: int
     pixel_um: float
     binning: int = 1
+    offset_x_um: float = 0.0
+    offset_y_um: float = 0.0
 
     def __post_init__(self) -> None:
         if not (isinstance(self.binning, int) and 1 <= self.binning <= 16):
@@ -81,8 +85,8 @@ class SensorGrid:
 
     @classmethod
     def of(cls, design: SystemDesign, binning: int = 1) -> SensorGrid:
-        s = design.sensor
-        return cls(s.width_px, s.height_px, s.pixel_um, binning)
+        s, built = design.sensor, design.as_built
+        return cls(s.width_px, s.height_px, s.pixel_um, binning, built.sensor_offset_x_um, built.sensor_offset_y_um)
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -97,22 +101,28 @@ class SensorGrid:
     def x_mm(self, col: np.ndarray | float) -> np.ndarray:
         """x (mm, device frame) of the centre of binned column ``col``."""
         b = self.binning
-        return (np.asarray(col, dtype=float) * b + (b - 1) / 2 - (self.width_px - 1) / 2) * self.pixel_um / 1000.0
+        return (
+            (np.asarray(col, dtype=float) * b + (b - 1) / 2 - (self.width_px - 1) / 2) * self.pixel_um + self.offset_x_um
+        ) / 1000.0
 
     def y_mm(self, row: np.ndarray | float) -> np.ndarray:
         """y (mm, device frame) of the centre of binned row ``row``."""
         b = self.binning
-        return (np.asarray(row, dtype=float) * b + (b - 1) / 2 - (self.height_px - 1) / 2) * self.pixel_um / 1000.0
+        return (
+            (np.asarray(row, dtype=float) * b + (b - 1) / 2 - (self.height_px - 1) / 2) * self.pixel_um + self.offset_y_um
+        ) / 1000.0
 
     def col(self, x_mm: np.ndarray | float) -> np.ndarray:
         """Fractional binned column whose centre lies at ``x_mm`` (mm)."""
         b = self.binning
-        return ((np.asarray(x_mm, dtype=float) * 1000.0 / self.pixel_um) + (self.width_px - 1) / 2 - (b - 1) / 2) / b
+        x_um = np.asarray(x_mm, dtype=float) * 1000.0 - self.offset_x_um
+        return ((x_um / self.pixel_um) + (self.width_px - 1) / 2 - (b - 1) / 2) / b
 
     def row(self, y_mm: np.ndarray | float) -> np.ndarray:
         """Fractional binned row whose centre lies at ``y_mm`` (mm)."""
         b = self.binning
-        return ((np.asarray(y_mm, dtype=float) * 1000.0 / self.pixel_um) + (self.height_px - 1) / 2 - (b - 1) / 2) / b
+        y_um = np.asarray(y_mm, dtype=float) * 1000.0 - self.offset_y_um
+        return ((y_um / self.pixel_um) + (self.height_px - 1) / 2 - (b - 1) / 2) / b
 
 
 @dataclass(frozen=True)
@@ -790,9 +800,10 @@ class EmissionModel:
             power = sum(p.power for p in own)
             cx = sum(p.power * p.centroid[0] for p in own) / power
             cy = sum(p.power * p.centroid[1] for p in own) / power
+            t = self.optics.lenslets[k].transmission  # as built (dust, a defect): 1 by design
             foci.append(
                 Focus(
-                    k, window.r0, window.c0, np.clip(patch, 0.0, None), (cx, cy), power, any(p.geometric for p in own)
+                    k, window.r0, window.c0, t * np.clip(patch, 0.0, None), (cx, cy), t * power, any(p.geometric for p in own)
                 )
             )
         return foci

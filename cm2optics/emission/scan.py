@@ -10,7 +10,10 @@ frame (photons detected per emitted photon, :mod:`.psf`) × the source's photon 
 ``dark_level``, rounded to counts and clipped to the sensor's bit depth. Like the paper's
 calibration script, the exposure adapts per position so that the brightest pixel reaches
 ``fill`` of full scale; ``exposure_ms`` records it, so ``PSFScan.normalised()`` (counts per ms)
-is proportional to the PSF in every image. Synthetic images are noise-free.
+is proportional to the PSF in every image. Synthetic images are noise-free. A design's
+``as_built`` section is honoured: its geometry and transmissions by the tracer, its stray light
+and pixel crosstalk on each frame (:mod:`cm2optics.optics.sensor_effects`), its leakage as
+``leakage_counts_per_ms`` × the exposure added to the counts.
 
 Positions run on Dask: a local cluster of one worker process per core by default, or the
 scheduler at ``dask_address``. Each finished position is saved at once, atomically, in a work
@@ -42,6 +45,7 @@ from cm2optics.emission.source import PointSource, calibration_pinhole
 from cm2optics.formats.atomic import write_atomic, write_json_atomic
 from cm2optics.formats.scan import ScanError, ScanMeta, grid_axes_mm, write_scan
 from cm2optics.optics import first_order
+from cm2optics.optics.sensor_effects import apply_as_built
 
 __all__ = [
     "ScanSettings",
@@ -444,13 +448,15 @@ def _write(
         )
     for i in range(len(positions)):
         packed, seconds[i] = _load_position(work, i)
-        frame = _frame(packed, (rows, cols))
+        frame = apply_as_built(_frame(packed, (rows, cols)), design.as_built, grid.pitch_mm * 1000.0)
         energies[i] = frame.sum()
         rate = frame.max() * settings.source_photons_per_ms * settings.counts_per_electron  # counts per ms at the peak
         exposure = settings.max_exposure_ms if rate <= 0 else min(headroom / rate, settings.max_exposure_ms)
         exposures[i] = float(f"{exposure:.6g}")
         counts = (
-            frame * (settings.source_photons_per_ms * settings.counts_per_electron * exposures[i]) + settings.dark_level
+            frame * (settings.source_photons_per_ms * settings.counts_per_electron * exposures[i])
+            + settings.dark_level
+            + design.as_built.leakage_counts_per_ms * exposures[i]
         )
         images[i] = np.clip(np.rint(counts), 0, full).astype(np.uint16)
     images.flush()
