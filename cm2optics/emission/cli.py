@@ -78,6 +78,14 @@ def simulate(
         typer.Option("--half-angle-deg", help="1/e² half-angle of the pinhole's Gaussian emission profile, degrees."),
     ] = 26.0,
     band_nm: Annotated[float, typer.Option("--band-nm", help="Widest wavelength band traced, nm.")] = 10.0,
+    oversample: Annotated[
+        int,
+        typer.Option(
+            "--oversample",
+            help="S > 1: also write each position's effective PSF (the PSF integrated over one saved pixel) on a "
+            "grid S times finer than the saved pixels, as epsf.h5 beside the frames (for cm2 lsv build --oversample).",
+        ),
+    ] = 1,
     as_json: JsonOption = False,
 ) -> None:
     """Simulate a PSF calibration scan: positions.csv, 16-bit TIFFs, scan.yaml (the measured-scan format),
@@ -101,7 +109,7 @@ def simulate(
     else:
         points = calibration_grid_mm(design, parse_grid(grid or "9x9x11"), field_mm, depth_mm)
     settings = ScanSettings(
-        psf=PSFSettings(binning=binning, band_nm=band_nm),
+        psf=PSFSettings(binning=binning, band_nm=band_nm, oversample=oversample),
         source=scan_source(profile, pinhole_um, half_angle_deg),
     )
     start = time.perf_counter()
