@@ -63,8 +63,14 @@ class LSVModel:
     nmse: np.ndarray = field(default_factory=lambda: np.zeros(0))
     nmse_per_psf: np.ndarray = field(default_factory=lambda: np.zeros(0))
     provenance: dict[str, Any] = field(default_factory=dict)
+    #: S > 1: the basis is an effective PSF on a grid S times finer than the pixels (:mod:`.epsf`).
+    oversample: int = 1
 
     def __post_init__(self) -> None:
+        if not (isinstance(self.oversample, int | np.integer) and self.oversample >= 1):
+            raise ModelError(f"oversample = {self.oversample!r}: must be an integer ≥ 1")
+        if self.basis.shape[-1] % self.oversample or self.basis.shape[-2] % self.oversample:
+            raise ModelError(f"basis patches {self.basis.shape[-2:]} are not a multiple of oversample = {self.oversample}")
         basis = np.ascontiguousarray(self.basis, dtype=np.float32)
         coefficients = np.ascontiguousarray(self.coefficients, dtype=np.float32)
         if basis.ndim != 4:
@@ -102,7 +108,8 @@ class LSVModel:
 
     @property
     def patch_shape(self) -> tuple[int, int]:
-        return self.basis.shape[2], self.basis.shape[3]
+        """Patch size in image pixels (the basis holds ``oversample`` × as many samples)."""
+        return self.basis.shape[2] // self.oversample, self.basis.shape[3] // self.oversample
 
     @property
     def axes(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -126,8 +133,9 @@ class LSVModel:
         return np.moveaxis((values * weights).sum(-1), 0, -1)
 
     def focus_patches(self, x_mm: float, y_mm: float, z_mm: float) -> np.ndarray:
-        """(J, h, w) focus patches of a unit point source at (x, y, z), before placement."""
-        out = np.zeros((self.n_lenslets,) + self.patch_shape, np.float32)
+        """(J, h, w) focus patches of a unit point source at (x, y, z), before placement ((J, h·S,
+        w·S) fine ePSF patches for an oversampled model)."""
+        out = np.zeros((self.n_lenslets,) + self.basis.shape[2:], np.float32)
         for j in range(self.n_lenslets):
             c = self.coefficients_at(x_mm, y_mm, z_mm, lenslet=j)
             out[j] = np.tensordot(c, self.basis[:, j], axes=(0, 0))
@@ -143,7 +151,12 @@ class LSVModel:
         cache = self._operators  # type: ignore[attr-defined]
         if key not in cache:
             cache.clear()
-            cache[key] = LSVOperator(self, grid, device=device)
+            if self.oversample > 1:
+                from cm2optics.lsv.epsf import EPSFOperator
+
+                cache[key] = EPSFOperator(self, grid, device=device)
+            else:
+                cache[key] = LSVOperator(self, grid, device=device)
         return cache[key]
 
     def forward(self, volume, grid: VolumeGrid | None = None, **options):
@@ -182,6 +195,7 @@ class LSVModel:
             f.attrs["sensor_shape"] = np.array(self.sensor_shape)
             f.attrs["pixel_um"] = self.pixel_um
             f.attrs["scale"] = self.scale
+            f.attrs["oversample"] = int(self.oversample)
             f.attrs["default_grid"] = json.dumps(self.default_grid.to_dict())
             f.attrs["provenance"] = json.dumps(self.provenance, ensure_ascii=False, default=_json_default)
             f.create_dataset("basis", data=self.basis, compression="gzip", compression_opts=4, shuffle=True)
@@ -233,6 +247,7 @@ def load_model(path: str | Path) -> LSVModel:
                 pixel_um=float(f.attrs["pixel_um"]),
                 default_grid=VolumeGrid.from_dict(json.loads(f.attrs["default_grid"])),
                 scale=float(f.attrs.get("scale", 1.0)),
+                oversample=int(f.attrs.get("oversample", 1)),
                 singular_values=f["svd/singular_values"][()],
                 nmse=f["svd/nmse"][()],
                 nmse_per_psf=f["svd/nmse_per_psf"][()],
