@@ -159,20 +159,27 @@ def estimate_epsf_basis(
     iterations: int = 3,
     cg_steps: int = 15,
     smoothness: float = 1e-3,
+    keep: np.ndarray | None = None,
+    windows: tuple[np.ndarray, np.ndarray] | None = None,
     progress=None,
 ) -> tuple[Decomposition, dict[str, Any]]:
     """Estimate an ePSF basis (K, J, h·S, w·S) and coefficients from the scan's whole-pixel
     frames, starting from the whole-pixel ``decomposition`` of the registered ``crops`` (N, J,
     h, w). ``smoothness``: λ of the Laplacian prior, relative to the data's mean energy per fine
-    sample. Returns the new decomposition (orthonormal basis, singular values) and a report."""
+    sample. ``keep``: the nodes (boolean, N) to estimate from (held-out checks; the others'
+    coefficients are returned as zeros); ``windows``: :func:`pixel_windows` already read.
+    Returns the new decomposition (orthonormal basis, singular values) and a report."""
     start = time.perf_counter()
     S = int(oversample)
     K, J, h, w = decomposition.basis.shape
-    N = crops.shape[0]
-    y_np, eps = pixel_windows(index, geometry, (h, w), progress=progress)
+    N_all = crops.shape[0]
+    y_np, eps = windows if windows is not None else pixel_windows(index, geometry, (h, w), progress=progress)
+    keep = np.ones(N_all, bool) if keep is None else np.asarray(keep, bool)
+    y_np, eps = y_np[keep], eps[keep]
+    N = int(keep.sum())
     y = torch.as_tensor(y_np)
     B = torch.as_tensor(_upsample(decomposition.basis, S))  # (K, J, hS, wS)
-    C = torch.as_tensor(decomposition.coefficients, dtype=torch.float32)  # (N, K)
+    C = torch.as_tensor(decomposition.coefficients[keep], dtype=torch.float32)  # (N, K)
     samplers = [_Sampler(eps[:, j], h, w, S) for j in range(J)]
     everything = slice(0, N)
     data_energy = float((y.double() ** 2).sum())
@@ -230,7 +237,8 @@ def estimate_epsf_basis(
     Q, R = torch.linalg.qr(C.double())
     U, s, Vt = torch.linalg.svd(R @ B.reshape(K, -1).double(), full_matrices=False)
     basis = Vt.reshape(K, J, h * S, w * S).float().numpy()
-    coefficients = (Q @ (U * s)).float().numpy()
+    coefficients = np.zeros((N_all, K), np.float32)
+    coefficients[keep] = (Q @ (U * s)).float().numpy()
     singular = s.numpy()
     new = Decomposition(
         basis=basis,
