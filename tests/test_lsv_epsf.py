@@ -159,3 +159,43 @@ def test_phase_coverage_flags_a_scan_of_one_phase():
     one = np.array([[x, y, 0.0] for x in (-0.1, 0.0, 0.1) for y in (-0.05, 0.1)])
     coverage = phase_coverage(replace(flat), one, S)
     assert coverage["single_phase"] and coverage["min_bins_visited"] == pytest.approx(1 / S**2, abs=1e-3)
+
+
+@pytest.fixture(scope="module")
+def small_analytic_scan(v2, tmp_path_factory):
+    from cm2optics.lsv.analytic import AnalyticCM2, write_analytic_scan
+
+    analytic = AnalyticCM2.from_design(v2, binning=8, sigma0_um=12.0)
+    axis = np.linspace(-2, 2, 5)
+    folder = tmp_path_factory.mktemp("epsf") / "scan"
+    return write_analytic_scan(folder, analytic, axis, axis, np.array([-0.2, 0.0, 0.2]), binning=8, noise=False)
+
+
+def test_build_estimates_an_epsf_basis_from_whole_pixel_frames(small_analytic_scan, v2):
+    from cm2optics.lsv.build import build_model
+
+    result = build_model(
+        small_analytic_scan, rank=8, design=v2, oversample=2, estimate_options={"iterations": 2, "cg_steps": 5}
+    )
+    model = result.model
+    assert model.oversample == 2 and model.basis.shape[2:] == tuple(2 * s for s in model.patch_shape)
+    epsf = model.provenance["epsf"]
+    assert epsf["source"] == "estimated from the whole-pixel frames"
+    assert 0 < epsf["phase_coverage"]["min_bins_visited"] <= 1
+    misfit = epsf["estimate"]["pixel_misfit_nmse_per_iteration"]
+    assert misfit[-1] < misfit[0]
+    # an in-focus unit source on the axis still images to a total of 1
+    assert model.point_image(0.0, 0.0, 0.0).sum() == pytest.approx(1.0, rel=0.05)
+
+
+def test_a_scan_of_one_sub_pixel_phase_falls_back_to_whole_pixels(small_analytic_scan, v2, monkeypatch):
+    import cm2optics.lsv.epsf_estimate as estimate
+    from cm2optics.lsv.build import build_model
+
+    real = estimate.phase_coverage
+    monkeypatch.setattr(estimate, "phase_coverage", lambda *a: {**real(*a), "single_phase": True})
+    with pytest.warns(UserWarning, match="same sub-pixel phase"):
+        result = build_model(small_analytic_scan, rank=4, design=v2, oversample=4)
+    assert result.model.oversample == 1
+    epsf = result.model.provenance["epsf"]
+    assert epsf["oversample"] == 1 and epsf["requested_oversample"] == 4 and "whole pixels" in epsf["fallback"]

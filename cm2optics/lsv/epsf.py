@@ -63,7 +63,7 @@ def place_epsf(fine: np.ndarray, eps: tuple[float, float], oversample: int) -> n
     rows = sampling_matrix((np.arange(h + 3) - 1 - eps[0]) * S, hS)
     cols = sampling_matrix((np.arange(w + 3) - 1 - eps[1]) * S, wS)
     dtype = np.float32 if fine.dtype == np.float32 else np.float64
-    return np.einsum("ra,...ab,cb->...rc", rows.astype(dtype), fine.astype(dtype, copy=False), cols.astype(dtype))
+    return rows.astype(dtype) @ fine.astype(dtype, copy=False) @ cols.T.astype(dtype)
 
 
 def epsf_crops(
