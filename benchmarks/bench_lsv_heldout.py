@@ -115,6 +115,8 @@ def bench_binning(args: argparse.Namespace, binning: int, design) -> dict:
         "oversample 4 (synthetic ePSF)": (scan, 4),
         "oversample 4 (estimated from frames)": (frames, 4),
     }
+    if args.skip_estimate:
+        del builds["oversample 4 (estimated from frames)"]
     models, build_info = {}, {}
     for name, (folder, S) in builds.items():
         path = root / f"model_S{S}_{folder.name}.h5"
@@ -170,6 +172,7 @@ def main() -> None:
     parser.add_argument("--diameter-um", type=float, default=2.0)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--skip-estimate", action="store_true", help="leave out the basis estimated from frames")
     parser.add_argument("--via-cli", action="store_true", help="trace through `cm2 psf image` (16-bit files)")
     parser.add_argument("--out", default="out/bench-lsv-heldout")
     args = parser.parse_args()

@@ -199,3 +199,18 @@ def test_a_scan_of_one_sub_pixel_phase_falls_back_to_whole_pixels(small_analytic
     assert result.model.oversample == 1
     epsf = result.model.provenance["epsf"]
     assert epsf["oversample"] == 1 and epsf["requested_oversample"] == 4 and "whole pixels" in epsf["fallback"]
+
+
+def test_a_coarser_operator_sampling_stays_adjoint_and_close():
+    from cm2optics.lsv.epsf import EPSFOperator
+
+    model = epsf_model()
+    grid = model.default_grid
+    op = EPSFOperator(model, grid, sampling=2)
+    rng = np.random.default_rng(3)
+    x = rng.random(grid.shape).astype(np.float32)
+    y = rng.normal(size=SENSOR).astype(np.float32)
+    lhs, rhs = _inner(op.forward(x), y), _inner(x, op.adjoint(y))
+    assert abs(lhs - rhs) <= 1e-5 * max(abs(lhs), abs(rhs))
+    full = model.forward(x)
+    assert np.linalg.norm(op.forward(x) - full) <= 0.05 * np.linalg.norm(full)

@@ -111,12 +111,17 @@ def epsf_crops(
     return out
 
 
-def fine_model(model: LSVModel) -> LSVModel:
+def fine_model(model: LSVModel, sampling: int | None = None) -> LSVModel:
     """The ePSF model as a whole-pixel model on the fine grid: geometry × S, sensor × S, pixel / S.
-    Its operator's output sampled at every S-th fine sample is the ePSF model's image."""
+    Its operator's output sampled at every S-th fine sample is the ePSF model's image.
+    ``sampling``: a divisor S' of S to run on a coarser grid (the ePSF taken every S/S' fine
+    samples: S'² instead of S² times the pixels, at some loss where the ePSF is sharpest)."""
     from cm2optics.lsv.preprocess import Geometry
 
-    S = model.oversample
+    S = sampling or model.oversample
+    if model.oversample % S:
+        raise ValueError(f"sampling = {sampling}: must divide the model's oversample ({model.oversample})")
+    step = model.oversample // S
     g = model.geometry
     geometry = Geometry(g.r0_poly * S, g.A_poly * S, g.o_poly * S, g.rows, g.cols)
     H, W = model.sensor_shape
@@ -125,6 +130,7 @@ def fine_model(model: LSVModel) -> LSVModel:
         geometry=geometry,
         sensor_shape=((H - 1) * S + 1, (W - 1) * S + 1),
         pixel_um=model.pixel_um / S,
+        basis=np.ascontiguousarray(model.basis[:, :, ::step, ::step]),
         oversample=1,
         provenance={},
     )
@@ -133,16 +139,16 @@ def fine_model(model: LSVModel) -> LSVModel:
 class EPSFOperator:
     """Forward/adjoint of an ePSF model on a volume grid (see the module docstring)."""
 
-    def __init__(self, model: LSVModel, grid, device: str | torch.device = "cpu"):
+    def __init__(self, model: LSVModel, grid, device: str | torch.device = "cpu", sampling: int | None = None):
         from cm2optics.lsv.operators import LSVOperator
 
         self.model = model
         self.grid = grid
         self.device = torch.device(device)
-        self.oversample = model.oversample
+        self.oversample = sampling or model.oversample
         self.sensor_shape = model.sensor_shape
         self.n_lenslets = model.n_lenslets
-        self.fine = LSVOperator(fine_model(model), grid, device=device)
+        self.fine = LSVOperator(fine_model(model, sampling), grid, device=device)
 
     def memory_bytes(self) -> int:
         return self.fine.memory_bytes()
