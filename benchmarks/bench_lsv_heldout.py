@@ -59,7 +59,8 @@ def emitters(args: argparse.Namespace, zs: tuple[float, float]) -> list[tuple[st
             if r == 0:
                 x, y = (float(v) for v in rng.uniform(-0.02, 0.02, 2))
             else:
-                angle = rng.uniform(0, 2 * math.pi)
+                lo, hi = (math.radians(float(v)) for v in args.angles_deg.split(","))
+                angle = rng.uniform(lo, hi)
                 x, y = r * math.cos(angle), r * math.sin(angle)
             out.append((f"r={r:g}", r, (round(x, 6), round(y, 6), round(z, 6))))
     return out
@@ -95,6 +96,8 @@ def bench_binning(args: argparse.Namespace, binning: int, design) -> dict:
     scan = root / "scan"
     root.mkdir(parents=True, exist_ok=True)
     seconds = {}
+    if args.scan and not scan.exists():
+        scan.symlink_to(Path(args.scan).resolve())
     if not (scan / "epsf.h5").is_file():
         start = time.perf_counter()
         command = ["psf", "simulate", "--grid", args.grid, "--binning", str(binning), "--oversample", "4"]
@@ -171,6 +174,10 @@ def main() -> None:
     parser.add_argument("--per-radius", type=int, default=3)
     parser.add_argument("--diameter-um", type=float, default=2.0)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--angles-deg", default="0,360", help="range of the off-axis emitters' angles, degrees")
+    parser.add_argument(
+        "--scan", help="use this scan folder (made with `cm2 psf simulate --oversample 4`) instead of simulating one"
+    )
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--skip-estimate", action="store_true", help="leave out the basis estimated from frames")
     parser.add_argument("--via-cli", action="store_true", help="trace through `cm2 psf image` (16-bit files)")
