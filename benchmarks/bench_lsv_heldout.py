@@ -146,7 +146,10 @@ def bench_binning(args: argparse.Namespace, binning: int, design) -> dict:
         rows.append(row)
         print(
             f"  bin {binning} {group:6s} {position}: "
-            + "  ".join(f"{name.split(' (')[0][:12]}{'*' if 'estimated' in name else ''} {row[name]['error']:.3f}" for name in models),
+            + "  ".join(
+                f"{name.split(' (')[0][:12]}{'*' if 'estimated' in name else ''} {row[name]['error']:.3f}"
+                for name in models
+            ),
             flush=True,
         )
     seconds["emitters"] = time.perf_counter() - start

@@ -153,9 +153,7 @@ def test_phase_coverage_flags_a_scan_of_one_phase():
 
     from cm2optics.lsv.preprocess import Geometry
 
-    flat = Geometry(
-        np.array([[10.0, 12.0]]), np.array([[[0.0, -20.0], [-20.0, 0.0]]]), np.zeros((1, 4, 2)), 2, 2
-    )
+    flat = Geometry(np.array([[10.0, 12.0]]), np.array([[[0.0, -20.0], [-20.0, 0.0]]]), np.zeros((1, 4, 2)), 2, 2)
     one = np.array([[x, y, 0.0] for x in (-0.1, 0.0, 0.1) for y in (-0.05, 0.1)])
     coverage = phase_coverage(replace(flat), one, S)
     assert coverage["single_phase"] and coverage["min_bins_visited"] == pytest.approx(1 / S**2, abs=1e-3)

@@ -20,7 +20,8 @@ Files: ``epsf.h5`` in the scan folder, beside the ordinary frames (which keep th
 format): attributes ``format = "cm2optics-epsf"``, ``oversample``, ``units`` (the scan's
 normalised units, counts per ms, before any background removal); one group per scan row
 ``p00000`` … with datasets ``lenslet`` (F,), ``origin`` (F, 2) fine (row, col) of each patch's
-``[0, 0]``, ``shape`` (F, 2) and ``data`` (all patches, raveled, float32).
+``[0, 0]``, ``shape`` (F, 2) and ``data`` (all patches, raveled, float32). The LSV stage reads it with
+:func:`cm2optics.lsv.epsf.read_epsf_position`.
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["EPSF_FILE", "epsf_from_subsamples", "read_epsf_position", "write_epsf_file"]
+__all__ = ["EPSF_FILE", "epsf_from_subsamples", "write_epsf_file"]
 
 EPSF_FILE = "epsf.h5"
 FORMAT = "cm2optics-epsf"
@@ -75,15 +76,3 @@ def write_epsf_file(path: Path, oversample: int, units: str, positions: list[dic
             for key in ("lenslet", "origin", "shape"):
                 g.create_dataset(key, data=packed[key])
             g.create_dataset("data", data=packed["data"], compression="gzip", compression_opts=4, shuffle=True)
-
-
-def read_epsf_position(f, index: int) -> list[tuple[int, int, int, np.ndarray]]:
-    """The ePSF patches of scan row ``index`` of an open ``epsf.h5``: (lenslet, fine row0, fine
-    col0, patch) each."""
-    g = f[f"p{index:05d}"]
-    data = g["data"][()]
-    out, offset = [], 0
-    for lenslet, (r0, c0), (h, w) in zip(g["lenslet"][()], g["origin"][()], g["shape"][()], strict=True):
-        out.append((int(lenslet), int(r0), int(c0), data[offset : offset + h * w].reshape(h, w)))
-        offset += h * w
-    return out

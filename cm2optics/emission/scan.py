@@ -314,7 +314,11 @@ def _save_position(work: Path, index: int, packed: dict[str, np.ndarray], second
 
 def _load_position(work: Path, index: int) -> tuple[dict[str, np.ndarray], float]:
     with np.load(work / f"pos_{index:05d}.npz") as data:
-        packed = {k: data[k] for k in ("lenslet", "origin", "shape", "data", "epsf_origin", "epsf_shape", "epsf_data") if k in data}
+        packed = {
+            k: data[k]
+            for k in ("lenslet", "origin", "shape", "data", "epsf_origin", "epsf_shape", "epsf_data")
+            if k in data
+        }
         return packed, float(data["seconds"])
 
 

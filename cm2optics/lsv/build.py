@@ -273,7 +273,9 @@ def build_model(
         trim=trim,
         provenance=provenance,
         oversample=oversample,
-        frames=None if oversample == 1 or epsf_info.get("source", "").startswith("synthetic") else (index, estimate_options),
+        frames=None
+        if oversample == 1 or epsf_info.get("source", "").startswith("synthetic")
+        else (index, estimate_options),
     )
     seconds["svd"] = time.perf_counter() - start
     model.provenance["seconds"] = {k: round(v, 3) for k, v in seconds.items()}

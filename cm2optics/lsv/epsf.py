@@ -36,7 +36,15 @@ if TYPE_CHECKING:  # pragma: no cover
     from cm2optics.lsv.preprocess import Geometry
     from cm2optics.psf_scan import ScanIndex
 
-__all__ = ["EPSFOperator", "epsf_crops", "fine_model", "place_epsf", "sampling_matrix"]
+__all__ = [
+    "EPSF_FILE",
+    "EPSFOperator",
+    "epsf_crops",
+    "fine_model",
+    "place_epsf",
+    "read_epsf_position",
+    "sampling_matrix",
+]
 
 
 def sampling_matrix(u: np.ndarray, n_fine: int) -> np.ndarray:
@@ -74,7 +82,6 @@ def epsf_crops(
     each image's background (as :func:`~cm2optics.lsv.preprocess.prepared_image`)."""
     import h5py
 
-    from cm2optics.emission.epsf import EPSF_FILE, read_epsf_position
     from cm2optics.lsv.preprocess import image_background
     from cm2optics.psf_scan import ScanError
 
@@ -108,6 +115,23 @@ def epsf_crops(
                 out[n, j] = sample_window(canvas, centre, (h * S, w * S))
             if progress:
                 progress("cropping ePSFs", n + 1, len(index))
+    return out
+
+
+#: The synthetic scan's ePSF file (written by :mod:`cm2optics.emission.epsf`; read here without
+#: importing the emission package, which the LSV stage must not: DESIGN.md).
+EPSF_FILE = "epsf.h5"
+
+
+def read_epsf_position(f, index: int) -> list[tuple[int, int, int, np.ndarray]]:
+    """The ePSF patches of scan row ``index`` of an open ``epsf.h5``: (lenslet, fine row0, fine
+    col0, patch) each (layout: :mod:`cm2optics.emission.epsf`)."""
+    g = f[f"p{index:05d}"]
+    data = g["data"][()]
+    out, offset = [], 0
+    for lenslet, (r0, c0), (h, w) in zip(g["lenslet"][()], g["origin"][()], g["shape"][()], strict=True):
+        out.append((int(lenslet), int(r0), int(c0), data[offset : offset + h * w].reshape(h, w)))
+        offset += h * w
     return out
 
 

@@ -199,7 +199,7 @@ def estimate_epsf_basis(
         for j in range(J):
             sampler = samplers[j]
 
-            def normal(X: torch.Tensor) -> torch.Tensor:
+            def normal(X: torch.Tensor, C: torch.Tensor = C, sampler: _Sampler = sampler) -> torch.Tensor:
                 fine = (C @ X.reshape(K, -1)).reshape(N, h * S, w * S)
                 back = sampler.adjoint(sampler.forward(fine, everything), everything)
                 out = (C.T @ back.reshape(N, -1)).reshape(X.shape)

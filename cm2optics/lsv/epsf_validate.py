@@ -79,7 +79,9 @@ def leave_one_out_pixels(
         return (B.T @ (B @ flat)).reshape(x.shape)
 
     row_of = {tuple(k): n for n, k in enumerate(np.asarray(grid_index))}
-    out: dict[str, list[float]] = {k: [] for k in ("at_node_full", "at_node_rank", "interpolated_full", "interpolated_rank")}
+    out: dict[str, list[float]] = {
+        k: [] for k in ("at_node_full", "at_node_rank", "interpolated_full", "interpolated_rank")
+    }
     per_axis: dict[str, list[float]] = {"x": [], "y": [], "z": []}
 
     def nmse(prediction: np.ndarray, n: int) -> float:

@@ -70,7 +70,9 @@ class LSVModel:
         if not (isinstance(self.oversample, int | np.integer) and self.oversample >= 1):
             raise ModelError(f"oversample = {self.oversample!r}: must be an integer ≥ 1")
         if self.basis.shape[-1] % self.oversample or self.basis.shape[-2] % self.oversample:
-            raise ModelError(f"basis patches {self.basis.shape[-2:]} are not a multiple of oversample = {self.oversample}")
+            raise ModelError(
+                f"basis patches {self.basis.shape[-2:]} are not a multiple of oversample = {self.oversample}"
+            )
         basis = np.ascontiguousarray(self.basis, dtype=np.float32)
         coefficients = np.ascontiguousarray(self.coefficients, dtype=np.float32)
         if basis.ndim != 4:
