@@ -15,7 +15,9 @@ the frame. The error splits into three measured parts:
 * ``interpolated_rank`` − ``interpolated_full``: the **low rank** (a K-term basis from the
   nodes that are not held out).
 
-NMSE per node: Σ_j ‖p_j − y_j‖² / Σ_j ‖y_j‖²; the mean over held-out nodes is reported.
+NMSE per node: Σ_j ‖p_j − y_j‖² / Σ_j ‖y_j‖²; the mean over held-out nodes is reported. The
+``at_node`` figures need the held-out nodes' own crops (a basis estimated without them has none:
+ignore them then).
 """
 
 from __future__ import annotations
