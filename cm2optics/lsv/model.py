@@ -11,6 +11,8 @@ the axis sums to 1 (``scale`` records the factor).
 File layout (HDF5, ``format = "cm2optics-lsv"``, ``version = 1``): ``basis`` (K, J, h, w),
 ``coefficients`` (K, nz, ny, nx), ``grid/x_mm|y_mm|z_mm``, ``geometry/r0_poly|A_poly|o_poly|layout``,
 ``svd/singular_values|nmse|nmse_per_psf``, attributes ``sensor_shape``, ``pixel_um``, ``scale``,
+``oversample`` (S > 1: ``basis`` is (K, J, h·S, w·S), an effective PSF on a grid S times finer
+than the pixels, sampled at each focus's exact sub-pixel position: :mod:`cm2optics.lsv.epsf`),
 ``default_grid`` (JSON) and ``provenance`` (JSON: scan, its fingerprint, build options,
 geometry fit, package version, time).
 """
