@@ -165,8 +165,8 @@ def estimate_epsf_basis(
 ) -> tuple[Decomposition, dict[str, Any]]:
     """Estimate an ePSF basis (K, J, h·S, w·S) and coefficients from the scan's whole-pixel
     frames, starting from the whole-pixel ``decomposition`` of the registered ``crops`` (N, J,
-    h, w). ``smoothness``: λ of the Laplacian prior, relative to the data's mean energy per fine
-    sample. ``keep``: the nodes (boolean, N) to estimate from (held-out checks; the others'
+    h, w). ``smoothness``: λ of the Laplacian prior, relative to the data term's mean curvature
+    (‖C‖²/(K·S²)). ``keep``: the nodes (boolean, N) to estimate from (held-out checks; the others'
     coefficients are returned as zeros); ``windows``: :func:`pixel_windows` already read.
     Returns the new decomposition (orthonormal basis, singular values) and a report."""
     start = time.perf_counter()
@@ -183,7 +183,8 @@ def estimate_epsf_basis(
     samplers = [_Sampler(eps[:, j], h, w, S) for j in range(J)]
     everything = slice(0, N)
     data_energy = float((y.double() ** 2).sum())
-    lam = smoothness * data_energy / (K * J * h * w * S * S)  # per fine sample
+    # relative to the data term's scale: CᵀC (mean eigenvalue ‖C‖²/K) times DᵀD (≈ 1/S² per fine sample)
+    lam = smoothness * float((C.double() ** 2).sum()) / (K * S * S)
 
     def predict(C: torch.Tensor, B: torch.Tensor, j: int) -> torch.Tensor:
         fine = (C @ B[:, j].reshape(K, -1)).reshape(N, h * S, w * S)
