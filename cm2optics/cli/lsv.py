@@ -119,6 +119,14 @@ def build(
         float,
         typer.Option("--trim", help="Energy share the crops' dark margins may hold when cut (0: keep the full crops)."),
     ] = 1e-6,
+    oversample: Annotated[
+        int,
+        typer.Option(
+            "--oversample",
+            help="S > 1: effective-PSF basis on a grid S times finer than the pixels, sampled at each focus's exact "
+            "sub-pixel position (from the scan's epsf.h5, else estimated from the whole-pixel frames); 1: whole pixels.",
+        ),
+    ] = 1,
     preset: PresetOption = "cm2-v2",
     overwrite: OverwriteOption = False,
     as_json: JsonOption = False,
@@ -157,9 +165,12 @@ def build(
             design=design,
             trim=trim or None,
             progress=progress,
+            oversample=oversample,
         )
     result.model.save(model_path)
     summary = {"model": str(model_path), **result.summary()}
+    if oversample > 1:
+        summary["epsf"] = result.model.provenance.get("epsf", {})
     if not no_report:
         summary["report"] = str(write_build_report(result, folder))
         claim_folder(folder, "lsv build")

@@ -88,6 +88,14 @@ def simulate(
         typer.Option("--half-angle-deg", help="1/e² half-angle of the pinhole's Gaussian emission profile, degrees."),
     ] = 26.0,
     band_nm: Annotated[float, typer.Option("--band-nm", help="Widest wavelength band traced, nm.")] = 10.0,
+    oversample: Annotated[
+        int,
+        typer.Option(
+            "--oversample",
+            help="S > 1: also write each position's effective PSF (the PSF integrated over one saved pixel) on a "
+            "grid S times finer than the saved pixels, as epsf.h5 beside the frames (for cm2 lsv build --oversample).",
+        ),
+    ] = 1,
     overwrite: OverwriteOption = False,
     as_json: JsonOption = False,
 ) -> None:
@@ -117,7 +125,7 @@ def simulate(
     else:
         points = calibration_grid_mm(design, counts, field_mm, depth_mm)
     settings = ScanSettings(
-        psf=PSFSettings(binning=binning, band_nm=band_nm),
+        psf=PSFSettings(binning=binning, band_nm=band_nm, oversample=oversample),
         source=scan_source(profile, pinhole_um, half_angle_deg),
     )
     manifest = _run_scan(design, points, out_dir, settings, dask_address, workers, progress=not as_json)

@@ -138,6 +138,9 @@ class PSFSettings:
         computed geometrically (:mod:`.wavefront`, step 5); ``inf`` forces diffraction everywhere (0.5–inf).
     geometric_rays: launch rays along each side of the grid of the geometric branch (16–512).
     engine: ``"drjit"`` or ``"numpy"`` (None: the fastest available).
+    oversample: 1, or S > 1 to give every focus its effective PSF on a grid S times finer than
+        the saved pixels as well (:mod:`.epsf`; the sub-samples per pixel are raised to a
+        multiple of S) (1–16).
     """
 
     binning: int = 1
@@ -148,8 +151,11 @@ class PSFSettings:
     geometric_waves: float = 5.0
     geometric_rays: int = 96
     engine: str | None = None
+    oversample: int = 1
 
     def __post_init__(self) -> None:
+        if not (isinstance(self.oversample, int) and 1 <= self.oversample <= 16):
+            raise ValueError(f"oversample = {self.oversample!r}: must be an integer within 1–16")
         if not (isinstance(self.binning, int) and 1 <= self.binning <= 16):
             raise ValueError(f"binning = {self.binning!r}: must be an integer within 1–16")
         if not (math.isfinite(self.band_nm) and 1 <= self.band_nm <= 100):
@@ -282,6 +288,7 @@ class Focus:
     ray_centroid_mm: tuple[float, float]
     ray_power: float
     geometric: bool = False
+    epsf: np.ndarray | None = None
 
     @property
     def energy(self) -> float:
@@ -389,6 +396,8 @@ class EmissionModel:
             np.argmin(np.abs(self.bands.wavelength_nm - weights @ self.bands.wavelength_nm / weights.sum()))
         )
         self._q = max(1, int(math.ceil(self.grid.pitch_mm * 1000.0 / self.settings.subpixel_um)))
+        S = self.settings.oversample
+        self._q = S * int(math.ceil(self._q / S))
 
     # -- coordinates ---------------------------------------------------------------------------
     def device_point_mm(self, position_mm: tuple[float, float, float] | np.ndarray) -> np.ndarray:
@@ -797,13 +806,25 @@ class EmissionModel:
                 fine = fftconvolve(fine, kernel, mode="same")
             q = window.q
             patch = fine.reshape(window.r1 - window.r0 + 1, q, window.c1 - window.c0 + 1, q).sum(axis=(1, 3))
+            epsf = None
+            if self.settings.oversample > 1:
+                from cm2optics.emission.epsf import epsf_from_subsamples
+
+                epsf = np.clip(epsf_from_subsamples(fine, q, self.settings.oversample), 0.0, None).astype(np.float32)
             power = sum(p.power for p in own)
             cx = sum(p.power * p.centroid[0] for p in own) / power
             cy = sum(p.power * p.centroid[1] for p in own) / power
             t = self.optics.lenslets[k].transmission  # as built (dust, a defect): 1 by design
             foci.append(
                 Focus(
-                    k, window.r0, window.c0, t * np.clip(patch, 0.0, None), (cx, cy), t * power, any(p.geometric for p in own)
+                    k,
+                    window.r0,
+                    window.c0,
+                    t * np.clip(patch, 0.0, None),
+                    (cx, cy),
+                    t * power,
+                    any(p.geometric for p in own),
+                    None if epsf is None else t * epsf,
                 )
             )
         return foci

@@ -230,12 +230,18 @@ def _set_jit_threads(threads: int) -> None:
 
 
 def _pack(foci: list[Focus]) -> dict[str, np.ndarray]:
-    return {
+    packed = {
         "lenslet": np.array([f.lenslet for f in foci], dtype=np.int32),
         "origin": np.array([[f.row0, f.col0] for f in foci], dtype=np.int32).reshape(-1, 2),
         "shape": np.array([f.patch.shape for f in foci], dtype=np.int32).reshape(-1, 2),
         "data": np.concatenate([f.patch.ravel() for f in foci]).astype(np.float32) if foci else np.zeros(0, np.float32),
     }
+    if foci and foci[0].epsf is not None:  # the fine-grid ePSF (emission.epsf), origin in fine samples
+        S = foci[0].epsf.shape[0] // foci[0].patch.shape[0]
+        packed["epsf_origin"] = packed["origin"] * S
+        packed["epsf_shape"] = np.array([f.epsf.shape for f in foci], dtype=np.int32).reshape(-1, 2)
+        packed["epsf_data"] = np.concatenate([f.epsf.ravel() for f in foci]).astype(np.float32)
+    return packed
 
 
 def _frame(packed: dict[str, np.ndarray], shape: tuple[int, int]) -> np.ndarray:
@@ -300,7 +306,11 @@ def _save_position(work: Path, index: int, packed: dict[str, np.ndarray], second
 
 def _load_position(work: Path, index: int) -> tuple[dict[str, np.ndarray], float]:
     with np.load(work / f"pos_{index:05d}.npz") as data:
-        packed = {k: data[k] for k in ("lenslet", "origin", "shape", "data")}
+        packed = {
+            k: data[k]
+            for k in ("lenslet", "origin", "shape", "data", "epsf_origin", "epsf_shape", "epsf_data")
+            if k in data
+        }
         return packed, float(data["seconds"])
 
 
@@ -441,6 +451,7 @@ def _write(
     exposures = np.empty(len(positions))
     seconds = np.empty(len(positions))
     energies = np.empty(len(positions))
+    epsf_rows: list[dict[str, np.ndarray]] = []
     headroom = full * settings.fill - settings.dark_level
     if headroom <= 0:
         raise ValueError(
@@ -459,6 +470,16 @@ def _write(
             + design.as_built.leakage_counts_per_ms * exposures[i]
         )
         images[i] = np.clip(np.rint(counts), 0, full).astype(np.uint16)
+        if settings.psf.oversample > 1:
+            unit = settings.source_photons_per_ms * settings.counts_per_electron  # → counts per ms
+            epsf_rows.append(
+                {
+                    "lenslet": packed["lenslet"],
+                    "origin": packed.get("epsf_origin", np.zeros((0, 2), np.int32)),
+                    "shape": packed.get("epsf_shape", np.zeros((0, 2), np.int32)),
+                    "data": packed.get("epsf_data", np.zeros(0, np.float32)) * np.float32(unit),
+                }
+            )
     images.flush()
     meta = ScanMeta(
         pixel_um=design.sensor.pixel_um * grid.binning,
@@ -468,6 +489,11 @@ def _write(
         extra=_extra_meta(design, settings, grid),
     )
     write_scan(out_dir, images, positions, exposures, meta)
+    if settings.psf.oversample > 1:  # after write_scan, which replaces the folder
+        from cm2optics.emission.epsf import EPSF_FILE, write_epsf_file
+
+        units = "counts per ms (the scan's normalised units)"
+        write_atomic(out_dir / EPSF_FILE, lambda tmp: write_epsf_file(tmp, settings.psf.oversample, units, epsf_rows))
     write_montage(out_dir / "montage.png", images, positions, exposures, settings.dark_level)
     del images
     manifest = {
@@ -526,6 +552,7 @@ def _extra_meta(design: SystemDesign, settings: ScanSettings, grid: SensorGrid) 
         "counts": "electrons x counts_per_electron + dark_level; exposure chosen per image for the peak at fill of full scale",
         "fill": settings.fill,
         "noise": "none",
+        **({"epsf_oversample": settings.psf.oversample, "epsf_file": "epsf.h5"} if settings.psf.oversample > 1 else {}),
     }
 
 

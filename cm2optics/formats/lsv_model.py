@@ -64,6 +64,7 @@ def _attrs(fields: dict[str, Any]) -> dict[str, Any]:
         "sensor_shape": [int(v) for v in fields["sensor_shape"]],
         "pixel_um": float(fields["pixel_um"]),
         "scale": float(fields.get("scale", 1.0)),
+        "oversample": int(fields.get("oversample", 1)),
         "default_grid": json.dumps(fields["default_grid"].to_dict()),
         "provenance": json.dumps(fields.get("provenance", {}), ensure_ascii=False, default=json_default),
     }
@@ -123,6 +124,7 @@ def read_lsv_model(path: str | Path) -> dict[str, Any]:
         fields["sensor_shape"] = tuple(int(v) for v in attrs["sensor_shape"])
         fields["pixel_um"] = float(attrs["pixel_um"])
         fields["scale"] = float(attrs.get("scale", 1.0))
+        fields["oversample"] = int(attrs.get("oversample", 1))
         fields["default_grid"] = VolumeGrid.from_dict(json.loads(attrs["default_grid"]))
         fields["provenance"] = json.loads(attrs.get("provenance", "{}"))
         return fields

@@ -155,6 +155,8 @@ def build_model(
     degree: int = 2,
     trim: float | None = 1e-6,
     progress: Progress | None = None,
+    oversample: int = 1,
+    estimate_options: dict[str, Any] | None = None,
 ) -> BuildResult:
     """Build an LSV model from the scan folder ``scan_dir`` (see the module docstring).
 
@@ -168,7 +170,13 @@ def build_model(
         to fall back on for the magnification if the scan's positions cannot fix it.
     trim: share of the PSF energy the basis may lose when its crops' dark margins are cut
         (None: keep the full crops).
+    oversample: S > 1 builds an effective-PSF basis on a grid S times finer than the pixels
+        (:mod:`cm2optics.lsv.epsf`): from the scan's ``epsf.h5`` if it has one (synthetic scans),
+        else estimated from the whole-pixel frames (:mod:`cm2optics.lsv.epsf_estimate`); a scan
+        whose foci all share one sub-pixel phase falls back to whole pixels, with a warning.
     """
+    if not (isinstance(oversample, int) and 1 <= oversample <= 16):
+        raise ValueError(f"oversample = {oversample!r}: must be an integer within 1–16")
     if rank < 1:
         raise ValueError(f"rank = {rank}: must be ≥ 1")
     if axial_um is None:
@@ -193,7 +201,29 @@ def build_model(
     seconds["geometry"] = time.perf_counter() - start
 
     start = time.perf_counter()
-    crops = extract_crops(index, geometry, (patch, patch), progress=progress)
+    epsf_info: dict[str, Any] = {"oversample": oversample}
+    if oversample > 1:
+        from cm2optics.lsv.epsf_estimate import phase_coverage
+
+        coverage = phase_coverage(geometry, index.positions_mm, oversample)
+        epsf_info["phase_coverage"] = coverage
+        if coverage["single_phase"]:
+            message = (
+                f"oversample = {oversample}: every position of the scan puts the foci at the same sub-pixel phase, "
+                "so the frames cannot tell a finer grid apart: built with whole pixels (oversample 1) instead"
+            )
+            warnings.warn(message, stacklevel=2)
+            epsf_info.update({"oversample": 1, "requested_oversample": oversample, "fallback": message})
+            oversample = 1
+    if oversample > 1 and (index.folder / "epsf.h5").is_file():
+        from cm2optics.lsv.epsf import epsf_crops
+
+        crops = epsf_crops(index, geometry, (patch, patch), oversample, progress=progress)
+        epsf_info["source"] = "synthetic ePSFs (epsf.h5)"
+    else:
+        crops = extract_crops(index, geometry, (patch, patch), progress=progress)
+        if oversample > 1:
+            epsf_info["source"] = "estimated from the whole-pixel frames"
     seconds["crops"] = time.perf_counter() - start
 
     start = time.perf_counter()
@@ -217,7 +247,9 @@ def build_model(
             "axial_um": axial_um,
             "degree": degree,
             "design": design.name if design is not None else None,
+            "oversample": oversample,
         },
+        "epsf": epsf_info,
         "geometry": {
             "axis_position_mm": [x0, y0],
             "lattice_pitch_px": round(fit.pitch_px, 3),
@@ -242,6 +274,10 @@ def build_model(
         axial_um=axial_um,
         trim=trim,
         provenance=provenance,
+        oversample=oversample,
+        frames=None
+        if oversample == 1 or epsf_info.get("source", "").startswith("synthetic")
+        else (index, estimate_options),
     )
     seconds["svd"] = time.perf_counter() - start
     if model.rank < rank:
@@ -252,6 +288,15 @@ def build_model(
         )
     model.provenance["seconds"] = {k: round(v, 3) for k, v in seconds.items()}
     return BuildResult(model, decomposition, replace(fit, geometry=geometry), crops, gi, seconds)
+
+
+def _whole_pixels(window: slice, n: int, S: int) -> slice:
+    """``window`` (centred on n//2) widened so that its half-width is a whole number of pixels."""
+    centre = n // 2
+    half = max(centre - window.start, window.stop - centre)
+    half = min(int(math.ceil(half / S)) * S, centre, n - centre)
+    half -= half % S
+    return slice(centre - half, centre + half)
 
 
 def model_from_crops(
@@ -267,6 +312,8 @@ def model_from_crops(
     axial_um: float | None = None,
     trim: float | None = 1e-6,
     provenance: dict[str, Any] | None = None,
+    oversample: int = 1,
+    frames: tuple[Any, dict[str, Any] | None] | None = None,
 ) -> tuple[LSVModel, Decomposition]:
     """Truncated SVD of registered ``crops`` (N, J, h, w) at grid positions ``grid_index`` (N, 3)
     as (ix, iy, iz) of ``axes`` (x, y, z mm), scaled so that the in-focus on-axis image of a unit
@@ -274,12 +321,22 @@ def model_from_crops(
     ``volume.axial_step_um``). ``trim``: drop the crops' dark
     margins holding less than this share of the PSF energy (None: keep the full crops)."""
     xs, ys, zs = axes
+    S = int(oversample)
     decomposition = decompose(crops, rank)
     K = decomposition.rank
     crop_shape = crops.shape[2:]
     if trim:
         rows, cols = trim_window(decomposition.basis, decomposition.singular_values, trim)
+        if S > 1 and crops.shape[-1] % S == 0:  # keep whole pixels, the chief ray on S·(h//2)
+            rows, cols = (_whole_pixels(sl, n, S) for sl, n in zip((rows, cols), crops.shape[2:], strict=True))
         decomposition = replace(decomposition, basis=np.ascontiguousarray(decomposition.basis[:, :, rows, cols]))
+        crops = crops[:, :, rows, cols]
+    estimate: dict[str, Any] | None = None
+    if frames is not None and S > 1:  # a measured scan: the ePSF basis from whole-pixel frames
+        from cm2optics.lsv.epsf_estimate import estimate_epsf_basis
+
+        index, options = frames
+        decomposition, estimate = estimate_epsf_basis(index, geometry, decomposition, crops, S, **(options or {}))
     gi = np.asarray(grid_index)
     coefficients = np.zeros((K, len(zs), len(ys), len(xs)), np.float32)
     coefficients[:, gi[:, 2], gi[:, 1], gi[:, 0]] = decomposition.coefficients.T
@@ -303,8 +360,9 @@ def model_from_crops(
         sensor_shape=sensor_shape,
         pixel_um=pixel_um,
         default_grid=VolumeGrid(shape, (axial_um, dxy, dxy)),
+        oversample=S if decomposition.basis.shape[-1] % S == 0 else 1,
     )
-    on_axis = model.focus_patches(0.0, 0.0, 0.0).sum(dtype=np.float64)
+    on_axis = model.focus_patches(0.0, 0.0, 0.0).sum(dtype=np.float64) / model.oversample**2
     if not on_axis > 0:
         raise ScanError("the in-focus PSF on the axis is empty after background removal")
     scale = 1.0 / float(on_axis)
@@ -330,6 +388,8 @@ def model_from_crops(
         "nmse": float(decomposition.nmse[K]),
         "nmse_per_psf": float(decomposition.nmse_per_psf[K]),
     }
+    if estimate is not None:
+        provenance.setdefault("epsf", {})["estimate"] = estimate
     model = replace(
         model,
         coefficients=coefficients * np.float32(scale),

@@ -8,7 +8,9 @@ with its centre pixel ``(h//2, w//2)`` on ``r0(z) + A(z)·(x, y) + o_j(z)``
 images are in the scan's normalised units scaled so that the in-focus image of a unit source on
 the axis sums to 1 (``scale`` records the factor).
 
-File layout: :mod:`cm2optics.formats.lsv_model` (``format = "cm2optics-lsv"``).
+File layout: :mod:`cm2optics.formats.lsv_model` (``format = "cm2optics-lsv"``). With
+``oversample`` S > 1 the ``basis`` is (K, J, h·S, w·S), an effective PSF on a grid S times finer
+than the pixels, sampled at each focus's exact sub-pixel position (:mod:`cm2optics.lsv.epsf`).
 """
 
 from __future__ import annotations
@@ -53,8 +55,16 @@ class LSVModel:
     nmse: np.ndarray = field(default_factory=lambda: np.zeros(0))
     nmse_per_psf: np.ndarray = field(default_factory=lambda: np.zeros(0))
     provenance: dict[str, Any] = field(default_factory=dict)
+    #: S > 1: the basis is an effective PSF on a grid S times finer than the pixels (:mod:`.epsf`).
+    oversample: int = 1
 
     def __post_init__(self) -> None:
+        if not (isinstance(self.oversample, int | np.integer) and self.oversample >= 1):
+            raise ModelError(f"oversample = {self.oversample!r}: must be an integer ≥ 1")
+        if self.basis.shape[-1] % self.oversample or self.basis.shape[-2] % self.oversample:
+            raise ModelError(
+                f"basis patches {self.basis.shape[-2:]} are not a multiple of oversample = {self.oversample}"
+            )
         basis = np.ascontiguousarray(self.basis, dtype=np.float32)
         coefficients = np.ascontiguousarray(self.coefficients, dtype=np.float32)
         if basis.ndim != 4:
@@ -92,7 +102,8 @@ class LSVModel:
 
     @property
     def patch_shape(self) -> tuple[int, int]:
-        return self.basis.shape[2], self.basis.shape[3]
+        """Patch size in image pixels (the basis holds ``oversample`` × as many samples)."""
+        return self.basis.shape[2] // self.oversample, self.basis.shape[3] // self.oversample
 
     @property
     def axes(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -145,8 +156,9 @@ class LSVModel:
         return np.moveaxis((values * weights).sum(-1), 0, -1)
 
     def focus_patches(self, x_mm: float, y_mm: float, z_mm: float) -> np.ndarray:
-        """(J, h, w) focus patches of a unit point source at (x, y, z), before placement."""
-        out = np.zeros((self.n_lenslets,) + self.patch_shape, np.float32)
+        """(J, h, w) focus patches of a unit point source at (x, y, z), before placement ((J, h·S,
+        w·S) fine ePSF patches for an oversampled model)."""
+        out = np.zeros((self.n_lenslets,) + self.basis.shape[2:], np.float32)
         for j in range(self.n_lenslets):
             c = self.coefficients_at(x_mm, y_mm, z_mm, lenslet=j)
             out[j] = np.tensordot(c, self.basis[:, j], axes=(0, 0))
@@ -162,7 +174,12 @@ class LSVModel:
         cache = self._operators  # type: ignore[attr-defined]
         if key not in cache:
             cache.clear()
-            cache[key] = LSVOperator(self, grid, device=device)
+            if self.oversample > 1:
+                from cm2optics.lsv.epsf import EPSFOperator
+
+                cache[key] = EPSFOperator(self, grid, device=device)
+            else:
+                cache[key] = LSVOperator(self, grid, device=device)
         return cache[key]
 
     def forward(self, volume, grid: VolumeGrid | None = None, **options):

@@ -55,6 +55,16 @@ def _shift_patch(patch: np.ndarray, eps: tuple[float, float]) -> np.ndarray:
     return out
 
 
+def _placed(model: LSVModel, patch: np.ndarray, eps: tuple[float, float]) -> np.ndarray:
+    """Patches placed at fraction ``eps``: the Keys shift of a whole-pixel basis, or the ePSF
+    sampled at the pixel centres (:func:`cm2optics.lsv.epsf.place_epsf`)."""
+    if model.oversample > 1:
+        from cm2optics.lsv.epsf import place_epsf
+
+        return place_epsf(patch, eps, model.oversample)
+    return _shift_patch(patch, eps)
+
+
 def _add(target: np.ndarray, block: np.ndarray, r: int, c: int) -> None:
     H, W = target.shape
     rs, re = max(r, 0), min(r + block.shape[0], H)
@@ -72,7 +82,8 @@ def point_image(model: LSVModel, x_mm: float, y_mm: float, z_mm: float, per_lens
     patches = model.focus_patches(x_mm, y_mm, z_mm).astype(np.float64)
     for j in range(model.n_lenslets):
         n, eps = split_shift(focus[j] - np.array([h // 2, w // 2]))
-        _add(out[j if per_lenslet else 0], _shift_patch(patches[j], (eps[0], eps[1])), int(n[0]) - 1, int(n[1]) - 1)
+        placed = _placed(model, patches[j], (eps[0], eps[1]))
+        _add(out[j if per_lenslet else 0], placed, int(n[0]) - 1, int(n[1]) - 1)
     return out if per_lenslet else out[0]
 
 
@@ -167,7 +178,7 @@ def render_emitters(
         for phase in np.unique(phases):
             members = np.nonzero(phases == phase)[0]
             shifted = torch.from_numpy(
-                _shift_patch(basis_j, phase_values[int(phase)]).astype(np.float32).reshape(K, -1)
+                _placed(model, basis_j, phase_values[int(phase)]).astype(np.float32).reshape(K, -1)
             )
             for start in range(0, len(members), chunk):
                 part = members[start : start + chunk]

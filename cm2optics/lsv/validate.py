@@ -261,6 +261,11 @@ def validate_model(
         crops = extract_crops(index, model.geometry, model.patch_shape, progress=progress) * np.float32(model.scale)
         gi = index.grid_index()
         result.update(_leave_one_out(model, crops, gi, _ranks(model, ranks, len(index) - 1), n_heldout, seed, progress))
+        if model.oversample > 1:
+            result["note"] = (
+                "leave-one-out of the scan's whole-pixel registered crops: the model's ePSF basis is not used "
+                "here (cm2optics.lsv.epsf_validate.leave_one_out_pixels checks it in pixels)"
+            )
     else:
         result.update(_second_scan(model, index, _ranks(model, ranks, model.rank), max_positions, seed, progress))
         folder = calibration.get("folder")
