@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from cm2optics.calibrate.effects import Effect, apply_image_effects, leakage_counts
-from cm2optics.calibrate.features import focus_features, window_radii
+from cm2optics.calibrate.features import focus_features, focus_windows
 from cm2optics.calibrate.noise import SensorNoise, estimate_noise
 from cm2optics.calibrate.register import Registration, register
 from cm2optics.calibrate.simulate import Simulator, Values
@@ -182,12 +182,9 @@ class Problem:
         residual = self.counts - model_counts
         lit = model_signal > 1e-3 * float(model_signal.max())
         self.noise = estimate_noise(residual[valid], model_signal[valid], (valid & ~lit)[valid], counts_per_electron)
-        centres = simulator.focus_centres_px(self.positions) + np.asarray(self.registration.offset_px)
-        pitch = simulator.pitch_px()
-        wide = np.full(centres.shape[:2], max(3.0, 0.45 * pitch))
-        refined = focus_features(model_signal, centres, wide).centroid_px
-        centres = np.where(np.isnan(refined), centres, refined)
-        radii = window_radii(model_signal, centres, pitch)
+        self.noise_known = counts_per_electron is not None
+        predicted = simulator.focus_centres_px(self.positions) + np.asarray(self.registration.offset_px)
+        centres, radii = focus_windows(model_signal, predicted, simulator.pitch_px())
         block_of = _blocks(self.counts.shape[-2:], centres, radii)
         block_of[~valid] = -1
         space = FeatureSpace(centres, radii, block_of, np.empty(0), np.empty(0), self.exposure)
@@ -329,6 +326,19 @@ def _probe_values(effect: Effect) -> list[dict[str, float]]:
     return [effect.defaults()]
 
 
+def _criterion(problem: Problem, n: int) -> Callable[[float, int], float]:
+    """The Bayesian information criterion of a fit with misfit χ² and k parameters over n features.
+
+    With the camera's gain known the noise is known: BIC = χ² + k·ln n, and the loop may stop at
+    the noise floor. With the gain estimated from the data, the noise's scale is not known (a
+    misfit inflates the estimate): it is profiled out, BIC = n·ln(χ²/n) + k·ln n, which compares
+    fits by their relative misfit whatever the scale.
+    """
+    if problem.noise_known:
+        return lambda chi2, k: chi2 + k * math.log(n)
+    return lambda chi2, k: n * math.log(max(chi2, 1e-300) / n) + k * math.log(n)
+
+
 def attribute(problem: Problem, *, max_effects: int = 6, progress: Progress | None = None) -> Attribution:
     """Run the loop of the module docstring on ``problem``."""
     say = progress or (lambda message: None)
@@ -337,9 +347,10 @@ def attribute(problem: Problem, *, max_effects: int = 6, progress: Progress | No
     state, chi2, cov = _refine(problem, state, kept, iterations=2)
     n = problem.n_features
     chi2_before = chi2
-    steps = [Step(None, chi2, chi2 + len(NUISANCE) * math.log(n))]
+    bic = _criterion(problem, n)
+    steps = [Step(None, chi2, bic(chi2, len(NUISANCE)))]
     say(f"nominal design: χ²/n = {chi2 / n:.3f}")
-    while len(kept) < max_effects and chi2 / n > CHI2_FLOOR:
+    while len(kept) < max_effects and (chi2 / n > CHI2_FLOOR or not problem.noise_known):
         base = problem.features(state)
         params = _parameters(problem, kept)
         k_now = len(params)
@@ -361,16 +372,16 @@ def attribute(problem: Problem, *, max_effects: int = 6, progress: Progress | No
                 step, predicted, _ = _solve(problem, jac, problem.space.data - trial_base)
                 candidate = _apply(problem, trial, params + extra, step)
                 c = problem.chi2(problem.features(candidate))
-                bic = c + (k_now + len(extra)) * math.log(n)
-                if best is None or bic < best[0]:
-                    best = (bic, effect.key, candidate)
-        current_bic = chi2 + k_now * math.log(n)
+                score = bic(c, k_now + len(extra))
+                if best is None or score < best[0]:
+                    best = (score, effect.key, candidate)
+        current_bic = bic(chi2, k_now)
         if best is None or current_bic - best[0] < BIC_THRESHOLD:
             say("no further effect is significant")
             break
         kept.append(best[1])
         state, chi2, cov = _refine(problem, best[2], kept)
-        steps.append(Step(best[1], chi2, chi2 + len(_parameters(problem, kept)) * math.log(n)))
+        steps.append(Step(best[1], chi2, bic(chi2, len(_parameters(problem, kept)))))
         say(f"added {best[1]}: χ²/n = {chi2 / n:.3f}")
     params = _parameters(problem, kept)
     inflate = max(1.0, chi2 / max(n - len(params), 1))

@@ -78,3 +78,13 @@ def window_radii(model_signal: np.ndarray, centres: np.ndarray, pitch_px: float)
     first = focus_features(model_signal, centres, np.full(centres.shape[:2], limit))
     radii = 3.0 * np.nan_to_num(first.width_px, nan=limit) + 2.0
     return np.clip(radii, 3.0, limit)
+
+
+def focus_windows(model_signal: np.ndarray, centres_px: np.ndarray, pitch_px: float) -> tuple[np.ndarray, np.ndarray]:
+    """Window centres (N, J, 2) and radii (N, J), px, for measuring data and model alike: each
+    predicted centre moved to the model focus's own centroid (where it has light), each radius
+    sized to hold the model focus (:func:`window_radii`)."""
+    wide = np.full(centres_px.shape[:2], max(3.0, 0.45 * pitch_px))
+    refined = focus_features(model_signal, centres_px, wide).centroid_px
+    centres = np.where(np.isnan(refined), centres_px, refined)
+    return centres, window_radii(model_signal, centres, pitch_px)

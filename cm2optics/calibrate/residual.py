@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from cm2optics.calibrate.features import FocusFeatures, focus_features, window_radii
+from cm2optics.calibrate.features import FocusFeatures, focus_features, focus_windows
 from cm2optics.calibrate.noise import SensorNoise, estimate_noise
 from cm2optics.calibrate.register import Registration, register
 from cm2optics.errors import UserError
@@ -143,17 +143,7 @@ def analyse_scan(
     """
     _check_inputs(data, model_rate, model_positions_mm)
     counts = data.counts.astype(np.float32)
-    full_scale = 2**data.bit_depth - 1
-    saturated = (data.counts >= full_scale).any(axis=(-2, -1))
-    flags: dict[str, list[str]] = {"saturated": [data.files[i] for i in np.flatnonzero(saturated)]}
-    light = model_rate.reshape(len(model_rate), -1).max(axis=1) > 0
-    used = ~saturated & light
-    empty = used & _without_light(data, model_rate)
-    if np.any(empty):
-        flags["empty"] = [data.files[i] for i in np.flatnonzero(empty)]
-        used = used & ~empty
-    if not np.any(used):
-        raise CalibrationError("no frame can be compared: every frame is saturated or the model puts no light on it")
+    used, flags = _usable_frames(data, model_rate)
     valid = used[:, None, None] & np.isfinite(counts)
     registration, model_counts = register(counts, data.exposure_ms, model_rate, valid)
     model_counts = model_counts.astype(np.float32)
@@ -163,19 +153,9 @@ def analyse_scan(
     residual = counts - model_counts
     dark_mask = valid & (model_signal <= 1e-3 * float(model_signal.max()))
     noise = estimate_noise(residual[valid], model_signal[valid], dark_mask[valid], counts_per_electron)
-    variance = noise.variance(model_signal)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        chi2 = np.where(used, np.sum(np.where(valid, residual**2 / variance, 0.0), axis=(-2, -1)), np.nan)
-        chi2 = chi2 / np.maximum(valid.sum(axis=(-2, -1)), 1)
-        nmse = np.where(
-            used, np.sum(residual**2, axis=(-2, -1)) / np.maximum(np.sum(signal**2, axis=(-2, -1)), 1e-30), np.nan
-        )
+    nmse, chi2 = _per_image_misfit(residual, signal, noise.variance(model_signal), valid, used)
 
-    shifted_centres = centres_px + np.asarray(registration.offset_px)
-    wide = np.full(centres_px.shape[:2], max(3.0, 0.45 * pitch_px))
-    refined = focus_features(model_signal, shifted_centres, wide).centroid_px
-    centres = np.where(np.isnan(refined), shifted_centres, refined)
-    radii = window_radii(model_signal, centres, pitch_px)
+    centres, radii = focus_windows(model_signal, centres_px + np.asarray(registration.offset_px), pitch_px)
     data_features = focus_features(signal, centres, radii)
     model_features = focus_features(model_signal, centres, radii)
 
@@ -206,6 +186,35 @@ def analyse_scan(
         model_counts=model_counts,
         flags={k: v for k, v in flags.items() if v},
     )
+
+
+def _usable_frames(data: ScanData, model_rate: np.ndarray) -> tuple[np.ndarray, dict[str, list[str]]]:
+    """(N,) frames that take part, and the flags of those left out: saturated frames and frames
+    without light; an error when none is left."""
+    saturated = (data.counts >= 2**data.bit_depth - 1).any(axis=(-2, -1))
+    flags: dict[str, list[str]] = {"saturated": [data.files[i] for i in np.flatnonzero(saturated)]}
+    light = model_rate.reshape(len(model_rate), -1).max(axis=1) > 0
+    used = ~saturated & light
+    empty = used & _without_light(data, model_rate)
+    if np.any(empty):
+        flags["empty"] = [data.files[i] for i in np.flatnonzero(empty)]
+        used = used & ~empty
+    if not np.any(used):
+        raise CalibrationError("no frame can be compared: every frame is saturated or the model puts no light on it")
+    return used, flags
+
+
+def _per_image_misfit(
+    residual: np.ndarray, signal: np.ndarray, variance: np.ndarray, valid: np.ndarray, used: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """(N,) NMSE ‖d − µ‖²/‖d − dark‖² and reduced χ² of each frame (NaN where left out)."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        chi2 = np.where(used, np.sum(np.where(valid, residual**2 / variance, 0.0), axis=(-2, -1)), np.nan)
+        chi2 = chi2 / np.maximum(valid.sum(axis=(-2, -1)), 1)
+        nmse = np.where(
+            used, np.sum(residual**2, axis=(-2, -1)) / np.maximum(np.sum(signal**2, axis=(-2, -1)), 1e-30), np.nan
+        )
+    return nmse, chi2
 
 
 def _without_light(data: ScanData, model_rate: np.ndarray) -> np.ndarray:

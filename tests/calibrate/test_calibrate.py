@@ -113,21 +113,23 @@ def test_bad_data_get_a_clear_error_or_a_flag(simulator, positions):
     assert doc["chi2"] < 1.3  # the bad frames take no part in the fit
 
 
-def _attribute(simulator, positions, values, seed=0):
+def _attribute(simulator, positions, values, seed=0, gain=None):
     counts, exposure = measured(simulator, positions, values, seed=seed)
-    problem = Problem(simulator, counts, exposure, positions, np.ones(counts.shape, bool), library(9), None)
+    problem = Problem(simulator, counts, exposure, positions, np.ones(counts.shape, bool), library(9), gain)
     return attribute(problem)
 
 
-@pytest.mark.parametrize("seed", [1, 2])
-def test_clean_data_yield_no_effect(simulator, positions, seed):
-    result = _attribute(simulator, positions, {}, seed)
+@pytest.mark.parametrize(("seed", "gain"), [(1, None), (2, None), (3, 1.0), (4, 1.0)])
+def test_clean_data_yield_no_effect(simulator, positions, seed, gain):
+    """With the camera's gain given (known noise) or estimated (noise scale profiled out)."""
+    result = _attribute(simulator, positions, {}, seed, gain)
     assert result.effects == {}
     assert result.chi2_after < 1.2
 
 
-def test_an_undeclared_rotation_is_named_and_measured(simulator, positions):
-    result = _attribute(simulator, positions, {"mla_rotation": {"angle_deg": 0.4}})
+@pytest.mark.parametrize("gain", [None, 1.0])
+def test_an_undeclared_rotation_is_named_and_measured(simulator, positions, gain):
+    result = _attribute(simulator, positions, {"mla_rotation": {"angle_deg": 0.4}}, gain=gain)
     assert list(result.effects) == ["mla_rotation"]
     assert result.effects["mla_rotation"]["angle_deg"] == pytest.approx(0.4, abs=0.05)
     assert result.uncertainties["mla_rotation"]["angle_deg"] < 0.05
