@@ -17,6 +17,7 @@ import typer
 
 import cm2optics
 from cm2optics.cli.cad import cad_app
+from cm2optics.cli.calibrate import calibrate_app
 from cm2optics.cli.demo import compare_baselines_command, demo_command
 from cm2optics.cli.design import design_app
 from cm2optics.cli.evaluate import evaluate_command
@@ -49,6 +50,7 @@ app.add_typer(spectra_app, name="spectra")
 app.add_typer(illum_app, name="illum")
 app.add_typer(psf_app, name="psf")
 app.add_typer(lsv_app, name="lsv")
+app.add_typer(calibrate_app, name="calibrate")
 app.command("simulate")(simulate_command)
 app.command("synth")(synth_command)
 app.command("evaluate")(evaluate_command)

@@ -1,0 +1,241 @@
+"""Calibrate a design against a measured PSF scan: residual before, effects found, residual after.
+
+:func:`calibrate_scan` is what ``cm2 calibrate scan`` runs:
+
+1. the scan is read and checked against the design (sensor size at the scan's binning, pixel
+   pitch, magnification within 10 %);
+2. the design is traced at a spread subset of the scan's positions (``fit_positions``; all of
+   them for small scans) and the attribution (:mod:`.attribute`) names the effects the
+   residual asks for, with values and uncertainties;
+3. the nominal and the corrected model are traced at every position and compared with the data
+   (:mod:`.residual`): NMSE and χ² before and after, per image and per focus;
+4. what the effects leave unexplained, where the remaining misfit is above the noise, is
+   described by its signature (lenslets, field, depths, share of the energy) instead of being
+   forced into a physical fit.
+
+The corrected design (``as_built`` values and the MLA–sensor spacing) is returned with the
+document; the frame offset is the scan's own (its stage origin and the sensor's placement are
+not told apart) and stays out of the design.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from cm2optics.calibrate.attribute import CHI2_FLOOR, Attribution, Problem, attribute
+from cm2optics.calibrate.effects import apply_image_effects, library
+from cm2optics.calibrate.residual import CalibrationError, ResidualAnalysis, ScanData, analyse_scan
+from cm2optics.calibrate.tracer import TracerSimulator, design_with
+from cm2optics.design import SystemDesign
+from cm2optics.formats.scan import PSFScan, grid_index, read_scan
+
+__all__ = ["ScanCalibration", "calibrate_scan", "corrected_design", "fit_subset"]
+
+#: A scan whose foci spread differs from the design's by more than this was taken on another design.
+MAGNIFICATION_TOLERANCE = 0.10
+
+Progress = Callable[[str], None]
+
+
+@dataclass(frozen=True)
+class ScanCalibration:
+    """The result: the JSON document, both analyses, the attribution and the corrected design."""
+
+    document: dict[str, Any]
+    before: ResidualAnalysis
+    after: ResidualAnalysis
+    attribution: Attribution
+    corrected_design: SystemDesign
+
+
+def _check_scan(scan: PSFScan, design: SystemDesign) -> None:
+    """Clear errors for a scan that cannot have been taken on ``design``."""
+    binning = scan.meta.binning
+    expected = (design.sensor.height_px // binning, design.sensor.width_px // binning)
+    if scan.images.shape[-2:] != expected:
+        raise CalibrationError(
+            f"wrong sensor size: the scan's images are {scan.images.shape[-2]} × {scan.images.shape[-1]} px, "
+            f"the design's sensor ({design.sensor.name}) binned {binning}× gives {expected[0]} × {expected[1]} px"
+        )
+
+
+def _check_magnification(before: ResidualAnalysis, pitch_px: float) -> None:
+    """The foci's spread in the data against the model's: beyond 10 %, another design."""
+    data, model = before.data.centroid_px, before.model.centroid_px
+    spread = lambda c: np.nanmedian(np.linalg.norm(c - np.nanmean(c, axis=1, keepdims=True), axis=-1))  # noqa: E731
+    used = before.used
+    ratio = spread(data[used]) / max(spread(model[used]), 1e-9)
+    if np.isfinite(ratio) and abs(ratio - 1.0) > MAGNIFICATION_TOLERANCE:
+        raise CalibrationError(
+            f"the scan's foci spread {ratio:.2f}× as far as the design's (more than {MAGNIFICATION_TOLERANCE:.0%} off): "
+            "was the scan taken on another design (MLA, spacing, binning)?"
+        )
+
+
+def fit_subset(positions_mm: np.ndarray, count: int) -> np.ndarray:
+    """Indices of at most ``count`` positions spread over the scan's grid: the first, middle and
+    last node of each axis (3 × 3 × 3), or every position when the scan is that small."""
+    if len(positions_mm) <= count:
+        return np.arange(len(positions_mm))
+    index = grid_index(positions_mm)
+    keep = np.ones(len(positions_mm), bool)
+    for axis in range(3):
+        nodes = np.unique(index[:, axis])
+        chosen = nodes[np.unique(np.round(np.linspace(0, len(nodes) - 1, 3)).astype(int))]
+        keep &= np.isin(index[:, axis], chosen)
+    picked = np.flatnonzero(keep)
+    return picked[np.round(np.linspace(0, len(picked) - 1, min(count, len(picked)))).astype(int)]
+
+
+def _model_rate(simulator: TracerSimulator, positions: np.ndarray, attribution: Attribution | None) -> np.ndarray:
+    """The model's images at every position: nominal (None) or with the fitted effects (optical
+    ones traced, sensor-side ones applied, leakage as a uniform rate per unit flux)."""
+    if attribution is None:
+        return simulator.rates(positions, {})
+    rate = simulator.rates(positions, attribution.effects)
+    rate = apply_image_effects(rate, attribution.effects, simulator.pixel_um)
+    leak = attribution.effects.get("leakage_background", {}).get("counts_per_ms", 0.0)
+    return rate + np.float32(leak / max(attribution.registration.flux_scale, 1e-30))
+
+
+def _unexplained(after: ResidualAnalysis, noise_known: bool) -> list[dict[str, Any]]:
+    """The signature of what remains above the noise after the fit (empty when nothing does)."""
+    if not np.any(after.used) or (noise_known and after.chi2_total <= CHI2_FLOOR):
+        return []
+    ratio = np.where(after.used[:, None], after.energy_ratio, np.nan)
+    deviation = np.abs(ratio - 1.0)
+    typical = float(np.nanmedian(deviation)) if np.isfinite(deviation).any() else 0.0
+    lenslet_dev = np.nanmean(deviation, axis=0)
+    flagged = [int(j) for j in np.flatnonzero(lenslet_dev > max(3.0 * typical, 0.02))]
+    image_excess = np.where(after.used, after.chi2, np.nan)
+    worst = image_excess > np.nanmedian(image_excess) * 2.0
+    field = np.hypot(after.positions_mm[:, 0], after.positions_mm[:, 1])
+    residual_energy = float(np.sum(np.abs(after.residual_counts[after.used])))
+    signal = after.model_counts[after.used] - after.registration.dark_level
+    fraction = residual_energy / max(float(np.sum(np.abs(signal))), 1e-30)
+    if not (noise_known or flagged or worst.any()):
+        return []
+    where = np.flatnonzero(worst) if worst.any() else np.flatnonzero(after.used)
+    depths = sorted({round(float(z), 4) for z in after.positions_mm[where, 2]})
+    field_mm = [round(float(field[where].min()), 3), round(float(field[where].max()), 3)]
+    description = (
+        f"misfit left after the fitted effects (χ² = {after.chi2_total:.2f}): "
+        + (f"lenslets {flagged} deviate in energy by {np.nanmax(lenslet_dev):.1%}; " if flagged else "")
+        + f"largest in {int(worst.sum())} of {int(after.used.sum())} images at field {field_mm[0]}–{field_mm[1]} mm"
+    )
+    return [
+        {
+            "lenslets": flagged,
+            "field_mm": field_mm,
+            "depths_mm": depths,
+            "energy_fraction": round(fraction, 5),
+            "description": description,
+        }
+    ]
+
+
+def corrected_design(design: SystemDesign, attribution: Attribution) -> SystemDesign:
+    """``design`` with every fitted effect written into its fields: the optical ones as the tracer
+    reads them (:func:`~cm2optics.calibrate.tracer.design_with`), the sensor-side ones as
+    ``as_built`` values; the calibration source's profile belongs to the source, not the device."""
+    changed = design_with(design, attribution.effects)
+    effects = attribution.effects
+    fields: dict[str, object] = {}
+    if "stray_light" in effects:
+        fields["as_built.stray_light_fraction"] = effects["stray_light"]["fraction"]
+        fields["as_built.stray_light_width_um"] = effects["stray_light"]["width_um"]
+    if "pixel_crosstalk" in effects:
+        fields["as_built.pixel_crosstalk_fraction"] = effects["pixel_crosstalk"]["fraction"]
+    if "leakage_background" in effects:
+        fields["as_built.leakage_counts_per_ms"] = effects["leakage_background"]["counts_per_ms"]
+    return changed.with_changes(fields) if fields else changed
+
+
+def _effects_list(attribution: Attribution) -> list[dict[str, Any]]:
+    """Fitted effects in the report's vocabulary: ``{name, parameters, uncertainties}`` (a
+    per-lenslet effect names its lenslet among the parameters)."""
+    out = []
+    for key, parameters in attribution.effects.items():
+        name, _, index = key.partition("[")
+        extra = {"lenslet": int(index[:-1])} if index else {}
+        out.append(
+            {
+                "name": name,
+                "parameters": {**extra, **{k: round(float(v), 6) for k, v in parameters.items()}},
+                "uncertainties": {k: float(f"{v:.3g}") for k, v in attribution.uncertainties.get(key, {}).items()},
+            }
+        )
+    return out
+
+
+def calibrate_scan(
+    scan_dir: str | Path,
+    design: SystemDesign,
+    *,
+    fit_positions: int = 27,
+    max_effects: int = 6,
+    source_diameter_um: float | None = None,
+    progress: Progress | None = None,
+) -> ScanCalibration:
+    """Run the loop of the module docstring on the scan folder ``scan_dir`` taken on ``design``.
+
+    fit_positions: positions traced for the attribution (spread over the grid).
+    max_effects: effects kept at most.
+    source_diameter_um: the calibration source's diameter (default: the scan's
+        ``source_diameter_um`` metadata, else a point).
+    """
+    say = progress or (lambda message: None)
+    scan = read_scan(scan_dir, sensor_pixel_um=design.sensor.pixel_um)
+    _check_scan(scan, design)
+    extra = scan.meta.extra
+    diameter = source_diameter_um if source_diameter_um is not None else float(extra.get("source_diameter_um", 0.0))
+    gain = extra.get("counts_per_electron")
+    gain = float(gain) if gain is not None else None
+    simulator = TracerSimulator(design, binning=scan.meta.binning, source_diameter_um=diameter)
+    files = tuple(scan.files)
+    positions = scan.positions_mm
+    data = ScanData(scan.images, scan.exposure_ms, positions, files, scan.meta.bit_depth)
+    centres = simulator.focus_centres_px(positions)
+
+    say(f"tracing the nominal design at {len(positions)} positions")
+    before = analyse_scan(data, _model_rate(simulator, positions, None), positions, centres, simulator.pitch_px(), counts_per_electron=gain)
+    _check_magnification(before, simulator.pitch_px())
+
+    subset = fit_subset(positions, fit_positions)
+    subset = subset[before.used[subset]]
+    say(f"attributing the residual on {len(subset)} positions")
+    valid = scan.images[subset] < 2**scan.meta.bit_depth - 1
+    problem = Problem(simulator, scan.images[subset], scan.exposure_ms[subset], positions[subset], valid, library(simulator.lenslets), gain)
+    attribution = attribute(problem, max_effects=max_effects, progress=say)
+
+    say("tracing the corrected design at every position")
+    after = analyse_scan(
+        data, _model_rate(simulator, positions, attribution), positions, centres, simulator.pitch_px(), counts_per_electron=gain
+    )
+    corrected = corrected_design(design, attribution)
+    document = {
+        "scan": str(scan_dir),
+        "design": design.name,
+        "design_hash": design.parameter_hash(),
+        "corrected_design_hash": corrected.parameter_hash(),
+        "effects": _effects_list(attribution),
+        "nmse_before": round(before.nmse_total, 6),
+        "nmse_after": round(after.nmse_total, 6),
+        "chi2_before": round(before.chi2_total, 4),
+        "chi2_after": round(after.chi2_total, 4),
+        "unexplained": _unexplained(after, problem.noise_known),
+        "noise_model": "camera gain from scan.yaml" if gain is not None else "gain estimated from the data",
+        "fit": {
+            "positions": [int(i) for i in subset],
+            "steps": [{"added": s.added, "chi2_per_feature": round(s.chi2 / max(problem.n_features, 1), 4)} for s in attribution.steps],
+            "registration": attribution.registration.to_dict(),
+        },
+        "before": before.to_dict(),
+        "after": after.to_dict(),
+    }
+    return ScanCalibration(document, before, after, attribution, corrected)

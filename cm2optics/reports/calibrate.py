@@ -1,0 +1,97 @@
+"""Figures and the report of ``cm2 calibrate scan``: residuals before and after, the effects found.
+
+No physics here: everything is computed by :mod:`cm2optics.calibrate`.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+
+from cm2optics.calibrate.residual import ResidualAnalysis
+from cm2optics.calibrate.scan import ScanCalibration
+from cm2optics.formats.atomic import write_atomic, write_json_atomic
+from cm2optics.reports.document import Report
+
+__all__ = ["write_calibration_report"]
+
+
+def _save(fig: Figure, path: Path) -> None:
+    FigureCanvasAgg(fig)
+    write_atomic(path, lambda tmp: fig.savefig(tmp, dpi=110, format="png"))
+
+
+def _montage(before: ResidualAnalysis, after: ResidualAnalysis, path: Path, count: int = 4) -> None:
+    """Data, residual before and residual after for the images with the largest misfit before."""
+    order = np.argsort(np.nan_to_num(before.chi2, nan=-1.0))[::-1][:count]
+    fig = Figure(figsize=(9, 2.6 * len(order)))
+    for row, i in enumerate(order):
+        data = before.model_counts[i] + before.residual_counts[i] - before.registration.dark_level
+        limit = float(np.abs(before.residual_counts[i]).max()) or 1.0
+        panels = (
+            (data, "gray", None, f"data {before.files[i]}"),
+            (before.residual_counts[i], "RdBu_r", limit, f"residual before (χ² {before.chi2[i]:.2f})"),
+            (after.residual_counts[i], "RdBu_r", limit, f"residual after (χ² {after.chi2[i]:.2f})"),
+        )
+        for col, (image, cmap, lim, title) in enumerate(panels):
+            ax = fig.add_subplot(len(order), 3, 3 * row + col + 1)
+            ax.imshow(image, cmap=cmap, vmin=-lim if lim else None, vmax=lim)
+            ax.set_title(title, fontsize=8)
+            ax.set_axis_off()
+    fig.tight_layout()
+    _save(fig, path)
+
+
+def _field_maps(before: ResidualAnalysis, after: ResidualAnalysis, path: Path) -> None:
+    """Energy ratio data/model and centroid error against the source's field position."""
+    fig = Figure(figsize=(10, 4))
+    for col, (analysis, label) in enumerate(((before, "before"), (after, "after"))):
+        ax = fig.add_subplot(1, 2, col + 1)
+        used = analysis.used
+        ratio = np.nanmean(np.where(used[:, None], analysis.energy_ratio, np.nan), axis=1)
+        shift = np.nanmean(np.linalg.norm(analysis.centroid_error_px, axis=-1), axis=1)
+        points = ax.scatter(
+            analysis.positions_mm[used, 0], analysis.positions_mm[used, 1], c=ratio[used], s=20 + 60 * np.nan_to_num(shift[used]),
+            cmap="coolwarm", vmin=0.8, vmax=1.2,
+        )
+        ax.set_title(f"{label}: energy ratio data/model (size: centroid error)", fontsize=9)
+        ax.set_xlabel("x (mm)")
+        ax.set_ylabel("y (mm)")
+        ax.set_aspect("equal")
+        fig.colorbar(points, ax=ax, shrink=0.8)
+    fig.tight_layout()
+    _save(fig, path)
+
+
+def write_calibration_report(result: ScanCalibration, folder: str | Path) -> Path:
+    """Write ``calibration.json``, ``corrected-design.yaml``, the figures and ``report.html``/``.md``
+    into ``folder``; returns the HTML report's path."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    doc = result.document
+    write_json_atomic(folder / "calibration.json", doc)
+    result.corrected_design.save(folder / "corrected-design.yaml")
+    _montage(result.before, result.after, folder / "residual_montage.png")
+    _field_maps(result.before, result.after, folder / "field_maps.png")
+    report = Report(f"Calibration of {doc['design']} against {doc['scan']}")
+    report.paragraph(
+        f"NMSE {doc['nmse_before']:.4g} → {doc['nmse_after']:.4g}; reduced χ² {doc['chi2_before']:.3g} → "
+        f"{doc['chi2_after']:.3g} ({doc['noise_model']})."
+    )
+    report.heading("Effects found")
+    rows = [[e["name"], e["parameters"], e["uncertainties"]] for e in doc["effects"]]
+    report.table(["effect", "parameters", "± (1σ)"], rows or [["none", "—", "—"]])
+    report.heading("Unexplained residual")
+    if doc["unexplained"]:
+        report.table(
+            ["lenslets", "field (mm)", "depths (mm)", "energy fraction", "description"],
+            [[u["lenslets"], u["field_mm"], u["depths_mm"], u["energy_fraction"], u["description"]] for u in doc["unexplained"]],
+        )
+    else:
+        report.paragraph("None: the corrected model explains the data to the noise.")
+    report.figure("residual_montage.png", "Data and residuals before and after, images with the largest misfit")
+    report.figure("field_maps.png", "Energy ratio and centroid error against field position, before and after")
+    return report.write(folder)
