@@ -84,8 +84,10 @@ def _check_sizes(scan_dir: Path, patch_px: int | None, lateral_um: float | None,
     if lateral_um is None:
         return
     xs, ys, zs = index.grid_axes_mm()
-    shape = [int(math.floor(float(a[-1] - a[0]) * 1000.0 / step + 1e-9)) + 1 for a, step in
-             ((zs, axial_um), (ys, lateral_um), (xs, lateral_um))]
+    shape = [
+        int(math.floor(float(a[-1] - a[0]) * 1000.0 / step + 1e-9)) + 1
+        for a, step in ((zs, axial_um), (ys, lateral_um), (xs, lateral_um))
+    ]
     if math.prod(shape) > MAX_GRID_VOXELS:
         raise UserError(
             f"--lateral-um = {lateral_um:g}, --axial-um = {axial_um:g}: the default grid would be "
@@ -140,9 +142,7 @@ def build(
     basis PSFs and coefficient maps. JSON keys include rank, nmse_calibration, nmse_vs_rank.
     """
     from cm2optics.design import load_preset
-    from cm2optics.formats.outputs import claim_folder
     from cm2optics.lsv.build import build_model
-    from cm2optics.reports.lsv import write_build_report
 
     if rank < 1:
         raise UserError(f"--rank = {rank}: must be ≥ 1")
@@ -150,11 +150,7 @@ def build(
         raise UserError(f"--trim = {trim}: must lie within 0 ≤ trim < 1")
     design = load_preset(preset)
     _check_sizes(scan_dir, patch_px, lateral_um, axial_um or design.volume.axial_step_um)
-    model_path = out or scan_dir.with_name(scan_dir.resolve().name + ".lsv.h5")
-    check_output(model_path, command="lsv build", inputs=[scan_dir, preset], overwrite=overwrite)
-    folder = report_dir or model_path.with_name(model_path.stem.replace(".lsv", "") + "_report")
-    if not no_report:
-        check_output(folder, command="lsv build", kind="folder", inputs=[scan_dir, preset, model_path], overwrite=overwrite)
+    model_path, folder = _build_paths(scan_dir, out, report_dir, no_report, preset, overwrite)
     with _progress(not as_json) as progress:
         result = build_model(
             scan_dir,
@@ -167,19 +163,42 @@ def build(
             progress=progress,
             oversample=oversample,
         )
-    result.model.save(model_path)
-    summary = {"model": str(model_path), **result.summary()}
-    if oversample > 1:
-        summary["epsf"] = result.model.provenance.get("epsf", {})
-    if not no_report:
-        summary["report"] = str(write_build_report(result, folder))
-        claim_folder(folder, "lsv build")
+    summary = _save_build(result, model_path, None if no_report else folder, oversample)
     if as_json:
         print(json.dumps(summary, indent=2, ensure_ascii=False))
         return
     _out.print(_build_table(model_path, summary))
     if "report" in summary:
         _out.print(f"report: {summary['report']}")
+
+
+def _build_paths(
+    scan_dir: Path, out: Path | None, report_dir: Path | None, no_report: bool, preset: str, overwrite: bool
+) -> tuple[Path, Path]:
+    """The model file (default SCAN_DIR.lsv.h5) and report folder (default MODEL_report/), both checked as outputs."""
+    model_path = out or scan_dir.with_name(scan_dir.resolve().name + ".lsv.h5")
+    check_output(model_path, command="lsv build", inputs=[scan_dir, preset], overwrite=overwrite)
+    folder = report_dir or model_path.with_name(model_path.stem.replace(".lsv", "") + "_report")
+    if not no_report:
+        check_output(
+            folder, command="lsv build", kind="folder", inputs=[scan_dir, preset, model_path], overwrite=overwrite
+        )
+    return model_path, folder
+
+
+def _save_build(result: Any, model_path: Path, report_folder: Path | None, oversample: int) -> dict[str, Any]:
+    """Save the model, write the report into ``report_folder`` (None: none); returns the summary for output."""
+    from cm2optics.formats.outputs import claim_folder
+    from cm2optics.reports.lsv import write_build_report
+
+    result.model.save(model_path)
+    summary = {"model": str(model_path), **result.summary()}
+    if oversample > 1:
+        summary["epsf"] = result.model.provenance.get("epsf", {})
+    if report_folder is not None:
+        summary["report"] = str(write_build_report(result, report_folder))
+        claim_folder(report_folder, "lsv build")
+    return summary
 
 
 def _build_table(model_path: Path, summary: dict[str, Any]) -> Table:

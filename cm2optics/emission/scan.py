@@ -46,6 +46,7 @@ from cm2optics.formats.atomic import write_atomic, write_json_atomic
 from cm2optics.formats.scan import ScanError, ScanMeta, grid_axes_mm, write_scan
 from cm2optics.optics import first_order
 from cm2optics.optics.sensor_effects import apply_as_built
+from cm2optics.progress import progress_bar
 
 __all__ = [
     "ScanSettings",
@@ -375,54 +376,13 @@ def simulate_scan(
     done = _prepare_work(work, key)
     todo = [i for i in range(len(positions)) if i not in done]
     started = time.perf_counter()
-
-    from rich.progress import (
-        BarColumn,
-        MofNCompleteColumn,
-        Progress,
-        TextColumn,
-        TimeElapsedColumn,
-        TimeRemainingColumn,
-    )
-
-    bar = Progress(
-        TextColumn("[bold]PSF scan"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TimeElapsedColumn(),
-        TimeRemainingColumn(),
-        disable=not progress,
-        transient=False,
-    )
+    bar = progress_bar("[bold]PSF scan", enabled=progress)
     if todo:
         client, cluster = _client(dask_address, workers, processes)
         try:
-            from dask.distributed import as_completed
-
-            design_future = client.scatter(design, broadcast=True)
-            chunks = [todo[i : i + chunk_size] for i in range(0, len(todo), chunk_size)]
             threads = 1 if dask_address is None and processes else None
-            futures = [
-                client.submit(
-                    _simulate_chunk,
-                    design_future,
-                    settings,
-                    key,
-                    [(i, positions[i]) for i in chunk],
-                    threads,
-                    pure=False,
-                )
-                for chunk in chunks
-            ]
-            with bar:
-                task = bar.add_task("scan", total=len(positions), completed=len(done))
-                for future in as_completed(futures):
-                    for index, packed, seconds in future.result():
-                        _save_position(work, index, packed, seconds)
-                        done.add(index)
-                        bar.advance(task)
-                        if on_position is not None:
-                            on_position(len(done), len(positions))
+            futures = _submit_chunks(client, design, settings, key, positions, todo, chunk_size, threads)
+            _collect(futures, work, done, len(positions), bar, on_position)
         finally:
             client.close()
             if cluster is not None:
@@ -431,6 +391,55 @@ def simulate_scan(
     manifest = _write(design, settings, positions, out_dir, work, model.grid, compute_s)
     shutil.rmtree(work, ignore_errors=True)
     return manifest
+
+
+def _submit_chunks(
+    client,
+    design: SystemDesign,
+    settings: ScanSettings,
+    key: str,
+    positions: np.ndarray,
+    todo: list[int],
+    chunk_size: int,
+    threads: int | None,
+) -> list:
+    """Submit the positions ``todo`` to ``client`` as Dask tasks of ``chunk_size`` positions (mm) each."""
+    design_future = client.scatter(design, broadcast=True)
+    chunks = [todo[i : i + chunk_size] for i in range(0, len(todo), chunk_size)]
+    return [
+        client.submit(
+            _simulate_chunk,
+            design_future,
+            settings,
+            key,
+            [(i, positions[i]) for i in chunk],
+            threads,
+            pure=False,
+        )
+        for chunk in chunks
+    ]
+
+
+def _collect(
+    futures: list,
+    work: Path,
+    done: set[int],
+    total: int,
+    bar,
+    on_position: Callable[[int, int], None] | None,
+) -> None:
+    """Save each position to ``work`` as its task finishes, adding it to ``done`` and advancing ``bar``."""
+    from dask.distributed import as_completed
+
+    with bar:
+        task = bar.add_task("scan", total=total, completed=len(done))
+        for future in as_completed(futures):
+            for index, packed, seconds in future.result():
+                _save_position(work, index, packed, seconds)
+                done.add(index)
+                bar.advance(task)
+                if on_position is not None:
+                    on_position(len(done), total)
 
 
 def _write(
@@ -442,7 +451,38 @@ def _write(
     grid: SensorGrid,
     compute_s: float,
 ) -> dict[str, Any]:
+    """Write the scan folder from the saved positions in ``work``; returns the manifest."""
     bits = settings.bit_depth or design.sensor.bit_depth
+    images, exposures, seconds, energies, epsf_rows = _render_images(design, settings, positions, work, grid, bits)
+    meta = ScanMeta(
+        pixel_um=design.sensor.pixel_um * grid.binning,
+        binning=grid.binning,
+        bit_depth=bits,
+        dark_level=settings.dark_level,
+        extra=_extra_meta(design, settings, grid),
+    )
+    write_scan(out_dir, images, positions, exposures, meta)
+    if settings.psf.oversample > 1:  # after write_scan, which replaces the folder
+        from cm2optics.emission.epsf import EPSF_FILE, write_epsf_file
+
+        units = "counts per ms (the scan's normalised units)"
+        write_atomic(out_dir / EPSF_FILE, lambda tmp: write_epsf_file(tmp, settings.psf.oversample, units, epsf_rows))
+    write_montage(out_dir / "montage.png", images, positions, exposures, settings.dark_level)
+    del images
+    manifest = _manifest(design, settings, positions, grid, compute_s, seconds, energies, exposures)
+    write_json_atomic(out_dir / "manifest.json", manifest)
+    return manifest
+
+
+def _render_images(
+    design: SystemDesign,
+    settings: ScanSettings,
+    positions: np.ndarray,
+    work: Path,
+    grid: SensorGrid,
+    bits: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, list[dict[str, np.ndarray]]]:
+    """The sensor images (counts, uint16 memmap in ``work``), exposures (ms), seconds, energies and ePSF rows."""
     full = 2**bits - 1
     rows, cols = grid.shape
     images = np.lib.format.open_memmap(
@@ -471,32 +511,34 @@ def _write(
         )
         images[i] = np.clip(np.rint(counts), 0, full).astype(np.uint16)
         if settings.psf.oversample > 1:
-            unit = settings.source_photons_per_ms * settings.counts_per_electron  # → counts per ms
-            epsf_rows.append(
-                {
-                    "lenslet": packed["lenslet"],
-                    "origin": packed.get("epsf_origin", np.zeros((0, 2), np.int32)),
-                    "shape": packed.get("epsf_shape", np.zeros((0, 2), np.int32)),
-                    "data": packed.get("epsf_data", np.zeros(0, np.float32)) * np.float32(unit),
-                }
-            )
+            epsf_rows.append(_epsf_row(packed, settings))
     images.flush()
-    meta = ScanMeta(
-        pixel_um=design.sensor.pixel_um * grid.binning,
-        binning=grid.binning,
-        bit_depth=bits,
-        dark_level=settings.dark_level,
-        extra=_extra_meta(design, settings, grid),
-    )
-    write_scan(out_dir, images, positions, exposures, meta)
-    if settings.psf.oversample > 1:  # after write_scan, which replaces the folder
-        from cm2optics.emission.epsf import EPSF_FILE, write_epsf_file
+    return images, exposures, seconds, energies, epsf_rows
 
-        units = "counts per ms (the scan's normalised units)"
-        write_atomic(out_dir / EPSF_FILE, lambda tmp: write_epsf_file(tmp, settings.psf.oversample, units, epsf_rows))
-    write_montage(out_dir / "montage.png", images, positions, exposures, settings.dark_level)
-    del images
-    manifest = {
+
+def _epsf_row(packed: dict[str, np.ndarray], settings: ScanSettings) -> dict[str, np.ndarray]:
+    """One position's packed ePSF crops, scaled from photons per emitted photon to counts per ms."""
+    unit = settings.source_photons_per_ms * settings.counts_per_electron  # → counts per ms
+    return {
+        "lenslet": packed["lenslet"],
+        "origin": packed.get("epsf_origin", np.zeros((0, 2), np.int32)),
+        "shape": packed.get("epsf_shape", np.zeros((0, 2), np.int32)),
+        "data": packed.get("epsf_data", np.zeros(0, np.float32)) * np.float32(unit),
+    }
+
+
+def _manifest(
+    design: SystemDesign,
+    settings: ScanSettings,
+    positions: np.ndarray,
+    grid: SensorGrid,
+    compute_s: float,
+    seconds: np.ndarray,
+    energies: np.ndarray,
+    exposures: np.ndarray,
+) -> dict[str, Any]:
+    """The scan's manifest.json: inputs, settings, timings (s) and photometric metrics."""
+    return {
         "stage": "emission.psf_scan",
         "package_version": cm2optics.__version__,
         "design": design.name,
@@ -516,8 +558,6 @@ def _write(
         },
         "files": ["positions.csv", "scan.yaml", "montage.png"],
     }
-    write_json_atomic(out_dir / "manifest.json", manifest)
-    return manifest
 
 
 def _extra_meta(design: SystemDesign, settings: ScanSettings, grid: SensorGrid) -> dict[str, Any]:

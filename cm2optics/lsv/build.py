@@ -144,6 +144,126 @@ def _snap_alignment(geometry: Geometry, xs: np.ndarray, ys: np.ndarray, zs: np.n
     )
 
 
+def _check_build_options(
+    oversample: int, rank: int, lateral_um: float | None, axial_um: float | None, design: SystemDesign | None
+) -> float:
+    """Check build_model's options; returns the axial voxel pitch (µm), defaulted from the design."""
+    if not (isinstance(oversample, int) and 1 <= oversample <= 16):
+        raise ValueError(f"oversample = {oversample!r}: must be an integer within 1–16")
+    if rank < 1:
+        raise ValueError(f"rank = {rank}: must be ≥ 1")
+    if axial_um is None:
+        axial_um = (design or default_design()).volume.axial_step_um
+    if axial_um <= 0 or (lateral_um is not None and lateral_um <= 0):
+        raise ValueError("voxel sizes must be > 0 µm")
+    return axial_um
+
+
+def _phase_check(index: ScanIndex, geometry: Geometry, oversample: int) -> tuple[int, dict[str, Any]]:
+    """The oversample S to build with (1 if every focus shares one sub-pixel phase, with a warning) and the ePSF record."""
+    epsf_info: dict[str, Any] = {"oversample": oversample}
+    if oversample > 1:
+        from cm2optics.lsv.epsf_estimate import phase_coverage
+
+        coverage = phase_coverage(geometry, index.positions_mm, oversample)
+        epsf_info["phase_coverage"] = coverage
+        if coverage["single_phase"]:
+            message = (
+                f"oversample = {oversample}: every position of the scan puts the foci at the same sub-pixel phase, "
+                "so the frames cannot tell a finer grid apart: built with whole pixels (oversample 1) instead"
+            )
+            warnings.warn(message, stacklevel=3)  # at build_model's caller
+            epsf_info.update({"oversample": 1, "requested_oversample": oversample, "fallback": message})
+            oversample = 1
+    return oversample, epsf_info
+
+
+def _scan_crops(
+    index: ScanIndex,
+    geometry: Geometry,
+    patch: int,
+    oversample: int,
+    epsf_info: dict[str, Any],
+    progress: Progress | None,
+) -> np.ndarray:
+    """The registered crops (N, J, patch·S, patch·S; image px / S): from epsf.h5 if S > 1 and present, else the frames."""
+    if oversample > 1 and (index.folder / "epsf.h5").is_file():
+        from cm2optics.lsv.epsf import epsf_crops
+
+        crops = epsf_crops(index, geometry, (patch, patch), oversample, progress=progress)
+        epsf_info["source"] = "synthetic ePSFs (epsf.h5)"
+    else:
+        crops = extract_crops(index, geometry, (patch, patch), progress=progress)
+        if oversample > 1:
+            epsf_info["source"] = "estimated from the whole-pixel frames"
+    return crops
+
+
+def _build_provenance(
+    index: ScanIndex, fit: GeometryFit, alignment: str, options: dict[str, Any], epsf_info: dict[str, Any]
+) -> dict[str, Any]:
+    """The model's provenance from a scan: the scan, the build options, the ePSF record and the geometry fit (px)."""
+    xs, ys, zs = index.grid_axes_mm()
+    x0, y0 = fit.axis_position_mm
+    return {
+        "scan": {
+            "folder": str(index.folder.resolve()),
+            "fingerprint": scan_fingerprint(index),
+            "n_positions": len(index),
+            "grid_shape_xyz": [len(xs), len(ys), len(zs)],
+            "pixel_um": index.meta.pixel_um,
+            "binning": index.meta.binning,
+            "meta": index.meta.to_dict(),
+        },
+        "options": options,
+        "epsf": epsf_info,
+        "geometry": {
+            "axis_position_mm": [x0, y0],
+            "lattice_pitch_px": round(fit.pitch_px, 3),
+            "shear_rms_residual_px": round(fit.shear_residual_px, 4),
+            "max_translation_residual_px": float(np.nanmax(fit.residual_px))
+            if np.any(np.isfinite(fit.residual_px))
+            else None,
+            "dark_images": int(np.sum(~fit.bright)),
+            "alignment": alignment,
+            "notes": list(fit.notes),
+        },
+    }
+
+
+def _open_for_build(
+    scan_dir: str | Path, design: SystemDesign | None, patch_px: int | None
+) -> tuple[ScanIndex, int, int, int]:
+    """Open the scan; returns it, its lenslet layout (rows, cols) and the crop side (image px), checked."""
+    index = open_scan(scan_dir, sensor_pixel_um=design.sensor.pixel_um if design is not None else None)
+    rows, cols = _layout(index, design)
+    patch = patch_px if patch_px is not None else default_patch_px(index.meta.binning)
+    if patch < 4:
+        raise ValueError(f"patch_px = {patch}: must be ≥ 4")
+    return index, rows, cols, patch
+
+
+def _fit_geometry(
+    index: ScanIndex, rows: int, cols: int, design: SystemDesign | None, degree: int, progress: Progress | None
+) -> tuple[GeometryFit, Geometry, str]:
+    """The scan's geometry fit, its geometry with negligible stage/sensor cross terms zeroed, and that note."""
+    fit = estimate_geometry(
+        index, rows, cols, fallback_A=_design_fallback(design, index.meta.pixel_um), degree=degree, progress=progress
+    )
+    xs, ys, zs = index.grid_axes_mm()
+    geometry, alignment = _snap_alignment(fit.geometry, xs, ys, zs)
+    return fit, geometry, alignment
+
+
+def _warn_rank(rank: int, n_positions: int, model_rank: int) -> None:
+    """Warn (at build_model's caller) that the scan's positions allow fewer basis PSFs than asked."""
+    warnings.warn(
+        f"--rank {rank}: the scan's {n_positions} positions allow only {model_rank} basis PSFs; "
+        f"the model has rank {model_rank}",
+        stacklevel=3,
+    )
+
+
 def build_model(
     scan_dir: str | Path,
     *,
@@ -175,97 +295,39 @@ def build_model(
         else estimated from the whole-pixel frames (:mod:`cm2optics.lsv.epsf_estimate`); a scan
         whose foci all share one sub-pixel phase falls back to whole pixels, with a warning.
     """
-    if not (isinstance(oversample, int) and 1 <= oversample <= 16):
-        raise ValueError(f"oversample = {oversample!r}: must be an integer within 1–16")
-    if rank < 1:
-        raise ValueError(f"rank = {rank}: must be ≥ 1")
-    if axial_um is None:
-        axial_um = (design or default_design()).volume.axial_step_um
-    if axial_um <= 0 or (lateral_um is not None and lateral_um <= 0):
-        raise ValueError("voxel sizes must be > 0 µm")
+    axial_um = _check_build_options(oversample, rank, lateral_um, axial_um, design)
     seconds: dict[str, float] = {}
     start = time.perf_counter()
-    index = open_scan(scan_dir, sensor_pixel_um=design.sensor.pixel_um if design is not None else None)
-    rows, cols = _layout(index, design)
-    patch = patch_px if patch_px is not None else default_patch_px(index.meta.binning)
-    if patch < 4:
-        raise ValueError(f"patch_px = {patch}: must be ≥ 4")
+    index, rows, cols, patch = _open_for_build(scan_dir, design, patch_px)
     seconds["open"] = time.perf_counter() - start
 
     start = time.perf_counter()
-    fit = estimate_geometry(
-        index, rows, cols, fallback_A=_design_fallback(design, index.meta.pixel_um), degree=degree, progress=progress
-    )
-    xs, ys, zs = index.grid_axes_mm()
-    geometry, alignment = _snap_alignment(fit.geometry, xs, ys, zs)
+    fit, geometry, alignment = _fit_geometry(index, rows, cols, design, degree, progress)
     seconds["geometry"] = time.perf_counter() - start
 
     start = time.perf_counter()
-    epsf_info: dict[str, Any] = {"oversample": oversample}
-    if oversample > 1:
-        from cm2optics.lsv.epsf_estimate import phase_coverage
-
-        coverage = phase_coverage(geometry, index.positions_mm, oversample)
-        epsf_info["phase_coverage"] = coverage
-        if coverage["single_phase"]:
-            message = (
-                f"oversample = {oversample}: every position of the scan puts the foci at the same sub-pixel phase, "
-                "so the frames cannot tell a finer grid apart: built with whole pixels (oversample 1) instead"
-            )
-            warnings.warn(message, stacklevel=2)
-            epsf_info.update({"oversample": 1, "requested_oversample": oversample, "fallback": message})
-            oversample = 1
-    if oversample > 1 and (index.folder / "epsf.h5").is_file():
-        from cm2optics.lsv.epsf import epsf_crops
-
-        crops = epsf_crops(index, geometry, (patch, patch), oversample, progress=progress)
-        epsf_info["source"] = "synthetic ePSFs (epsf.h5)"
-    else:
-        crops = extract_crops(index, geometry, (patch, patch), progress=progress)
-        if oversample > 1:
-            epsf_info["source"] = "estimated from the whole-pixel frames"
+    oversample, epsf_info = _phase_check(index, geometry, oversample)
+    crops = _scan_crops(index, geometry, patch, oversample, epsf_info, progress)
     seconds["crops"] = time.perf_counter() - start
 
     start = time.perf_counter()
     gi = index.grid_index()
-    x0, y0 = fit.axis_position_mm
-    provenance = {
-        "scan": {
-            "folder": str(index.folder.resolve()),
-            "fingerprint": scan_fingerprint(index),
-            "n_positions": len(index),
-            "grid_shape_xyz": [len(xs), len(ys), len(zs)],
-            "pixel_um": index.meta.pixel_um,
-            "binning": index.meta.binning,
-            "meta": index.meta.to_dict(),
-        },
-        "options": {
-            "rank": rank,
-            "patch_px": patch,
-            "trim": trim,
-            "lateral_um": lateral_um,
-            "axial_um": axial_um,
-            "degree": degree,
-            "design": design.name if design is not None else None,
-            "oversample": oversample,
-        },
-        "epsf": epsf_info,
-        "geometry": {
-            "axis_position_mm": [x0, y0],
-            "lattice_pitch_px": round(fit.pitch_px, 3),
-            "shear_rms_residual_px": round(fit.shear_residual_px, 4),
-            "max_translation_residual_px": float(np.nanmax(fit.residual_px))
-            if np.any(np.isfinite(fit.residual_px))
-            else None,
-            "dark_images": int(np.sum(~fit.bright)),
-            "alignment": alignment,
-            "notes": list(fit.notes),
-        },
+    options = {
+        "rank": rank,
+        "patch_px": patch,
+        "trim": trim,
+        "lateral_um": lateral_um,
+        "axial_um": axial_um,
+        "degree": degree,
+        "design": design.name if design is not None else None,
+        "oversample": oversample,
     }
+    provenance = _build_provenance(index, fit, alignment, options, epsf_info)
+    synthetic = epsf_info.get("source", "").startswith("synthetic")
     model, decomposition = model_from_crops(
         crops,
         gi,
-        (xs, ys, zs),
+        index.grid_axes_mm(),
         geometry,
         rank=rank,
         sensor_shape=index.shape,
@@ -275,17 +337,11 @@ def build_model(
         trim=trim,
         provenance=provenance,
         oversample=oversample,
-        frames=None
-        if oversample == 1 or epsf_info.get("source", "").startswith("synthetic")
-        else (index, estimate_options),
+        frames=None if oversample == 1 or synthetic else (index, estimate_options),
     )
     seconds["svd"] = time.perf_counter() - start
     if model.rank < rank:
-        warnings.warn(
-            f"--rank {rank}: the scan's {len(index)} positions allow only {model.rank} basis PSFs; "
-            f"the model has rank {model.rank}",
-            stacklevel=2,
-        )
+        _warn_rank(rank, len(index), model.rank)
     model.provenance["seconds"] = {k: round(v, 3) for k, v in seconds.items()}
     return BuildResult(model, decomposition, replace(fit, geometry=geometry), crops, gi, seconds)
 
@@ -297,6 +353,53 @@ def _whole_pixels(window: slice, n: int, S: int) -> slice:
     half = min(int(math.ceil(half / S)) * S, centre, n - centre)
     half -= half % S
     return slice(centre - half, centre + half)
+
+
+def _trim(decomposition: Decomposition, crops: np.ndarray, trim: float, S: int) -> tuple[Decomposition, np.ndarray]:
+    """Cut the basis's and crops' dark margins holding less than ``trim`` of the energy (whole pixels if S > 1)."""
+    rows, cols = trim_window(decomposition.basis, decomposition.singular_values, trim)
+    if S > 1 and crops.shape[-1] % S == 0:  # keep whole pixels, the chief ray on S·(h//2)
+        rows, cols = (_whole_pixels(sl, n, S) for sl, n in zip((rows, cols), crops.shape[2:], strict=True))
+    decomposition = replace(decomposition, basis=np.ascontiguousarray(decomposition.basis[:, :, rows, cols]))
+    return decomposition, crops[:, :, rows, cols]
+
+
+def _default_grid(
+    axes: tuple[np.ndarray, np.ndarray, np.ndarray], native_um: float, lateral_um: float | None, axial_um: float | None
+) -> VolumeGrid:
+    """The reconstruction grid spanning ``axes`` (mm): ``lateral_um`` (default ``native_um``) × ``axial_um`` voxels."""
+    xs, ys, zs = axes
+    dxy = lateral_um if lateral_um is not None else native_um
+    if axial_um is None:  # the cm2-v2 preset's axial step
+        axial_um = default_design().volume.axial_step_um
+    shape = (
+        int(math.floor((zs[-1] - zs[0]) * 1000.0 / axial_um + 1e-9)) + 1,
+        int(math.floor((ys[-1] - ys[0]) * 1000.0 / dxy + 1e-9)) + 1,
+        int(math.floor((xs[-1] - xs[0]) * 1000.0 / dxy + 1e-9)) + 1,
+    )
+    return VolumeGrid(shape, (axial_um, dxy, dxy))
+
+
+def _model_provenance(
+    provenance: dict[str, Any] | None, geometry: Geometry, zs: np.ndarray, pixel_um: float, native_um: float
+) -> dict[str, Any]:
+    """A copy of ``provenance`` with its creation stamp and the geometry's magnification, native pitch (µm) and shear (px)."""
+    provenance = dict(provenance or {})
+    provenance.setdefault("created", datetime.now(UTC).isoformat(timespec="seconds"))
+    provenance.setdefault("cm2optics_version", cm2optics.__version__)
+    provenance.setdefault("geometry", {})
+    provenance["geometry"].update(
+        {
+            "magnification_at_focus": round(
+                math.sqrt(abs(float(np.linalg.det(geometry.A(0.0))))) * pixel_um / 1000.0, 6
+            ),
+            "native_lateral_um": round(native_um, 5),
+            "shear_px_over_scan": [
+                [round(float(v), 3) for v in row] for row in (geometry.offsets(zs[-1]) - geometry.offsets(zs[0]))
+            ],
+        }
+    )
+    return provenance
 
 
 def model_from_crops(
@@ -326,11 +429,7 @@ def model_from_crops(
     K = decomposition.rank
     crop_shape = crops.shape[2:]
     if trim:
-        rows, cols = trim_window(decomposition.basis, decomposition.singular_values, trim)
-        if S > 1 and crops.shape[-1] % S == 0:  # keep whole pixels, the chief ray on S·(h//2)
-            rows, cols = (_whole_pixels(sl, n, S) for sl, n in zip((rows, cols), crops.shape[2:], strict=True))
-        decomposition = replace(decomposition, basis=np.ascontiguousarray(decomposition.basis[:, :, rows, cols]))
-        crops = crops[:, :, rows, cols]
+        decomposition, crops = _trim(decomposition, crops, trim, S)
     estimate: dict[str, Any] | None = None
     if frames is not None and S > 1:  # a measured scan: the ePSF basis from whole-pixel frames
         from cm2optics.lsv.epsf_estimate import estimate_epsf_basis
@@ -342,14 +441,6 @@ def model_from_crops(
     coefficients[:, gi[:, 2], gi[:, 1], gi[:, 0]] = decomposition.coefficients.T
     A0 = geometry.A(0.0)
     native_um = 1000.0 / math.sqrt(abs(float(np.linalg.det(A0))))
-    dxy = lateral_um if lateral_um is not None else native_um
-    if axial_um is None:  # the cm2-v2 preset's axial step
-        axial_um = default_design().volume.axial_step_um
-    shape = (
-        int(math.floor((zs[-1] - zs[0]) * 1000.0 / axial_um + 1e-9)) + 1,
-        int(math.floor((ys[-1] - ys[0]) * 1000.0 / dxy + 1e-9)) + 1,
-        int(math.floor((xs[-1] - xs[0]) * 1000.0 / dxy + 1e-9)) + 1,
-    )
     model = LSVModel(
         basis=decomposition.basis,
         coefficients=coefficients,
@@ -359,26 +450,14 @@ def model_from_crops(
         geometry=geometry,
         sensor_shape=sensor_shape,
         pixel_um=pixel_um,
-        default_grid=VolumeGrid(shape, (axial_um, dxy, dxy)),
+        default_grid=_default_grid(axes, native_um, lateral_um, axial_um),
         oversample=S if decomposition.basis.shape[-1] % S == 0 else 1,
     )
     on_axis = model.focus_patches(0.0, 0.0, 0.0).sum(dtype=np.float64) / model.oversample**2
     if not on_axis > 0:
         raise ScanError("the in-focus PSF on the axis is empty after background removal")
     scale = 1.0 / float(on_axis)
-    provenance = dict(provenance or {})
-    provenance.setdefault("created", datetime.now(UTC).isoformat(timespec="seconds"))
-    provenance.setdefault("cm2optics_version", cm2optics.__version__)
-    provenance.setdefault("geometry", {})
-    provenance["geometry"].update(
-        {
-            "magnification_at_focus": round(math.sqrt(abs(float(np.linalg.det(A0)))) * pixel_um / 1000.0, 6),
-            "native_lateral_um": round(native_um, 5),
-            "shear_px_over_scan": [
-                [round(float(v), 3) for v in row] for row in (geometry.offsets(zs[-1]) - geometry.offsets(zs[0]))
-            ],
-        }
-    )
+    provenance = _model_provenance(provenance, geometry, zs, pixel_um, native_um)
     provenance["svd"] = {
         "rank": K,
         "crop_px": list(crop_shape),

@@ -30,8 +30,8 @@ from cm2optics.lsv.decompose import Decomposition
 from cm2optics.lsv.epsf import sampling_matrix
 
 if TYPE_CHECKING:  # pragma: no cover
-    from cm2optics.lsv.preprocess import Geometry
     from cm2optics.formats.scan import ScanIndex
+    from cm2optics.lsv.preprocess import Geometry
 
 __all__ = ["estimate_epsf_basis", "phase_coverage", "pixel_windows"]
 
@@ -176,78 +176,19 @@ def estimate_epsf_basis(
     y_np, eps = windows if windows is not None else pixel_windows(index, geometry, (h, w), progress=progress)
     keep = np.ones(N_all, bool) if keep is None else np.asarray(keep, bool)
     y_np, eps = y_np[keep], eps[keep]
-    N = int(keep.sum())
     y = torch.as_tensor(y_np)
     B = torch.as_tensor(_upsample(decomposition.basis, S))  # (K, J, hS, wS)
     C = torch.as_tensor(decomposition.coefficients[keep], dtype=torch.float32)  # (N, K)
     samplers = [_Sampler(eps[:, j], h, w, S) for j in range(J)]
-    everything = slice(0, N)
     data_energy = float((y.double() ** 2).sum())
     # relative to the data term's scale: CᵀC (mean eigenvalue ‖C‖²/K) times DᵀD (≈ 1/S² per fine sample)
     lam = smoothness * float((C.double() ** 2).sum()) / (K * S * S)
-
-    def predict(C: torch.Tensor, B: torch.Tensor, j: int) -> torch.Tensor:
-        fine = (C @ B[:, j].reshape(K, -1)).reshape(N, h * S, w * S)
-        return samplers[j].forward(fine, everything)
-
-    def misfit(C: torch.Tensor, B: torch.Tensor) -> float:
-        total = sum(float(((predict(C, B, j) - y[:, j]).double() ** 2).sum()) for j in range(J))
-        return total / data_energy
-
-    history = [misfit(C, B)]
+    history = [_misfit(C, B, y, samplers) / data_energy]
     for _ in range(iterations):
-        # basis given the coefficients: CG per lenslet on (Cᵀ D ᵀD C + λ L²) B = Cᵀ Dᵀ y
-        for j in range(J):
-            sampler = samplers[j]
-
-            def normal(X: torch.Tensor, C: torch.Tensor = C, sampler: _Sampler = sampler) -> torch.Tensor:
-                fine = (C @ X.reshape(K, -1)).reshape(N, h * S, w * S)
-                back = sampler.adjoint(sampler.forward(fine, everything), everything)
-                out = (C.T @ back.reshape(N, -1)).reshape(X.shape)
-                return out + lam * _laplacian(_laplacian(X))
-
-            rhs = (C.T @ sampler.adjoint(y[:, j], everything).reshape(N, -1)).reshape(K, h * S, w * S)
-            X = B[:, j].clone()
-            r = rhs - normal(X)
-            p = r.clone()
-            rr = float((r * r).sum())
-            for _ in range(cg_steps):
-                Ap = normal(p)
-                alpha = rr / max(float((p * Ap).sum()), 1e-300)
-                X += alpha * p
-                r -= alpha * Ap
-                rr_new = float((r * r).sum())
-                p = r + (rr_new / max(rr, 1e-300)) * p
-                rr = rr_new
-            B[:, j] = X
-        # coefficients given the basis: per node, K-term least squares over its J foci
-        gram = torch.zeros((N, K, K), dtype=torch.float64)
-        rhs = torch.zeros((N, K), dtype=torch.float64)
-        for j in range(J):
-            sampled = torch.stack(
-                [samplers[j].forward(B[k, j].expand(N, -1, -1), everything) for k in range(K)], 1
-            ).reshape(N, K, -1)  # (N, K, h·w)
-            rhs += torch.einsum("nkp,np->nk", sampled, y[:, j].reshape(N, -1)).double()
-            gram += torch.bmm(sampled, sampled.transpose(1, 2)).double()
-            del sampled
-        ridge = 1e-9 * torch.diagonal(gram, dim1=1, dim2=2).mean(-1).clamp_min(1e-300)
-        gram += ridge[:, None, None] * torch.eye(K, dtype=torch.float64)
-        C = torch.linalg.solve(gram, rhs[..., None])[..., 0].float()
-        history.append(misfit(C, B))
-    # back to an orthonormal basis: C·B = Q·R·B, SVD of R·B
-    Q, R = torch.linalg.qr(C.double())
-    U, s, Vt = torch.linalg.svd(R @ B.reshape(K, -1).double(), full_matrices=False)
-    basis = Vt.reshape(K, J, h * S, w * S).float().numpy()
-    coefficients = np.zeros((N_all, K), np.float32)
-    coefficients[keep] = (Q @ (U * s)).float().numpy()
-    singular = s.numpy()
-    new = Decomposition(
-        basis=basis,
-        coefficients=coefficients,
-        singular_values=singular,
-        nmse=decomposition.nmse,
-        nmse_per_psf=decomposition.nmse_per_psf,
-    )
+        _basis_step(B, C, y, samplers, lam, cg_steps)
+        C = _coefficient_step(B, y, samplers)
+        history.append(_misfit(C, B, y, samplers) / data_energy)
+    new = _orthonormal(C, B, keep, N_all, decomposition)
     report = {
         "method": "alternating least squares over whole-pixel frames (ePSF basis | coefficients)",
         "iterations": iterations,
@@ -258,3 +199,91 @@ def estimate_epsf_basis(
         "phase_coverage": phase_coverage(geometry, index.positions_mm, S),
     }
     return new, report
+
+
+def _predict(C: torch.Tensor, B: torch.Tensor, sampler: _Sampler, j: int) -> torch.Tensor:
+    """Lenslet j's whole-pixel windows (N, h, w) of the fine patches C·B[:, j] (N, h·S, w·S)."""
+    K = B.shape[0]
+    N = C.shape[0]
+    fine = (C @ B[:, j].reshape(K, -1)).reshape(N, sampler.hS, sampler.wS)
+    return sampler.forward(fine, slice(0, N))
+
+
+def _misfit(C: torch.Tensor, B: torch.Tensor, y: torch.Tensor, samplers: list[_Sampler]) -> float:
+    """The summed squared misfit (frames' units²) of every lenslet's predicted windows to the frames ``y``."""
+    return sum(float(((_predict(C, B, samplers[j], j) - y[:, j]).double() ** 2).sum()) for j in range(len(samplers)))
+
+
+def _cg(normal, rhs: torch.Tensor, X: torch.Tensor, steps: int) -> torch.Tensor:
+    """``steps`` conjugate-gradient iterations on normal(X) = rhs from X (updated in place and returned)."""
+    r = rhs - normal(X)
+    p = r.clone()
+    rr = float((r * r).sum())
+    for _ in range(steps):
+        Ap = normal(p)
+        alpha = rr / max(float((p * Ap).sum()), 1e-300)
+        X += alpha * p
+        r -= alpha * Ap
+        rr_new = float((r * r).sum())
+        p = r + (rr_new / max(rr, 1e-300)) * p
+        rr = rr_new
+    return X
+
+
+def _basis_step(
+    B: torch.Tensor, C: torch.Tensor, y: torch.Tensor, samplers: list[_Sampler], lam: float, cg_steps: int
+) -> None:
+    """The basis B (K, J, h·S, w·S) given the coefficients C (N, K), in place: CG per lenslet."""
+    K, _, hS, wS = B.shape
+    N = C.shape[0]
+    everything = slice(0, N)
+    # CG per lenslet on (Cᵀ D ᵀD C + λ L²) B = Cᵀ Dᵀ y
+    for j, sampler in enumerate(samplers):
+
+        def normal(X: torch.Tensor, sampler: _Sampler = sampler) -> torch.Tensor:
+            fine = (C @ X.reshape(K, -1)).reshape(N, hS, wS)
+            back = sampler.adjoint(sampler.forward(fine, everything), everything)
+            out = (C.T @ back.reshape(N, -1)).reshape(X.shape)
+            return out + lam * _laplacian(_laplacian(X))
+
+        rhs = (C.T @ sampler.adjoint(y[:, j], everything).reshape(N, -1)).reshape(K, hS, wS)
+        B[:, j] = _cg(normal, rhs, B[:, j].clone(), cg_steps)
+
+
+def _coefficient_step(B: torch.Tensor, y: torch.Tensor, samplers: list[_Sampler]) -> torch.Tensor:
+    """The coefficients (N, K) given the basis: per node, K-term least squares over its J foci."""
+    K = B.shape[0]
+    N = y.shape[0]
+    everything = slice(0, N)
+    gram = torch.zeros((N, K, K), dtype=torch.float64)
+    rhs = torch.zeros((N, K), dtype=torch.float64)
+    for j, sampler in enumerate(samplers):
+        sampled = torch.stack([sampler.forward(B[k, j].expand(N, -1, -1), everything) for k in range(K)], 1)
+        sampled = sampled.reshape(N, K, -1)  # (N, K, h·w)
+        rhs += torch.einsum("nkp,np->nk", sampled, y[:, j].reshape(N, -1)).double()
+        gram += torch.bmm(sampled, sampled.transpose(1, 2)).double()
+        del sampled
+    ridge = 1e-9 * torch.diagonal(gram, dim1=1, dim2=2).mean(-1).clamp_min(1e-300)
+    gram += ridge[:, None, None] * torch.eye(K, dtype=torch.float64)
+    return torch.linalg.solve(gram, rhs[..., None])[..., 0].float()
+
+
+def _orthonormal(
+    C: torch.Tensor, B: torch.Tensor, keep: np.ndarray, N_all: int, decomposition: Decomposition
+) -> Decomposition:
+    """C·B rewritten as an orthonormal basis and its (N_all, K) coefficients (zeros for nodes not in ``keep``)."""
+    K, J, hS, wS = B.shape
+    # back to an orthonormal basis: C·B = Q·R·B, SVD of R·B
+    Q, R = torch.linalg.qr(C.double())
+    U, s, Vt = torch.linalg.svd(R @ B.reshape(K, -1).double(), full_matrices=False)
+    basis = Vt.reshape(K, J, hS, wS).float().numpy()
+    coefficients = np.zeros((N_all, K), np.float32)
+    coefficients[keep] = (Q @ (U * s)).float().numpy()
+    singular = s.numpy()
+    return Decomposition(
+        basis=basis,
+        coefficients=coefficients,
+        singular_values=singular,
+        nmse=decomposition.nmse,
+        nmse_per_psf=decomposition.nmse_per_psf,
+    )

@@ -279,103 +279,25 @@ def estimate_geometry(
     first = prepared_image(index, axis_rows[focus_iz])
     lattice = _find_lattice(first, rows, cols, index.files[axis_rows[focus_iz]])
     pitch = _pitch(lattice, rows, cols)
-    radius = max(3, int(round(0.06 * pitch)))
     smooth_sigma = max(1.0, 0.008 * pitch)
-    foci = np.zeros((len(zs), rows * cols, 2))
-    foci[focus_iz] = lattice
-    order = list(range(focus_iz + 1, len(zs))) + list(range(focus_iz - 1, -1, -1))
-    for count, iz in enumerate(order):
-        previous = foci[iz - 1] if iz > focus_iz else foci[iz + 1]
-        image = ndimage.gaussian_filter(prepared_image(index, axis_rows[iz]).astype(np.float64), smooth_sigma)
-        found = []
-        for j in range(rows * cols):
-            position, _ = _centroid(image, previous[j], radius)
-            position, _ = _centroid(image, position, radius)
-            found.append(position)
-        foci[iz] = found
-        if progress:
-            progress("on-axis stack", count + 1, len(order))
-    r_ref = foci.mean(axis=1)
-    offsets = foci - r_ref[:, None, :]
-    o_poly = _polyfit(zs, offsets, degree)
-    r_poly = _polyfit(zs, r_ref, degree)
-    shear_fit = _polyval(o_poly, zs)[:, :, :] + _polyval(r_poly, zs)[:, None, :]
-    shear_residual = np.hypot(*(foci - shear_fit).reshape(-1, 2).T).reshape(len(zs), -1)
-    step_shear = float(np.max(np.abs(np.diff(offsets, axis=0)))) if len(zs) > 1 else 0.0
-    limit = max(1.5, 0.5 * step_shear)
-    for iz in range(len(zs)):
-        if len(zs) > degree + 2 and shear_residual[iz].max() > limit:
-            raise ScanError(
-                f"{index.files[axis_rows[iz]]} (z = {zs[iz]:g} mm on the axis): its foci are {shear_residual[iz].max():.1f} px "
-                "from the smooth shear of the on-axis stack: misordered files (depths swapped?)"
-            )
+    foci = _on_axis_foci(index, axis_rows, focus_iz, lattice, pitch, smooth_sigma, progress)
+    o_poly, r_poly, shear_residual = _fit_shear(index, axis_rows, zs, foci, degree)
 
     # 2. every depth: translation of the foci pattern, then A(z)
     factor = max(1, int(pitch // 80))
     n_images = len(index)
     translations = np.full((n_images, 2), np.nan)
-    bright = np.zeros(n_images, bool)
-    prepared_ds: dict[int, np.ndarray] = {}
-    sigma_ds = max(1.0, 2.0 * smooth_sigma / factor)
-    for n in range(n_images):
-        image = prepared_image(index, n)
-        small = ndimage.gaussian_filter(_block_mean(image.astype(np.float64), factor), sigma_ds).astype(np.float32)
-        bright[n] = float(small.max()) > 10.0 * _noise_sigma(small)
-        prepared_ds[n] = small
-        if progress:
-            progress("reading images", n + 1, n_images)
+    bright, prepared_ds = _downsampled_images(index, factor, max(1.0, 2.0 * smooth_sigma / factor), progress)
     lateral_ok = len(xs) >= 2 and len(ys) >= 2
     A_layers = np.zeros((len(zs), 2, 2))
     residual = np.full(n_images, np.nan)
     for iz, z in enumerate(zs):
         layer = [n for n in range(n_images) if gi[n, 2] == iz]
         layer.sort(key=lambda n: math.hypot(positions[n, 0] - x0, positions[n, 1] - y0))
-        comb = foci[iz]  # the on-axis source's foci at this depth
-        steps = _alias_steps(comb, rows, cols)
-        A_current: np.ndarray | None = None
-        done: list[int] = []
-        queue = [n for n in layer if bright[n]]
-        deferred: set[int] = set()
-        while queue:
-            n = queue.pop(0)
-            delta = positions[n, :2] - (x0, y0)
-            if abs(delta[0]) < 1e-9 and abs(delta[1]) < 1e-9:
-                translations[n] = 0.0
-                done.append(n)
-                continue
-            if A_current is None:
-                # no prediction yet: a window wider than half the lattice pitch, whose peak may be
-                # an alias (the comb shifted by a lattice step), resolved by _resolve_alias
-                found = _comb_peak(prepared_ds[n], comb, np.zeros(2), 0.6 * pitch, factor)
-                if found is not None:
-                    ties = _resolve_alias(prepared_ds[n], comb, found, steps, 0.15 * pitch, factor)
-                    found = ties[0]
-                    if len(ties) > 1 and fallback_A is not None:  # the design's magnification decides
-                        expected = fallback_A(float(z)) @ delta
-                        found = min(ties, key=lambda c: float(np.hypot(*(c[0] - expected))))
-                    elif len(ties) > 1 and n not in deferred:  # try it again once neighbours predict it
-                        deferred.add(n)
-                        queue.append(n)
-                        continue
-                    elif len(ties) > 1:
-                        raise ScanError(
-                            f"{index.files[n]} (x = {positions[n, 0]:g}, y = {positions[n, 1]:g}, z = {z:g} mm): its "
-                            "foci match the on-axis pattern about as well shifted by one lenslet step (the foci that "
-                            "would tell them apart are dark or off the sensor), and no position nearer the axis fixes "
-                            "the magnification: the scan's lateral grid step is too coarse; scan nearer the axis or "
-                            "give a design to take the magnification from"
-                        )
-            else:
-                found = _comb_peak(prepared_ds[n], comb, A_current @ delta, 0.3 * pitch, factor)
-            if found is None:
-                bright[n] = False
-                continue
-            translations[n] = found[0]
-            done.append(n)
-            if len(done) >= 3:
-                D = positions[done, :2] - (x0, y0)
-                if np.linalg.matrix_rank(D, tol=1e-6) == 2:
-                    A_current = np.linalg.lstsq(D, translations[done], rcond=None)[0].T
+        A_current, done = _track_layer(
+            index, layer, float(z), (x0, y0), foci[iz], rows, cols, pitch, factor,
+            prepared_ds, bright, translations, fallback_A,
+        )  # fmt: skip
         if A_current is None or not lateral_ok:
             if fallback_A is None:
                 raise ScanError(
@@ -385,18 +307,7 @@ def estimate_geometry(
             A_layers[iz] = fallback_A(float(z))
             notes.append(f"z = {z:g} mm: magnification from the design (the scan cannot fix it)")
             continue
-        D = positions[done, :2] - (x0, y0)
-        A_layers[iz] = np.linalg.lstsq(D, translations[done], rcond=None)[0].T
-        residual[done] = _smooth_residual(D, translations[done])
-        step_px = _grid_step_px(A_layers[iz], xs, ys)
-        bad = [n for n in done if residual[n] > 0.25 * step_px]
-        if bad:
-            worst = max(bad, key=lambda n: residual[n])
-            x, y, _ = positions[worst]
-            raise ScanError(
-                f"{index.files[worst]} (listed at x = {x:g}, y = {y:g}, z = {z:g} mm): its foci are {residual[worst]:.0f} px "
-                f"from where the other images of that depth put them ({len(bad)} such images): misordered or mislabelled files"
-            )
+        A_layers[iz] = _fit_layer_A(index, float(z), (x0, y0), done, translations, residual, xs, ys)
     A_poly = _polyfit(zs, A_layers, degree)
     r0_layers = _polyval(r_poly, zs) - np.einsum("zab,b->za", _polyval(A_poly, zs), np.array([x0, y0]))
     r0_poly = _polyfit(zs, r0_layers, degree)
@@ -411,6 +322,168 @@ def estimate_geometry(
         pitch_px=pitch,
         notes=tuple(notes),
     )
+
+
+def _on_axis_foci(
+    index: ScanIndex,
+    axis_rows: list[int],
+    focus_iz: int,
+    lattice: np.ndarray,
+    pitch: float,
+    smooth_sigma: float,
+    progress: Progress | None,
+) -> np.ndarray:
+    """Every lenslet's focus (px) at each depth of the on-axis stack, tracked outward from focus: (Z, L, 2)."""
+    radius = max(3, int(round(0.06 * pitch)))
+    foci = np.zeros((len(axis_rows), len(lattice), 2))
+    foci[focus_iz] = lattice
+    order = list(range(focus_iz + 1, len(axis_rows))) + list(range(focus_iz - 1, -1, -1))
+    for count, iz in enumerate(order):
+        previous = foci[iz - 1] if iz > focus_iz else foci[iz + 1]
+        image = ndimage.gaussian_filter(prepared_image(index, axis_rows[iz]).astype(np.float64), smooth_sigma)
+        found = []
+        for j in range(len(lattice)):
+            position, _ = _centroid(image, previous[j], radius)
+            position, _ = _centroid(image, position, radius)
+            found.append(position)
+        foci[iz] = found
+        if progress:
+            progress("on-axis stack", count + 1, len(order))
+    return foci
+
+
+def _fit_shear(
+    index: ScanIndex, axis_rows: list[int], zs: np.ndarray, foci: np.ndarray, degree: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Polynomials in z (mm) of the foci's offsets and mean (px), and each focus's residual (px); checks the order."""
+    r_ref = foci.mean(axis=1)
+    offsets = foci - r_ref[:, None, :]
+    o_poly = _polyfit(zs, offsets, degree)
+    r_poly = _polyfit(zs, r_ref, degree)
+    shear_fit = _polyval(o_poly, zs)[:, :, :] + _polyval(r_poly, zs)[:, None, :]
+    shear_residual = np.hypot(*(foci - shear_fit).reshape(-1, 2).T).reshape(len(zs), -1)
+    step_shear = float(np.max(np.abs(np.diff(offsets, axis=0)))) if len(zs) > 1 else 0.0
+    limit = max(1.5, 0.5 * step_shear)
+    for iz in range(len(zs)):
+        if len(zs) > degree + 2 and shear_residual[iz].max() > limit:
+            raise ScanError(
+                f"{index.files[axis_rows[iz]]} (z = {zs[iz]:g} mm on the axis): its foci are {shear_residual[iz].max():.1f} px "
+                "from the smooth shear of the on-axis stack: misordered files (depths swapped?)"
+            )
+    return o_poly, r_poly, shear_residual
+
+
+def _downsampled_images(
+    index: ScanIndex, factor: int, sigma_ds: float, progress: Progress | None
+) -> tuple[np.ndarray, dict[int, np.ndarray]]:
+    """Every image block-averaged by ``factor`` and smoothed (``sigma_ds`` px), and whether its foci stand out."""
+    n_images = len(index)
+    bright = np.zeros(n_images, bool)
+    prepared_ds: dict[int, np.ndarray] = {}
+    for n in range(n_images):
+        image = prepared_image(index, n)
+        small = ndimage.gaussian_filter(_block_mean(image.astype(np.float64), factor), sigma_ds).astype(np.float32)
+        bright[n] = float(small.max()) > 10.0 * _noise_sigma(small)
+        prepared_ds[n] = small
+        if progress:
+            progress("reading images", n + 1, n_images)
+    return bright, prepared_ds
+
+
+def _track_layer(
+    index: ScanIndex,
+    layer: list[int],
+    z: float,
+    axis_xy: tuple[float, float],
+    comb: np.ndarray,
+    rows: int,
+    cols: int,
+    pitch: float,
+    factor: int,
+    prepared_ds: dict[int, np.ndarray],
+    bright: np.ndarray,
+    translations: np.ndarray,
+    fallback_A: Callable[[float], np.ndarray] | None,
+) -> tuple[np.ndarray | None, list[int]]:
+    """Translate the on-axis foci ``comb`` (px) onto each image of one depth, nearest the axis first.
+
+    Fills ``translations`` (px) and clears ``bright`` where no match is found; returns the running
+    A (px/mm, None if never fixed) and the images matched.
+    """
+    positions = index.positions_mm
+    steps = _alias_steps(comb, rows, cols)
+    A_current: np.ndarray | None = None
+    done: list[int] = []
+    queue = [n for n in layer if bright[n]]
+    deferred: set[int] = set()
+    while queue:
+        n = queue.pop(0)
+        delta = positions[n, :2] - axis_xy
+        if abs(delta[0]) < 1e-9 and abs(delta[1]) < 1e-9:
+            translations[n] = 0.0
+            done.append(n)
+            continue
+        if A_current is None:
+            # no prediction yet: a window wider than half the lattice pitch, whose peak may be
+            # an alias (the comb shifted by a lattice step), resolved by _resolve_alias
+            found = _comb_peak(prepared_ds[n], comb, np.zeros(2), 0.6 * pitch, factor)
+            if found is not None:
+                ties = _resolve_alias(prepared_ds[n], comb, found, steps, 0.15 * pitch, factor)
+                found = ties[0]
+                if len(ties) > 1 and fallback_A is not None:  # the design's magnification decides
+                    expected = fallback_A(z) @ delta
+                    found = min(ties, key=lambda c: float(np.hypot(*(c[0] - expected))))
+                elif len(ties) > 1 and n not in deferred:  # try it again once neighbours predict it
+                    deferred.add(n)
+                    queue.append(n)
+                    continue
+                elif len(ties) > 1:
+                    raise ScanError(
+                        f"{index.files[n]} (x = {positions[n, 0]:g}, y = {positions[n, 1]:g}, z = {z:g} mm): its "
+                        "foci match the on-axis pattern about as well shifted by one lenslet step (the foci that "
+                        "would tell them apart are dark or off the sensor), and no position nearer the axis fixes "
+                        "the magnification: the scan's lateral grid step is too coarse; scan nearer the axis or "
+                        "give a design to take the magnification from"
+                    )
+        else:
+            found = _comb_peak(prepared_ds[n], comb, A_current @ delta, 0.3 * pitch, factor)
+        if found is None:
+            bright[n] = False
+            continue
+        translations[n] = found[0]
+        done.append(n)
+        if len(done) >= 3:
+            D = positions[done, :2] - axis_xy
+            if np.linalg.matrix_rank(D, tol=1e-6) == 2:
+                A_current = np.linalg.lstsq(D, translations[done], rcond=None)[0].T
+    return A_current, done
+
+
+def _fit_layer_A(
+    index: ScanIndex,
+    z: float,
+    axis_xy: tuple[float, float],
+    done: list[int],
+    translations: np.ndarray,
+    residual: np.ndarray,
+    xs: np.ndarray,
+    ys: np.ndarray,
+) -> np.ndarray:
+    """One depth's A (2×2 px/mm) from its matched images; fills ``residual`` (px) and checks it."""
+    positions = index.positions_mm
+    D = positions[done, :2] - axis_xy
+    A = np.linalg.lstsq(D, translations[done], rcond=None)[0].T
+    residual[done] = _smooth_residual(D, translations[done])
+    step_px = _grid_step_px(A, xs, ys)
+    bad = [n for n in done if residual[n] > 0.25 * step_px]
+    if bad:
+        worst = max(bad, key=lambda n: residual[n])
+        x, y, _ = positions[worst]
+        raise ScanError(
+            f"{index.files[worst]} (listed at x = {x:g}, y = {y:g}, z = {z:g} mm): its foci are {residual[worst]:.0f} px "
+            f"from where the other images of that depth put them ({len(bad)} such images): misordered or mislabelled files"
+        )
+    return A
 
 
 def _grid_step_px(A: np.ndarray, xs: np.ndarray, ys: np.ndarray) -> float:

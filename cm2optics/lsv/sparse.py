@@ -157,19 +157,7 @@ def render_emitters(
         nodes, weights = chief_ray_nodes(model.geometry, model.axes, j, x[index], y[index], z[index])
         c = np.einsum("kne,ne->nk", coefficients[:, nodes[..., 0], nodes[..., 1], nodes[..., 2]], weights)
         c = torch.as_tensor(c * intensity[index, None], dtype=torch.float32)
-        n, eps = split_shift(corner[index])
-        if subpixel_steps:
-            steps = np.round(eps * subpixel_steps).astype(np.int64)
-            n = n + steps // subpixel_steps
-            steps = steps % subpixel_steps
-            phases = steps[:, 0] * subpixel_steps + steps[:, 1]
-            phase_values = {
-                int(p): (p // subpixel_steps / subpixel_steps, p % subpixel_steps / subpixel_steps)
-                for p in np.unique(phases)
-            }
-        else:
-            phases = np.arange(len(index))
-            phase_values = {int(p): (eps[p, 0], eps[p, 1]) for p in phases}
+        n, phases, phase_values = _phases(corner[index], subpixel_steps)
         slot = j if per_lenslet else 0
         basis_j = np.ascontiguousarray(model.basis[:, j], dtype=np.float32)
         targets = [canvases[slot_of[int(b)], slot] for b in size_bin[index]]
@@ -185,9 +173,40 @@ def render_emitters(
                 patches = (c[part] @ shifted).reshape(len(part), h + 3, w + 3)
                 for patch, m in zip(patches, part.tolist(), strict=True):
                     _add_torch(targets[m], patch, tops[m], lefts[m])
+    result = _blur_sizes(canvases, slot_of, margin, (H, W)).numpy()
+    return result if per_lenslet else result[0]
+
+
+def _phases(corner: np.ndarray, subpixel_steps: int | None) -> tuple[np.ndarray, np.ndarray, dict[int, tuple]]:
+    """Whole-pixel corners (px), a phase id per emitter and each phase's sub-pixel shift (px).
+
+    With ``subpixel_steps`` the shifts are rounded to 1/steps px (emitters share phases); without,
+    every emitter is its own phase at its exact shift.
+    """
+    n, eps = split_shift(corner)
+    if subpixel_steps:
+        steps = np.round(eps * subpixel_steps).astype(np.int64)
+        n = n + steps // subpixel_steps
+        steps = steps % subpixel_steps
+        phases = steps[:, 0] * subpixel_steps + steps[:, 1]
+        phase_values = {
+            int(p): (p // subpixel_steps / subpixel_steps, p % subpixel_steps / subpixel_steps)
+            for p in np.unique(phases)
+        }
+    else:
+        phases = np.arange(len(corner))
+        phase_values = {int(p): (eps[p, 0], eps[p, 1]) for p in phases}
+    return n, phases, phase_values
+
+
+def _blur_sizes(
+    canvases: torch.Tensor, slot_of: dict[int, int], margin: int, sensor_shape: tuple[int, int]
+) -> torch.Tensor:
+    """The (n_out, H, W) image: each size bin's canvas (px, with ``margin``) convolved with its ball, summed."""
+    H, W = sensor_shape
     shape = (fast_length(H + 2 * margin), fast_length(W + 2 * margin))
     total = None
-    out = torch.zeros((n_out, H, W), dtype=torch.float32)
+    out = torch.zeros((canvases.shape[1], H, W), dtype=torch.float32)
     for b, i in slot_of.items():
         if b == 0:
             out += canvases[i][:, margin : margin + H, margin : margin + W]
@@ -196,8 +215,7 @@ def render_emitters(
         total = spectrum if total is None else total + spectrum
     if total is not None:
         out += torch.fft.irfft2(total, s=shape)[:, margin : margin + H, margin : margin + W]
-    result = out.numpy()
-    return result if per_lenslet else result[0]
+    return out
 
 
 def _add_torch(target: torch.Tensor, block: torch.Tensor, r: int, c: int) -> None:
