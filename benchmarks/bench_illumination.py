@@ -24,7 +24,6 @@ from pathlib import Path
 import numpy as np
 
 from cm2optics.design import load_preset
-from cm2optics.optics.backend import mitsuba, variant
 from cm2optics.illumination.excitation import design_filter_transmission
 from cm2optics.illumination.geometry import build_scene, collimator_from_design, collimator_from_stl
 from cm2optics.illumination.metrics import figures_of_merit
@@ -32,6 +31,7 @@ from cm2optics.illumination.reference_numpy import trace_rays_numpy
 from cm2optics.illumination.scene import mitsuba_scene
 from cm2optics.illumination.source import led_source
 from cm2optics.illumination.tracer import Status, emit_rays, filter_table, trace, trace_rays
+from cm2optics.optics.backend import mitsuba, variant
 
 REFERENCE = Path(__file__).resolve().parents[1].parent / "shared" / "reference" / "cm2-v2"
 

@@ -55,6 +55,7 @@ from cm2optics.lsv.model import LSVModel
 from cm2optics.lsv.reference import reference_forward
 from cm2optics.lsv.toy import AnalyticCM2, analytic_lsv_model
 
+
 class PeakMemory:
     """Peak resident set size (bytes) of this process while the block runs (sampled every 20 ms,
     after resetting the kernel's high-water mark where Linux allows it)."""

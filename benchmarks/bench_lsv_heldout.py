@@ -68,8 +68,8 @@ def emitters(args: argparse.Namespace, zs: tuple[float, float]) -> list[tuple[st
 
 def traced(design, binning: int, position, diameter_um: float, via_cli: bool, folder: Path) -> np.ndarray:
     from cm2optics.emission.image import render_emitters
-    from cm2optics.formats.emitters import Emitters
     from cm2optics.emission.psf import PSFSettings
+    from cm2optics.formats.emitters import Emitters
 
     x, y, z = position
     if via_cli:

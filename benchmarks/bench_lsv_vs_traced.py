@@ -123,8 +123,8 @@ def scan(args: argparse.Namespace, folder: Path) -> dict:
         run(command)
     else:
         # `cm2 psf simulate` offers the paper's pinhole only; the emission module's API takes any source
-        from cm2optics.emission.psf import PSFSettings
         from cm2optics.cli.options import parse_int_list
+        from cm2optics.emission.psf import PSFSettings
         from cm2optics.emission.scan import ScanSettings, calibration_grid_mm, simulate_scan
         from cm2optics.emission.source import fluorescent_bead
 

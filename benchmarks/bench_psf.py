@@ -28,10 +28,10 @@ import warnings
 
 from cm2optics.design import load_preset
 from cm2optics.emission.analysis import central_lenslet
-from cm2optics.optics.backend import variant
 from cm2optics.emission.crosscheck import optiland_lenslet
 from cm2optics.emission.psf import EmissionModel, PSFSettings
 from cm2optics.emission.source import calibration_pinhole
+from cm2optics.optics.backend import variant
 
 
 def best_of(repeat: int, call) -> float:

@@ -81,7 +81,9 @@ def imports_of(module: Path, root: Path) -> tuple[set[str], set[str]]:
         else:
             continue
         for name in names:
-            (internal if name.split(".")[0] == NAME else external).add(name if name.startswith(NAME) else name.split(".")[0])
+            (internal if name.split(".")[0] == NAME else external).add(
+                name if name.startswith(NAME) else name.split(".")[0]
+            )
     return external, internal
 
 
@@ -157,7 +159,9 @@ def architecture_problems(root: Path) -> list[str]:
 def test_heavy_imports_stay_in_their_rooms(module: Path):
     room = part_of(module, PACKAGE)
     for library in imports_of(module, PACKAGE)[0] & set(ROOMS):
-        assert room in ROOMS[library], f"{module.relative_to(PACKAGE)} imports {library}, which belongs in {ROOMS[library]}"
+        assert room in ROOMS[library], (
+            f"{module.relative_to(PACKAGE)} imports {library}, which belongs in {ROOMS[library]}"
+        )
 
 
 def test_the_package_follows_the_architecture():

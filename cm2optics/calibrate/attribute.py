@@ -55,7 +55,13 @@ class FeatureSpace:
         f = focus_features(signal, self.centres, self.radii)
         blocks = _block_means(signal, self.block_of)
         return np.concatenate(
-            [f.energy.ravel(), f.centroid_px[..., 0].ravel(), f.centroid_px[..., 1].ravel(), f.width_px.ravel(), blocks.ravel()]
+            [
+                f.energy.ravel(),
+                f.centroid_px[..., 0].ravel(),
+                f.centroid_px[..., 1].ravel(),
+                f.width_px.ravel(),
+                blocks.ravel(),
+            ]
         )
 
 
@@ -78,9 +84,10 @@ def _blocks(shape: tuple[int, int], centres: np.ndarray, radii: np.ndarray) -> n
     label = (rows * BLOCKS // shape[0]) * BLOCKS + (cols * BLOCKS // shape[1])
     out = np.broadcast_to(label, (len(centres),) + tuple(shape)).copy()
     for j in range(centres.shape[1]):
-        inside = np.hypot(rows - centres[:, j, 0, None, None], cols - centres[:, j, 1, None, None]) <= 2.5 * radii[
-            :, j, None, None
-        ]
+        inside = (
+            np.hypot(rows - centres[:, j, 0, None, None], cols - centres[:, j, 1, None, None])
+            <= 2.5 * radii[:, j, None, None]
+        )
         out[inside] = -1
     return out
 
@@ -96,9 +103,10 @@ def _feature_sigma(space: FeatureSpace, model_signal: np.ndarray, noise: SensorN
     cols = np.clip(base[..., 1, None, None] + offsets[None, :], 0, model_signal.shape[2] - 1)
     rows, cols = np.broadcast_arrays(rows, cols)
     idx = np.arange(n)[:, None, None, None]
-    inside = np.hypot(rows - space.centres[..., 0, None, None], cols - space.centres[..., 1, None, None]) <= space.radii[
-        ..., None, None
-    ]
+    inside = (
+        np.hypot(rows - space.centres[..., 0, None, None], cols - space.centres[..., 1, None, None])
+        <= space.radii[..., None, None]
+    )
     v = np.where(inside, var[idx, rows, cols], 0.0)
     signal = np.where(inside, np.clip(model_signal[idx, rows, cols], 0, None), 0.0)
     energy = signal.sum(axis=(-2, -1))

@@ -56,23 +56,44 @@ def _p(name: str, default: float, low: float, high: float, step: float) -> Param
 
 
 GLOBAL_EFFECTS: tuple[Effect, ...] = (
-    Effect("mla_decenter", (_p("dx_mm", 0, -0.2, 0.2, 0.002), _p("dy_mm", 0, -0.2, 0.2, 0.002)),
-           "the lenslet array displaced across the sensor"),
+    Effect(
+        "mla_decenter",
+        (_p("dx_mm", 0, -0.2, 0.2, 0.002), _p("dy_mm", 0, -0.2, 0.2, 0.002)),
+        "the lenslet array displaced across the sensor",
+    ),
     Effect("mla_rotation", (_p("angle_deg", 0, -3, 3, 0.05),), "the lenslet array rotated about the optical axis"),
-    Effect("mla_spacing", (_p("delta_mm", 0, -0.3, 0.3, 0.005),),
-           "the lenslet array's distance from the sensor differs from the design"),
+    Effect(
+        "mla_spacing",
+        (_p("delta_mm", 0, -0.3, 0.3, 0.005),),
+        "the lenslet array's distance from the sensor differs from the design",
+    ),
     Effect("lenslet_pitch", (_p("delta_mm", 0, -0.05, 0.05, 0.0005),), "the lenslet pitch differs from the design"),
-    Effect("source_profile", (_p("falloff_per_rad2", 0, 0, 150, 0.5),),
-           "the calibration source emits into a cone rather than isotropically: its intensity falls as "
-           "exp(−2·falloff·θ²), a Gaussian of half-angle 1/√falloff at 1/e²"),
-    Effect("stray_light", (_p("fraction", 0, 0, 0.5, 0.01), _p("width_um", 200, 20, 2000, 20.0)),
-           "a fraction of each focus's light spread into a wide halo (scatter in the housing and filters)"),
-    Effect("leakage_background", (_p("counts_per_ms", 0, 0, 1e4, 0.05),),
-           "uniform light reaching the sensor in proportion to the exposure (excitation leaking through the filters)"),
-    Effect("pixel_crosstalk", (_p("fraction", 0, 0, 0.5, 0.02),),
-           "a fraction of each pixel's signal shared with its four neighbours"),
-    Effect("vignetting", (_p("radius_delta_mm", 0, -1, 1, 0.05),),
-           "the clear aperture that cuts off the foci of sources far off a lenslet's axis differs from the design"),
+    Effect(
+        "source_profile",
+        (_p("falloff_per_rad2", 0, 0, 150, 0.5),),
+        "the calibration source emits into a cone rather than isotropically: its intensity falls as "
+        "exp(−2·falloff·θ²), a Gaussian of half-angle 1/√falloff at 1/e²",
+    ),
+    Effect(
+        "stray_light",
+        (_p("fraction", 0, 0, 0.5, 0.01), _p("width_um", 200, 20, 2000, 20.0)),
+        "a fraction of each focus's light spread into a wide halo (scatter in the housing and filters)",
+    ),
+    Effect(
+        "leakage_background",
+        (_p("counts_per_ms", 0, 0, 1e4, 0.05),),
+        "uniform light reaching the sensor in proportion to the exposure (excitation leaking through the filters)",
+    ),
+    Effect(
+        "pixel_crosstalk",
+        (_p("fraction", 0, 0, 0.5, 0.02),),
+        "a fraction of each pixel's signal shared with its four neighbours",
+    ),
+    Effect(
+        "vignetting",
+        (_p("radius_delta_mm", 0, -1, 1, 0.05),),
+        "the clear aperture that cuts off the foci of sources far off a lenslet's axis differs from the design",
+    ),
 )
 
 
@@ -80,10 +101,22 @@ def per_lenslet_effects(lenslets: int) -> tuple[Effect, ...]:
     """Effects of one lenslet each: its transmission and its decentre."""
     out = []
     for j in range(lenslets):
-        out.append(Effect("lenslet_transmission", (_p("transmission", 1, 0, 1.5, 0.02),),
-                          "one lenslet passes less (or more) light than the others: dust, a defect", j))
-        out.append(Effect("lenslet_decenter", (_p("dx_mm", 0, -0.1, 0.1, 0.002), _p("dy_mm", 0, -0.1, 0.1, 0.002)),
-                          "one lenslet displaced within the array", j))
+        out.append(
+            Effect(
+                "lenslet_transmission",
+                (_p("transmission", 1, 0, 1.5, 0.02),),
+                "one lenslet passes less (or more) light than the others: dust, a defect",
+                j,
+            )
+        )
+        out.append(
+            Effect(
+                "lenslet_decenter",
+                (_p("dx_mm", 0, -0.1, 0.1, 0.002), _p("dy_mm", 0, -0.1, 0.1, 0.002)),
+                "one lenslet displaced within the array",
+                j,
+            )
+        )
     return tuple(out)
 
 

@@ -160,7 +160,9 @@ def analyse_scan(
     model_features = focus_features(model_signal, centres, radii)
 
     error = np.linalg.norm(data_features.centroid_px - model_features.centroid_px, axis=-1)
-    misplaced = used & (np.nanmedian(np.where(np.isfinite(error), error, np.nan), axis=1) > MISPLACED_FRACTION * pitch_px)
+    misplaced = used & (
+        np.nanmedian(np.where(np.isfinite(error), error, np.nan), axis=1) > MISPLACED_FRACTION * pitch_px
+    )
     if np.any(misplaced):
         flags["positions_do_not_match_images"] = [data.files[i] for i in np.flatnonzero(misplaced)]
 
@@ -315,7 +317,9 @@ def residual_document(a: ResidualAnalysis) -> dict[str, object]:
             "median_counts": round(float(np.nanmedian(a.background_counts[exposure_free])), 4)
             if exposure_free.any()
             else None,
-            "map_counts_per_ms": [[None if not np.isfinite(v) else round(float(v), 6) for v in row] for row in a.background_map],
+            "map_counts_per_ms": [
+                [None if not np.isfinite(v) else round(float(v), 6) for v in row] for row in a.background_map
+            ],
         },
         "flags": a.flags,
     }

@@ -203,19 +203,39 @@ def calibrate_scan(
     centres = simulator.focus_centres_px(positions)
 
     say(f"tracing the nominal design at {len(positions)} positions")
-    before = analyse_scan(data, _model_rate(simulator, positions, None), positions, centres, simulator.pitch_px(), counts_per_electron=gain)
+    before = analyse_scan(
+        data,
+        _model_rate(simulator, positions, None),
+        positions,
+        centres,
+        simulator.pitch_px(),
+        counts_per_electron=gain,
+    )
     _check_magnification(before, simulator.pitch_px())
 
     subset = fit_subset(positions, fit_positions)
     subset = subset[before.used[subset]]
     say(f"attributing the residual on {len(subset)} positions")
     valid = scan.images[subset] < 2**scan.meta.bit_depth - 1
-    problem = Problem(simulator, scan.images[subset], scan.exposure_ms[subset], positions[subset], valid, library(simulator.lenslets), gain)
+    problem = Problem(
+        simulator,
+        scan.images[subset],
+        scan.exposure_ms[subset],
+        positions[subset],
+        valid,
+        library(simulator.lenslets),
+        gain,
+    )
     attribution = attribute(problem, max_effects=max_effects, progress=say)
 
     say("tracing the corrected design at every position")
     after = analyse_scan(
-        data, _model_rate(simulator, positions, attribution), positions, centres, simulator.pitch_px(), counts_per_electron=gain
+        data,
+        _model_rate(simulator, positions, attribution),
+        positions,
+        centres,
+        simulator.pitch_px(),
+        counts_per_electron=gain,
     )
     corrected = corrected_design(design, attribution)
     document = {
@@ -232,7 +252,10 @@ def calibrate_scan(
         "noise_model": "camera gain from scan.yaml" if gain is not None else "gain estimated from the data",
         "fit": {
             "positions": [int(i) for i in subset],
-            "steps": [{"added": s.added, "chi2_per_feature": round(s.chi2 / max(problem.n_features, 1), 4)} for s in attribution.steps],
+            "steps": [
+                {"added": s.added, "chi2_per_feature": round(s.chi2 / max(problem.n_features, 1), 4)}
+                for s in attribution.steps
+            ],
             "registration": attribution.registration.to_dict(),
         },
         "before": before.to_dict(),

@@ -35,7 +35,9 @@ def scan(
     max_effects: Annotated[int, typer.Option("--max-effects", min=1, max=12, help="Effects kept at most.")] = 6,
     source_um: Annotated[
         float | None,
-        typer.Option("--source-um", min=0, help="Calibration source diameter, µm (default: scan.yaml's, else a point)."),
+        typer.Option(
+            "--source-um", min=0, help="Calibration source diameter, µm (default: scan.yaml's, else a point)."
+        ),
     ] = None,
     overwrite: OverwriteOption = False,
     as_json: JsonOption = False,
@@ -61,7 +63,12 @@ def scan(
     check_output(out, command="calibrate scan", kind="folder", inputs=[scan_dir, preset], overwrite=overwrite)
     say = (lambda message: None) if as_json else (lambda message: typer.echo(message, err=True))
     result = calibrate_scan(
-        scan_dir, design, fit_positions=fit_positions, max_effects=max_effects, source_diameter_um=source_um, progress=say
+        scan_dir,
+        design,
+        fit_positions=fit_positions,
+        max_effects=max_effects,
+        source_diameter_um=source_um,
+        progress=say,
     )
     claim_folder(out, "calibrate scan")
     report = write_calibration_report(result, out)
@@ -69,7 +76,9 @@ def scan(
     if as_json:
         print(json.dumps({k: v for k, v in doc.items() if k not in ("before", "after")}, indent=2, ensure_ascii=False))
         return
-    typer.echo(f"NMSE {doc['nmse_before']:.4g} → {doc['nmse_after']:.4g}, χ² {doc['chi2_before']:.3g} → {doc['chi2_after']:.3g}")
+    typer.echo(
+        f"NMSE {doc['nmse_before']:.4g} → {doc['nmse_after']:.4g}, χ² {doc['chi2_before']:.3g} → {doc['chi2_after']:.3g}"
+    )
     for effect in doc["effects"]:
         typer.echo(f"  {effect['name']}: {effect['parameters']} ± {effect['uncertainties']}")
     for item in doc["unexplained"]:

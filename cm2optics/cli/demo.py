@@ -52,9 +52,7 @@ def compare_baselines_command(
     seed: Annotated[int, typer.Option("--seed", help="Seed of the test set.")] = 2024,
     threads: Annotated[int, typer.Option("--threads", help="Torch threads per reconstruction.")] = 1,
     workers: Annotated[int, typer.Option("--workers", help="Local Dask workers making the test set.")] = 2,
-    runs: Annotated[
-        str | None, typer.Option("--runs", help="JSON of runs (default: lsv-fista and lsi-admm).")
-    ] = None,
+    runs: Annotated[str | None, typer.Option("--runs", help="JSON of runs (default: lsv-fista and lsi-admm).")] = None,
     build_binning: Annotated[
         int, typer.Option("--build-binning", help="If MODEL does not exist: build an analytic one at this binning.")
     ] = 4,

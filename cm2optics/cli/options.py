@@ -171,8 +171,6 @@ def parse_int_list(text: str | None, n: int | tuple[int, int] | None = None, **k
 # ----------------------------------------------------------------------------- checks
 
 
-
-
 def output_folder(
     path: Path, command: str, *, inputs: Iterable[Path | str | None] = (), overwrite: bool = False
 ) -> Path:

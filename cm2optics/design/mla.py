@@ -22,8 +22,6 @@ class Side(StrEnum):
     MINUS_Y = "-y"
 
 
-
-
 @dataclass(frozen=True)
 class MicrolensArray:
     """Square-cell array of plano-convex spherical lenslets, curved side towards the sample.

@@ -208,7 +208,12 @@ class SystemDesign:
                 "collimator's exit face (a printed spacer in a smaller gap would be thinner than a printable wall)",
             )
         seated = (
-            ("excitation_filter.width_mm", self.excitation_filter.width_mm, self.excitation_filter.length_mm, "excitation filter"),
+            (
+                "excitation_filter.width_mm",
+                self.excitation_filter.width_mm,
+                self.excitation_filter.length_mm,
+                "excitation filter",
+            ),
             ("led.package_width_mm", self.led.package_width_mm, self.led.package_length_mm, "LED package"),
         )
         for field_path, width, length, part in seated:

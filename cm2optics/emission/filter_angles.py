@@ -144,7 +144,9 @@ def excitation_beams(design: SystemDesign, samples: int = 8) -> tuple[np.ndarray
     tilt = math.radians(arr.tilt_deg)
     half_angle = excitation_half_angle_rad(design)
     width = design.collimator.footprint_mm if design.collimator is not None else design.excitation_filter.width_mm
-    height = first_order.object_plane_z_mm(design) - (arr.offset_mm / math.tan(tilt) if tilt > 1e-9 else first_order.working_distance_mm(design))
+    height = first_order.object_plane_z_mm(design) - (
+        arr.offset_mm / math.tan(tilt) if tilt > 1e-9 else first_order.working_distance_mm(design)
+    )
 
     u = (np.arange(samples) + 0.5) / samples - 0.5
     face_a, face_b = (g.ravel() * width for g in np.meshgrid(u, u))
@@ -213,9 +215,7 @@ def _cells(optics: EmissionOptics, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     """Index of the lenslet (full or partial cell) whose clear aperture holds each (x, y), mm;
     the nearest vertex where none does."""
     cells = optics.lenslets
-    index = np.argmin(
-        [(x - c.vertex_x_mm) ** 2 + (y - c.vertex_y_mm) ** 2 for c in cells], axis=0
-    )
+    index = np.argmin([(x - c.vertex_x_mm) ** 2 + (y - c.vertex_y_mm) ** 2 for c in cells], axis=0)
     for k, c in enumerate(cells):
         index[(x >= c.x0_mm) & (x <= c.x1_mm) & (y >= c.y0_mm) & (y <= c.y1_mm)] = k
     return index

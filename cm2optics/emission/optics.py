@@ -208,7 +208,9 @@ def emission_optics(design: SystemDesign) -> EmissionOptics:
             f"opening (half-width {design.aperture_mask.opening_mm / 2:g} mm)"
         )
     if not math.isfinite(first_order.object_plane_z_mm(design)):
-        raise ValueError(f"the design has no finite focal plane (object_plane_z_mm = {first_order.object_plane_z_mm(design)})")
+        raise ValueError(
+            f"the design has no finite focal plane (object_plane_z_mm = {first_order.object_plane_z_mm(design)})"
+        )
     return EmissionOptics(
         filter=Plate(z_filter, z_filter + filt.thickness_mm, filt.width_mm / 2, filt.length_mm / 2, filt.material),
         mask_z0_mm=design.mask_z_mm,

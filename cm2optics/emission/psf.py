@@ -102,14 +102,16 @@ class SensorGrid:
         """x (mm, device frame) of the centre of binned column ``col``."""
         b = self.binning
         return (
-            (np.asarray(col, dtype=float) * b + (b - 1) / 2 - (self.width_px - 1) / 2) * self.pixel_um + self.offset_x_um
+            (np.asarray(col, dtype=float) * b + (b - 1) / 2 - (self.width_px - 1) / 2) * self.pixel_um
+            + self.offset_x_um
         ) / 1000.0
 
     def y_mm(self, row: np.ndarray | float) -> np.ndarray:
         """y (mm, device frame) of the centre of binned row ``row``."""
         b = self.binning
         return (
-            (np.asarray(row, dtype=float) * b + (b - 1) / 2 - (self.height_px - 1) / 2) * self.pixel_um + self.offset_y_um
+            (np.asarray(row, dtype=float) * b + (b - 1) / 2 - (self.height_px - 1) / 2) * self.pixel_um
+            + self.offset_y_um
         ) / 1000.0
 
     def col(self, x_mm: np.ndarray | float) -> np.ndarray:
@@ -779,7 +781,9 @@ class EmissionModel:
         diameter = self.source.diameter_um if diameter_um is None else float(diameter_um)
         if not (math.isfinite(diameter) and 0 <= diameter <= 200):
             raise ValueError(f"diameter_um = {diameter_um!r}: must lie within 0–200 µm")
-        kernel = _disc_kernel(abs(first_order.magnification(self.design)) * diameter / 1000.0, self.grid.pitch_mm / self._q)
+        kernel = _disc_kernel(
+            abs(first_order.magnification(self.design)) * diameter / 1000.0, self.grid.pitch_mm / self._q
+        )
         foci = []
         for k, window in windows.items():
             own = [p for p in pairs if p.lenslet == k]

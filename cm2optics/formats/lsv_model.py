@@ -118,7 +118,9 @@ def read_lsv_model(path: str | Path) -> dict[str, Any]:
         if attrs.get("format") != FORMAT:
             raise ModelError(f"{path}: not a cm2optics LSV model (format = {attrs.get('format')!r})")
         if int(attrs.get("version", 0)) > VERSION:
-            raise ModelError(f"{path}: model version {int(attrs['version'])} is newer than this cm2optics reads ({VERSION})")
+            raise ModelError(
+                f"{path}: model version {int(attrs['version'])} is newer than this cm2optics reads ({VERSION})"
+            )
         fields: dict[str, Any] = {name: arrays[where] for name, where in _ARRAYS.items()}
         fields["geometry"] = {k.split("/", 1)[1]: v for k, v in arrays.items() if k.startswith("geometry/")}
         fields["sensor_shape"] = tuple(int(v) for v in attrs["sensor_shape"])

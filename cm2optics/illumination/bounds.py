@@ -74,7 +74,9 @@ def etendue_bound(
     n1 = pose[:3, 2]
     radius = design.volume.field_mm / 2
     rho, phi = radius * np.sqrt(rng.random(samples)), 2 * np.pi * rng.random(samples)
-    p2 = np.column_stack([rho * np.cos(phi), rho * np.sin(phi), np.full(samples, first_order.object_plane_z_mm(design))])
+    p2 = np.column_stack(
+        [rho * np.cos(phi), rho * np.sin(phi), np.full(samples, first_order.object_plane_z_mm(design))]
+    )
     n2 = np.array([0.0, 0.0, -1.0])
     v = p2 - p1
     r2 = np.einsum("ij,ij->i", v, v)

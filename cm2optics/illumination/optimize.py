@@ -262,8 +262,7 @@ def _sweep(
         for round_index in range(rounds + 1):
             points = batches[-1]
             futures = [
-                client.submit(evaluate_candidate, base, p, rays, seed + 1, max_cv, threads, pure=False)
-                for p in points
+                client.submit(evaluate_candidate, base, p, rays, seed + 1, max_cv, threads, pure=False) for p in points
             ]
             for future in futures:
                 candidates.append(future.result())

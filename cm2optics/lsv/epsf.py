@@ -32,9 +32,9 @@ import torch
 from cm2optics.lsv.kernels import TAPS, sample_window, shift_weights, split_shift
 
 if TYPE_CHECKING:  # pragma: no cover
+    from cm2optics.formats.scan import ScanIndex
     from cm2optics.lsv.model import LSVModel
     from cm2optics.lsv.preprocess import Geometry
-    from cm2optics.formats.scan import ScanIndex
 
 __all__ = [
     "EPSF_FILE",
@@ -82,8 +82,8 @@ def epsf_crops(
     each image's background (as :func:`~cm2optics.lsv.preprocess.prepared_image`)."""
     import h5py
 
-    from cm2optics.lsv.preprocess import image_background
     from cm2optics.formats.scan import ScanError
+    from cm2optics.lsv.preprocess import image_background
 
     path = Path(index.folder) / EPSF_FILE
     if not path.is_file():

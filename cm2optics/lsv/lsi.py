@@ -327,7 +327,6 @@ def lsi_from_model(model: Any, grid: VolumeGrid | None = None, *, device: str = 
     return DepthwiseConvOperator(patches, origins, grid, (H, W), flip, centre_focus, device=device, meta=meta)
 
 
-
 def lsi_model(model: LSVModel) -> LSVModel:
     """The depth-wise LSI baseline made from ``model``'s on-axis PSF stack."""
     x0, y0 = model.provenance.get("geometry", {}).get("axis_position_mm", (0.0, 0.0))

@@ -87,6 +87,8 @@ def require_plausible(design: SystemDesign, emission_band_nm: tuple[float, float
     problems = check_design(design, emission_band_nm)
     if problems:
         first = problems[0]
-        more = f" (and {len(problems) - 1} more: {', '.join(p.field for p in problems[1:])})" if len(problems) > 1 else ""
+        more = (
+            f" (and {len(problems) - 1} more: {', '.join(p.field for p in problems[1:])})" if len(problems) > 1 else ""
+        )
         raise DesignError(first.field, first.value, first.allowed + more)
     return design

@@ -292,7 +292,9 @@ def admm(
 _LSI_SETUP: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
-def _lsi_setup(operator: DepthwiseConvOperator, nzp: int, mu: tuple[float, float, float], weights: tuple, use_tv: bool) -> tuple:
+def _lsi_setup(
+    operator: DepthwiseConvOperator, nzp: int, mu: tuple[float, float, float], weights: tuple, use_tv: bool
+) -> tuple:
     """K̂ (z-padded), a = F_z conj(K̂), Λ = μ_tv·|D̂|² + μ_w, a/Λ, 1 + μ_v·aᴴΛ⁻¹a and max Σ|K̂|²."""
     key = (nzp, mu, weights, use_tv)
     cached = _LSI_SETUP.get(operator)

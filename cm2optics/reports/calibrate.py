@@ -54,8 +54,13 @@ def _field_maps(before: ResidualAnalysis, after: ResidualAnalysis, path: Path) -
         ratio = np.nanmean(np.where(used[:, None], analysis.energy_ratio, np.nan), axis=1)
         shift = np.nanmean(np.linalg.norm(analysis.centroid_error_px, axis=-1), axis=1)
         points = ax.scatter(
-            analysis.positions_mm[used, 0], analysis.positions_mm[used, 1], c=ratio[used], s=20 + 60 * np.nan_to_num(shift[used]),
-            cmap="coolwarm", vmin=0.8, vmax=1.2,
+            analysis.positions_mm[used, 0],
+            analysis.positions_mm[used, 1],
+            c=ratio[used],
+            s=20 + 60 * np.nan_to_num(shift[used]),
+            cmap="coolwarm",
+            vmin=0.8,
+            vmax=1.2,
         )
         ax.set_title(f"{label}: energy ratio data/model (size: centroid error)", fontsize=9)
         ax.set_xlabel("x (mm)")
@@ -88,7 +93,10 @@ def write_calibration_report(result: ScanCalibration, folder: str | Path) -> Pat
     if doc["unexplained"]:
         report.table(
             ["lenslets", "field (mm)", "depths (mm)", "energy fraction", "description"],
-            [[u["lenslets"], u["field_mm"], u["depths_mm"], u["energy_fraction"], u["description"]] for u in doc["unexplained"]],
+            [
+                [u["lenslets"], u["field_mm"], u["depths_mm"], u["energy_fraction"], u["description"]]
+                for u in doc["unexplained"]
+            ],
         )
     else:
         report.paragraph("None: the corrected model explains the data to the noise.")

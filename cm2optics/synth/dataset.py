@@ -133,7 +133,9 @@ def read_sample(path: str | Path, *, verify: bool = True) -> dict[str, Any]:
             if f.attrs.get("format") != SAMPLE_FORMAT:
                 raise DatasetError(f"{path}: not a synthetic sample (format = {f.attrs.get('format')!r})")
             out: dict[str, Any] = {k: (json.loads(v) if k in ("grid", "config") else v) for k, v in f.attrs.items()}
-            arrays = {name: f[name][()] for name in ("emitters", "measurement", "views", "demixed", "volume") if name in f}
+            arrays = {
+                name: f[name][()] for name in ("emitters", "measurement", "views", "demixed", "volume") if name in f
+            }
             if "patches" in f:
                 arrays |= {f"patches/{k}": f["patches"][k][()] for k in f["patches"]}
     except OSError as error:
@@ -188,7 +190,11 @@ def _check_resume(out_dir: Path, manifest: dict[str, Any]) -> None:
             continue
         if old[field] != new[field]:
             if field == "config":
-                changed = sorted(k for k in set(old["config"] or {}) | set(new["config"]) if (old["config"] or {}).get(k) != new["config"].get(k))
+                changed = sorted(
+                    k
+                    for k in set(old["config"] or {}) | set(new["config"])
+                    if (old["config"] or {}).get(k) != new["config"].get(k)
+                )
                 what = f"config ({', '.join(changed)})"
             else:
                 what = f"{field} ({old[field]!r} there, {new[field]!r} now)"

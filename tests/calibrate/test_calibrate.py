@@ -77,7 +77,9 @@ def test_registration_recovers_a_frame_offset_flux_and_dark():
 
     rows, cols = np.mgrid[0:96, 0:128]
     centres = [(30.3, 40.7), (60.1, 90.2), (48.0, 20.5)]
-    rate = np.stack([np.exp(-((rows - r) ** 2 + (cols - c) ** 2) / (2 * 3.0**2)) for r, c in centres]).astype(np.float32)
+    rate = np.stack([np.exp(-((rows - r) ** 2 + (cols - c) ** 2) / (2 * 3.0**2)) for r, c in centres]).astype(
+        np.float32
+    )
     exposure = np.array([2.0, 3.0, 4.0])
     truth = shift_images(rate, (0.37, -0.61)) * 1.7 * exposure[:, None, None] + 55.0
     registration, model = register(truth, exposure, rate, np.ones(truth.shape, bool))

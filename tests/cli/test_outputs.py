@@ -134,7 +134,9 @@ def test_overwrite_replaces_an_earlier_file(tmp_path):
     from cm2optics.design import load_preset
     from cm2optics.lsv.toy import analytic_lsv_model_file as analytic_model
 
-    model = analytic_model(tmp_path / "m.lsv.h5", load_preset("cm2-v2"), binning=8, rank=4, lateral_nodes=7, depth_nodes=3)
+    model = analytic_model(
+        tmp_path / "m.lsv.h5", load_preset("cm2-v2"), binning=8, rank=4, lateral_nodes=7, depth_nodes=3
+    )
     emitters = tmp_path / "e.csv"
     emitters.write_text("x_um,y_um,z_um,diameter_um,intensity\n0,0,0,10,1\n")
     out = tmp_path / "meas.tif"

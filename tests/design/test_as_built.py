@@ -25,7 +25,9 @@ def test_absent_or_default_section_leaves_the_design_unchanged(v2: SystemDesign)
     assert v2.as_built == AsBuilt()
     assert "as_built" not in v2.to_dict()
     assert v2.parameter_hash() == _hash_without_as_built(v2)
-    explicit = dataclasses.replace(v2, as_built=AsBuilt(lenslet_transmission=(1.0,) * 9, lenslet_decenter_mm=((0.0, 0.0),) * 9))
+    explicit = dataclasses.replace(
+        v2, as_built=AsBuilt(lenslet_transmission=(1.0,) * 9, lenslet_decenter_mm=((0.0, 0.0),) * 9)
+    )
     assert explicit.parameter_hash() == v2.parameter_hash()
     data = v2.to_dict()
     data["as_built"] = {"mla_rotation_deg": 0.0, "stray_light_width_um": 200}
@@ -47,7 +49,11 @@ def test_non_default_values_change_the_hash_and_round_trip(v2: SystemDesign, tmp
     assert built.parameter_hash() != v2.parameter_hash()
     section = built.to_dict()["as_built"]
     assert set(section) == {
-        "mla_rotation_deg", "mla_decenter_x_mm", "lenslet_transmission", "lenslet_decenter_mm", "stray_light_fraction"
+        "mla_rotation_deg",
+        "mla_decenter_x_mm",
+        "lenslet_transmission",
+        "lenslet_decenter_mm",
+        "stray_light_fraction",
     }
     path = tmp_path / "built.yaml"
     built.save(path)

@@ -17,10 +17,10 @@ from cm2optics.design import (
     load_design,
     load_preset,
 )
+from cm2optics.design.materials import Material, refractive_index
 from cm2optics.optics import first_order
 from cm2optics.optics.first_order import chief_ray_magnification
 from cm2optics.optics.focus import on_axis_wavefront_rms_waves
-from cm2optics.design.materials import Material, refractive_index
 
 
 def test_presets_ship_and_load():
@@ -77,7 +77,9 @@ def test_paraxial_conjugates_match_thick_lens_formulas(preset):
     design = load_preset(preset)
     s_i, plate, f = _thick_lens(design)
     s_o = 1 / (1 / f - 1 / s_i)  # from the front principal plane, at the vertex
-    assert first_order.paraxial_object_plane_z_mm(design) == pytest.approx(design.mla_vertex_z_mm + s_o + plate, rel=1e-9)
+    assert first_order.paraxial_object_plane_z_mm(design) == pytest.approx(
+        design.mla_vertex_z_mm + s_o + plate, rel=1e-9
+    )
     assert first_order.paraxial_magnification(design) == pytest.approx(s_i / s_o, rel=1e-9)
 
 
@@ -87,10 +89,16 @@ def test_chief_ray_magnification_matches_the_thick_lens(preset):
     # rear one: a source plane at reduced distance s_o images its chief rays with |m| = s_i / s_o.
     design = load_preset(preset)
     s_i, plate, _ = _thick_lens(design)
-    for height in (first_order.object_plane_z_mm(design), first_order.paraxial_object_plane_z_mm(design), first_order.object_plane_z_mm(design) + 0.5):
+    for height in (
+        first_order.object_plane_z_mm(design),
+        first_order.paraxial_object_plane_z_mm(design),
+        first_order.object_plane_z_mm(design) + 0.5,
+    ):
         s_o = height - design.mla_vertex_z_mm - plate
         assert chief_ray_magnification(design, height) == pytest.approx(s_i / s_o, rel=1e-9)
-    assert first_order.magnification(design) == pytest.approx(s_i / (first_order.working_distance_mm(design) - plate), rel=1e-9)
+    assert first_order.magnification(design) == pytest.approx(
+        s_i / (first_order.working_distance_mm(design) - plate), rel=1e-9
+    )
     assert chief_ray_magnification(design, first_order.paraxial_object_plane_z_mm(design)) == pytest.approx(
         first_order.paraxial_magnification(design), rel=1e-9
     )

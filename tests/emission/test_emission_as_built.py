@@ -53,7 +53,9 @@ def test_rotation_and_pitch_move_the_lattice(v2: SystemDesign, nominal):
     scaled = _foci(v2.with_changes({"as_built.lenslet_pitch_delta_mm": delta}))
     scale = (v2.mla.pitch_mm + delta) / v2.mla.pitch_mm
     for key in ((1, 0), (0, 0), (2, 2)):
-        np.testing.assert_allclose(scaled[key].ray_centroid_mm, scale * np.array(nominal[key].ray_centroid_mm), atol=1e-3)
+        np.testing.assert_allclose(
+            scaled[key].ray_centroid_mm, scale * np.array(nominal[key].ray_centroid_mm), atol=1e-3
+        )
 
 
 def test_transmission_scales_one_focus_and_sensor_offset_shifts_the_grid(v2: SystemDesign, nominal):
@@ -62,7 +64,9 @@ def test_transmission_scales_one_focus_and_sensor_offset_shifts_the_grid(v2: Sys
         expected = 0.4 if key == (1, 2) else 1.0
         assert math.isclose(dimmed[key].energy / focus.energy, expected, rel_tol=1e-6)
     offset_um = (38.4, -19.2)  # the sensor moves +x, −y: the image moves −2, +1 binned pixels (19.2 µm)
-    shifted = _foci(v2.with_changes({"as_built.sensor_offset_x_um": offset_um[0], "as_built.sensor_offset_y_um": offset_um[1]}))
+    shifted = _foci(
+        v2.with_changes({"as_built.sensor_offset_x_um": offset_um[0], "as_built.sensor_offset_y_um": offset_um[1]})
+    )
     pitch_um = v2.sensor.pixel_um * SETTINGS.binning
     for key in ((1, 1), (0, 2)):
         (r0, c0), (r1, c1) = nominal[key].centroid_px(), shifted[key].centroid_px()
@@ -74,7 +78,9 @@ def test_transmission_scales_one_focus_and_sensor_offset_shifts_the_grid(v2: Sys
 def test_narrower_vignetting_aperture_cuts_off_axis_light(v2: SystemDesign):
     position = (2.5, 0.0, 0.0)
     nominal = sum(f.energy for f in _foci(v2, position).values())
-    narrower = sum(f.energy for f in _foci(v2.with_changes({"as_built.vignetting_radius_delta_mm": -0.4}), position).values())
+    narrower = sum(
+        f.energy for f in _foci(v2.with_changes({"as_built.vignetting_radius_delta_mm": -0.4}), position).values()
+    )
     assert narrower < 0.95 * nominal
 
 

@@ -9,8 +9,8 @@ import yaml
 from cm2optics.emission.psf import EmissionModel, PSFSettings, SensorGrid
 from cm2optics.emission.scan import ScanSettings, simulate_scan
 from cm2optics.emission.source import fluorescent_bead
-from cm2optics.optics import first_order
 from cm2optics.formats.scan import read_scan
+from cm2optics.optics import first_order
 
 
 @pytest.fixture(scope="module")
@@ -30,7 +30,9 @@ def test_a_source_moved_plus_x_or_y_moves_every_focus_the_inverted_way(model, v2
     b[axis] = step
     before, after = _centres(model, a), _centres(model, b)
     assert set(before) == set(after) and len(before) == 9
-    expected_px = -first_order.magnification(v2) * step * 1000 / (v2.sensor.pixel_um * model.grid.binning)  # inverted image
+    expected_px = (
+        -first_order.magnification(v2) * step * 1000 / (v2.sensor.pixel_um * model.grid.binning)
+    )  # inverted image
     for k in before:
         shift = after[k] - before[k]  # (row, col)
         along, across = (shift[1], shift[0]) if axis == 0 else (shift[0], shift[1])

@@ -202,5 +202,5 @@ def test_energy_is_conserved_from_rays_to_pixels(coarse):
 def test_detection_probability_is_physical(coarse):
     total = sum(f.energy for f in coarse.foci((0.0, 0.0, 0.0)))
     # nine lenslets of ≈ 0.0094 sr each at ≈ 9.5 mm, isotropic into 2π, × filters × QE (≈ 0.26)
-    solid = 9 * (1.0 / first_order.working_distance_mm(coarse.design)**2)
+    solid = 9 * (1.0 / first_order.working_distance_mm(coarse.design) ** 2)
     assert total == pytest.approx(solid / (2 * math.pi) * 0.26, rel=0.25)

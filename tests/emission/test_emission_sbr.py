@@ -8,9 +8,6 @@ import math
 import numpy as np
 import pytest
 
-from cm2optics.optics import first_order
-from cm2optics.spectra.absorption import fresnel_transmittance
-from cm2optics.spectra.chain import emission_chain, excitation_spectrum
 from cm2optics.emission.filter_angles import (
     Emitter,
     Sources,
@@ -19,8 +16,11 @@ from cm2optics.emission.filter_angles import (
     specular_rays,
     trace_from_sources,
 )
-from cm2optics.spectra.library import led_spectrum
 from cm2optics.emission.sbr import Sample, signal_and_background
+from cm2optics.optics import first_order
+from cm2optics.spectra.absorption import fresnel_transmittance
+from cm2optics.spectra.chain import emission_chain, excitation_spectrum
+from cm2optics.spectra.library import led_spectrum
 
 COARSE = {"field_step_mm": 0.5, "pupil_samples": 16, "beam_samples": 8}
 
@@ -149,10 +149,10 @@ def test_diced_array_partial_cells_count_as_in_the_psf_tracer(v2):
     with every cell of lens_cells, so each ray lands exactly when some lenslet of the PSF tracer
     passes it, at the same angles."""
     from cm2optics.design.materials import refractive_index
+    from cm2optics.emission.filter_angles import trace_rays
     from cm2optics.emission.optics import emission_optics
     from cm2optics.emission.trace import RayBatch
     from cm2optics.emission.trace import trace_rays as trace_emission
-    from cm2optics.emission.filter_angles import trace_rays
 
     diced = v2.with_changes({"mla.partial_border_mm": 0.3, "mla.partial_sides": ["+x", "-x", "+y", "-y"]})
     source = np.array([1.2, 0.4, first_order.object_plane_z_mm(diced)])
@@ -167,7 +167,10 @@ def test_diced_array_partial_cells_count_as_in_the_psf_tracer(v2):
     optics = emission_optics(diced)
     lam = diced.imaging.design_wavelength_nm
     n = len(d)
-    indices = [np.full(n, refractive_index(part.material, lam)) for part in (diced.emission_filter, diced.mla, diced.absorption_filter)]
+    indices = [
+        np.full(n, refractive_index(part.material, lam))
+        for part in (diced.emission_filter, diced.mla, diced.absorption_filter)
+    ]
     passed, aoi = np.zeros(n, bool), np.zeros(n)
     for k in range(len(optics.lenslets)):
         traced = trace_emission(optics, RayBatch(origins, u, v, np.full(n, k), *indices), engine="numpy")

@@ -11,15 +11,15 @@ import yaml
 from typer.testing import CliRunner
 
 import cm2optics.emission.scan as scan_module
-from cm2optics.emission.image import render_emitters
-from cm2optics.cli.psf import psf_app
-from cm2optics.emission.psf import EmissionModel, PSFSettings, SensorGrid
 from cm2optics.cli.options import parse_int_list
+from cm2optics.cli.psf import psf_app
+from cm2optics.emission.image import render_emitters
+from cm2optics.emission.psf import EmissionModel, PSFSettings, SensorGrid
 from cm2optics.emission.scan import ScanSettings, calibration_grid_mm, read_positions_csv, simulate_scan
 from cm2optics.emission.source import fluorescent_bead
-from cm2optics.optics import first_order
 from cm2optics.formats.emitters import Emitters, read_emitters
 from cm2optics.formats.scan import read_scan
+from cm2optics.optics import first_order
 
 runner = CliRunner()
 FAST = ScanSettings(psf=PSFSettings(binning=8), source=fluorescent_bead(5.0))

@@ -8,13 +8,13 @@ import math
 import numpy as np
 import pytest
 
-from cm2optics.optics.backend import is_jit
+from cm2optics.design.materials import refractive_index
 from cm2optics.emission.optics import emission_optics, housing_bores, lenslets
 from cm2optics.emission.source import AngularProfile, PointSource, ProfileKind
 from cm2optics.emission.spectral import spectral_bands
 from cm2optics.emission.trace import RayBatch, trace_rays
 from cm2optics.emission.wavefront import debye_fft, fft_size, fit_pupil_map, mft
-from cm2optics.design.materials import refractive_index
+from cm2optics.optics.backend import is_jit
 
 
 @pytest.fixture(scope="module")

@@ -14,7 +14,14 @@ from cm2optics.formats.operator import VolumeOperator
 from cm2optics.formats.volume import VolumeError, VolumeGrid, read_volume, write_volume
 from cm2optics.lsv.operators import fast_length
 
-SIDECAR = {"pixel_um": 19.2, "bit_depth": 12, "dark_level": 0.0, "counts_per_unit": 100.0, "noise": None, "generator": "test"}
+SIDECAR = {
+    "pixel_um": 19.2,
+    "bit_depth": 12,
+    "dark_level": 0.0,
+    "counts_per_unit": 100.0,
+    "noise": None,
+    "generator": "test",
+}
 
 
 def test_emitters_any_column_order_comments_and_errors_with_lines(tmp_path):
@@ -84,7 +91,11 @@ def test_lsv_model_file_hdf5_and_npz_agree(tmp_path, v2):
     from cm2optics.lsv.toy import AnalyticCM2, analytic_lsv_model
 
     model = analytic_lsv_model(
-        AnalyticCM2.from_design(v2, binning=8), np.linspace(-1, 1, 3), np.linspace(-1, 1, 3), np.array([0.0, 0.2]), rank=3
+        AnalyticCM2.from_design(v2, binning=8),
+        np.linspace(-1, 1, 3),
+        np.linspace(-1, 1, 3),
+        np.array([0.0, 0.2]),
+        rank=3,
     )
     for name in ("m.h5", "m.npz"):
         path = model.save(tmp_path / name)

@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from cm2optics.optics.collimator import collimator_profile
-from cm2optics.optics.collimator_shaping import shaped_profile
 from cm2optics.design import DesignError, load_design
 from cm2optics.illumination.bounds import etendue_bound, uniform_beam_bound
 from cm2optics.illumination.revolve import revolve_profile
+from cm2optics.optics.collimator import collimator_profile
+from cm2optics.optics.collimator_shaping import shaped_profile
 
 
 def _shaped(design, **fields):

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import trimesh
 
+from cm2optics.design.materials import Material
 from cm2optics.illumination.excitation import TransmissionTable
 from cm2optics.illumination.geometry import (
     Absorber,
@@ -23,7 +24,6 @@ from cm2optics.illumination.metrics import figures_of_merit
 from cm2optics.illumination.reference_numpy import sample_tea_float32, trace_rays_numpy
 from cm2optics.illumination.source import lambertian_profile, led_source, sample_led_rays
 from cm2optics.illumination.tracer import EmittedBatch, Status, emit_rays, filter_table, trace, trace_rays
-from cm2optics.design.materials import Material
 
 NO_FILTER = TransmissionTable(0.0, 1.0, math.pi / 2, np.ones((2, 2)))
 

@@ -12,10 +12,10 @@ import typer
 import yaml
 from typer.testing import CliRunner
 
+from cm2optics.cli.lsv import lsv_app, simulate_command
 from cm2optics.formats.emitters import Emitters, write_emitters
 from cm2optics.formats.volume import write_volume
 from cm2optics.lsv.toy import AnalyticCM2, write_analytic_scan
-from cm2optics.cli.lsv import lsv_app, simulate_command
 from cm2optics.reports.lsv import FIGURES
 
 app = typer.Typer()
@@ -71,7 +71,19 @@ def test_validate_json_on_the_calibration_scan(model, scan):
     assert set(data["nmse_subsampled"]) == {"lateral_2x", "axial_2x"}
     with pytest.warns(UserWarning) as record:
         result = runner.invoke(
-            app, ["lsv", "validate", str(path), str(scan), "--json", "--heldout", "999", "--ranks", "4,999", "--no-subsample"]
+            app,
+            [
+                "lsv",
+                "validate",
+                str(path),
+                str(scan),
+                "--json",
+                "--heldout",
+                "999",
+                "--ranks",
+                "4,999",
+                "--no-subsample",
+            ],
         )
     assert result.exit_code == 0, result.output
     messages = " | ".join(str(w.message) for w in record)
@@ -146,8 +158,12 @@ def test_simulate_warns_about_emitters_outside_the_calibration(model, tmp_path):
     path, _ = model
     far = Emitters(*(np.array(v) for v in ([0.0, 0.0], [0.0, 0.0], [0.0, 3000.0], [10.0, 10.0], [1.0, 1.0])))
     csv = write_emitters(tmp_path / "far.csv", far)
-    with pytest.warns(UserWarning, match=r"1 of 2 emitters lie outside the model's calibrated range \(x -3…3, y -3…3, z -0.3…0.3 mm\)"):
-        result = runner.invoke(app, ["simulate", "--model", str(path), "--emitters", str(csv), "--out", str(tmp_path / "m.tif")])
+    with pytest.warns(
+        UserWarning, match=r"1 of 2 emitters lie outside the model's calibrated range \(x -3…3, y -3…3, z -0.3…0.3 mm\)"
+    ):
+        result = runner.invoke(
+            app, ["simulate", "--model", str(path), "--emitters", str(csv), "--out", str(tmp_path / "m.tif")]
+        )
     assert result.exit_code == 0, result.output
 
 

@@ -38,7 +38,9 @@ def built(v2, tmp_path_factory):
 
 
 def _traced(design, x_mm: float, y_mm: float, z_mm: float) -> np.ndarray:
-    emitters = Emitters.from_positions_um(np.array([[x_mm, y_mm, z_mm]]) * 1000.0, np.array([DIAMETER_UM]), np.array([1.0]))
+    emitters = Emitters.from_positions_um(
+        np.array([[x_mm, y_mm, z_mm]]) * 1000.0, np.array([DIAMETER_UM]), np.array([1.0])
+    )
     return render_emitters(design, emitters, PSFSettings(binning=BINNING))
 
 
@@ -50,7 +52,9 @@ def _model(model, x_mm: float, y_mm: float, z_mm: float) -> np.ndarray:
 def test_lsv_beats_the_lsi_baseline_off_axis_against_traced_emitters(built, v2):
     model = built.model
     lsi = lsi_model(model)
-    assert model.provenance["geometry"]["magnification_at_focus"] == pytest.approx(abs(first_order.magnification(v2)), rel=0.03)
+    assert model.provenance["geometry"]["magnification_at_focus"] == pytest.approx(
+        abs(first_order.magnification(v2)), rel=0.03
+    )
     # the model's unit: the total of the in-focus on-axis source's image
     reference = _traced(v2, 0.0, 0.0, 0.0)
     unit = reference.sum()

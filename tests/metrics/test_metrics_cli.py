@@ -5,14 +5,14 @@ from __future__ import annotations
 import json
 
 import numpy as np
-import tifffile
 import pytest
+import tifffile
 import typer
 from typer.testing import CliRunner
 
+from cm2optics.cli.evaluate import evaluate_command
 from cm2optics.formats.emitters import Emitters, write_emitters
 from cm2optics.formats.volume import VolumeGrid, write_volume
-from cm2optics.cli.evaluate import evaluate_command
 
 GRID = VolumeGrid((11, 40, 40), (10.0, 4.15, 4.15))
 KEYS = ("recall", "precision", "f1", "jaccard", "rmse_lateral_um", "rmse_axial_um", "n_true", "n_detected")

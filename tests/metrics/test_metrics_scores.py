@@ -7,6 +7,8 @@ import math
 import numpy as np
 import pytest
 
+from cm2optics.formats.emitters import Emitters
+from cm2optics.formats.volume import VolumeGrid
 from cm2optics.metrics import (
     MatchOptions,
     breakdown,
@@ -20,8 +22,6 @@ from cm2optics.metrics import (
     scores,
     volume_emitters,
 )
-from cm2optics.formats.emitters import Emitters
-from cm2optics.formats.volume import VolumeGrid
 
 GRID = VolumeGrid((21, 41, 41), (10.0, 4.0, 4.0))
 

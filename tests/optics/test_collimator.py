@@ -12,11 +12,11 @@ import numpy as np
 import pytest
 import trimesh
 
-from cm2optics.optics import collimator as collimator_module
 from cm2optics.cad.collimator import VERTEX_FLAT_SAG_MM, build_collimator, compare_with_reference
-from cm2optics.optics.collimator import Surface, collimator_profile, profile_from_parameters, trace_meridional
 from cm2optics.design import Collimator, DesignError, load_preset
 from cm2optics.design.materials import Material, refractive_index
+from cm2optics.optics import collimator as collimator_module
+from cm2optics.optics.collimator import Surface, collimator_profile, profile_from_parameters, trace_meridional
 
 REFERENCE = Path(__file__).resolve().parents[2].parent / "shared/reference/cm2-v2"
 

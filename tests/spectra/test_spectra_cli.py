@@ -11,9 +11,9 @@ import typer
 from typer.testing import CliRunner
 
 from cm2optics.cli.spectra import spectra_app
+from cm2optics.reports.spectra import FIGURES
 from cm2optics.spectra.fit import band_edges_nm, predict_edges_nm
 from cm2optics.spectra.interference import InterferenceBandpass
-from cm2optics.reports.spectra import FIGURES
 
 app = typer.Typer()
 app.add_typer(spectra_app, name="spectra")

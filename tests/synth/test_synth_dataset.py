@@ -214,7 +214,8 @@ def test_cli_synth_errors_are_one_line(toy_file, tmp_path):
     )
     line = _one_line_error(
         runner.invoke(
-            _app(), ["synth", "--model", str(toy_file), "--out", str(tmp_path / "set"), "--noise", "loud", "--workers", "0"]
+            _app(),
+            ["synth", "--model", str(toy_file), "--out", str(tmp_path / "set"), "--noise", "loud", "--workers", "0"],
         )
     )
     assert "noise" in line

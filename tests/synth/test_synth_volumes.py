@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from cm2optics.design import load_preset
-from cm2optics.optics import first_order
 from cm2optics.formats.emitters import Emitters
 from cm2optics.formats.volume import VolumeGrid
+from cm2optics.optics import first_order
 from cm2optics.synth import SynthConfig, add_noise, rasterize_balls, rasterize_balls_naive, sample_emitters, sample_rng
 from cm2optics.synth.noise import noise_variance
 
