@@ -230,7 +230,7 @@ class Problem:
         return self.space.features(self.model_counts(state), self.registration.dark_level)
 
     def chi2(self, f: np.ndarray) -> float:
-        r = ((self.space.data - f) / self.space.sigma)[self.use]
+        r = (self.space.data[self.use] - f[self.use]) / self.space.sigma[self.use]
         return float(np.sum(r[np.isfinite(r)] ** 2))
 
     @property
@@ -400,7 +400,8 @@ def attribute(problem: Problem, *, max_effects: int = 6, progress: Progress | No
         if key != "nuisance":
             uncertainties[key][name] = float(s)
     final = problem.features(state)
-    residual = (problem.space.data - final) / problem.space.sigma
+    with np.errstate(invalid="ignore", divide="ignore"):
+        residual = (problem.space.data - final) / problem.space.sigma
     registration = Registration(
         (float(state.nuisance[0]), float(state.nuisance[1])), float(state.nuisance[2]), float(state.nuisance[3])
     )
