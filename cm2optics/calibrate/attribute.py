@@ -256,7 +256,8 @@ def _columns(problem: Problem, state: State, params: list[tuple[str, str]], base
             effect = _effect(problem, key)
             parameter = next(p for p in effect.parameters if p.name == name)
             values = trial.values.setdefault(key, effect.defaults())
-            h = parameter.step
+            h = parameter.step  # a step across the range's edge goes the other way
+            h = -h if not parameter.low <= values[name] + h <= parameter.high else h
             values[name] = values[name] + h
         cols.append((problem.features(trial) - base) / h)
     return np.stack(cols, axis=1) if cols else np.zeros((len(base), 0))

@@ -136,3 +136,15 @@ def test_an_undeclared_rotation_is_named_and_measured(simulator, positions, gain
     assert result.effects["mla_rotation"]["angle_deg"] == pytest.approx(0.4, abs=0.05)
     assert result.uncertainties["mla_rotation"]["angle_deg"] < 0.05
     assert result.chi2_before > 2 and result.chi2_after < 1.2
+
+
+def test_a_derivative_at_the_edge_of_a_range_steps_inward(simulator, positions):
+    """A parameter at its upper bound is differentiated backwards, never outside its range."""
+    from cm2optics.calibrate.attribute import _columns
+
+    counts, exposure = measured(simulator, positions)
+    problem = Problem(simulator, counts, exposure, positions, np.ones(counts.shape, bool), library(9), 1.0)
+    state = problem.start()
+    state.values["lenslet_transmission[3]"] = {"transmission": 1.5}
+    column = _columns(problem, state, [("lenslet_transmission[3]", "transmission")], problem.features(state))
+    assert np.isfinite(column).any() and np.nanmax(np.abs(column)) > 0
