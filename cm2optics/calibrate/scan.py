@@ -64,16 +64,19 @@ def _check_scan(scan: PSFScan, design: SystemDesign) -> None:
         )
 
 
-def _check_magnification(before: ResidualAnalysis, pitch_px: float) -> None:
+def _spread_px(centroids: np.ndarray) -> float:
+    """Median distance (px) of the foci from their images' mean focus position."""
+    return float(np.nanmedian(np.linalg.norm(centroids - np.nanmean(centroids, axis=1, keepdims=True), axis=-1)))
+
+
+def _check_magnification(before: ResidualAnalysis) -> None:
     """The foci's spread in the data against the model's: beyond 10 %, another design."""
-    data, model = before.data.centroid_px, before.model.centroid_px
-    spread = lambda c: np.nanmedian(np.linalg.norm(c - np.nanmean(c, axis=1, keepdims=True), axis=-1))  # noqa: E731
     used = before.used
-    ratio = spread(data[used]) / max(spread(model[used]), 1e-9)
+    ratio = _spread_px(before.data.centroid_px[used]) / max(_spread_px(before.model.centroid_px[used]), 1e-9)
     if np.isfinite(ratio) and abs(ratio - 1.0) > MAGNIFICATION_TOLERANCE:
         raise CalibrationError(
-            f"the scan's foci spread {ratio:.2f}× as far as the design's (more than {MAGNIFICATION_TOLERANCE:.0%} off): "
-            "was the scan taken on another design (MLA, spacing, binning)?"
+            f"the scan's foci spread {ratio:.2f}× as far as the design's (more than "
+            f"{MAGNIFICATION_TOLERANCE:.0%} off): was the scan taken on another design (MLA, spacing, binning)?"
         )
 
 
@@ -211,7 +214,7 @@ def calibrate_scan(
         simulator.pitch_px(),
         counts_per_electron=gain,
     )
-    _check_magnification(before, simulator.pitch_px())
+    _check_magnification(before)
 
     subset = fit_subset(positions, fit_positions)
     subset = subset[before.used[subset]]

@@ -148,3 +148,18 @@ def test_a_derivative_at_the_edge_of_a_range_steps_inward(simulator, positions):
     state.values["lenslet_transmission[3]"] = {"transmission": 1.5}
     column = _columns(problem, state, [("lenslet_transmission[3]", "transmission")], problem.features(state))
     assert np.isfinite(column).any() and np.nanmax(np.abs(column)) > 0
+
+
+def test_a_scan_taken_on_another_design_is_refused(simulator, positions):
+    """Foci spread 15 % farther than the design's (another magnification): a clear error."""
+    from dataclasses import replace
+
+    from cm2optics.calibrate.scan import _check_magnification
+
+    other = AnalyticSimulator(replace(simulator.model, magnification=simulator.model.magnification * 1.4), 0.5)
+    counts, exposure = measured(other, positions)
+    analysis = _analyse(simulator, positions, counts, exposure)
+    with pytest.raises(CalibrationError, match="another design"):
+        _check_magnification(analysis)
+    same, exposure = measured(simulator, positions)
+    _check_magnification(_analyse(simulator, positions, same, exposure))
