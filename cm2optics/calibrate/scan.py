@@ -176,6 +176,33 @@ def _effects_list(attribution: Attribution) -> list[dict[str, Any]]:
     return out
 
 
+def _summary(
+    before: ResidualAnalysis, after: ResidualAnalysis, attribution: Attribution, problem: Problem
+) -> dict[str, Any]:
+    """The report's headline keys: effects, NMSE and χ² before and after, what stays unexplained."""
+    return {
+        "effects": _effects_list(attribution),
+        "nmse_before": round(before.nmse_total, 6),
+        "nmse_after": round(after.nmse_total, 6),
+        "chi2_before": round(before.chi2_total, 4),
+        "chi2_after": round(after.chi2_total, 4),
+        "unexplained": _unexplained(after, problem.noise_known),
+        "noise_model": "camera gain from scan.yaml" if problem.noise_known else "gain estimated from the data",
+    }
+
+
+def _fit_record(subset: np.ndarray, attribution: Attribution, problem: Problem) -> dict[str, Any]:
+    """How the attribution went: the positions it traced, its steps, its registration."""
+    return {
+        "positions": [int(i) for i in subset],
+        "steps": [
+            {"added": s.added, "chi2_per_feature": round(s.chi2 / max(problem.n_features, 1), 4)}
+            for s in attribution.steps
+        ],
+        "registration": attribution.registration.to_dict(),
+    }
+
+
 def calibrate_scan(
     scan_dir: str | Path,
     design: SystemDesign,
@@ -203,16 +230,11 @@ def calibrate_scan(
     files = tuple(scan.files)
     positions = scan.positions_mm
     data = ScanData(scan.images, scan.exposure_ms, positions, files, scan.meta.bit_depth)
-    centres = simulator.focus_centres_px(positions)
+    centres, pitch = simulator.focus_centres_px(positions), simulator.pitch_px()
 
     say(f"tracing the nominal design at {len(positions)} positions")
     before = analyse_scan(
-        data,
-        _model_rate(simulator, positions, None),
-        positions,
-        centres,
-        simulator.pitch_px(),
-        counts_per_electron=gain,
+        data, _model_rate(simulator, positions, None), positions, centres, pitch, counts_per_electron=gain
     )
     _check_magnification(before)
 
@@ -232,35 +254,16 @@ def calibrate_scan(
     attribution = attribute(problem, max_effects=max_effects, progress=say)
 
     say("tracing the corrected design at every position")
-    after = analyse_scan(
-        data,
-        _model_rate(simulator, positions, attribution),
-        positions,
-        centres,
-        simulator.pitch_px(),
-        counts_per_electron=gain,
-    )
+    rate = _model_rate(simulator, positions, attribution)
+    after = analyse_scan(data, rate, positions, centres, pitch, counts_per_electron=gain)
     corrected = corrected_design(design, attribution)
     document = {
         "scan": str(scan_dir),
         "design": design.name,
         "design_hash": design.parameter_hash(),
         "corrected_design_hash": corrected.parameter_hash(),
-        "effects": _effects_list(attribution),
-        "nmse_before": round(before.nmse_total, 6),
-        "nmse_after": round(after.nmse_total, 6),
-        "chi2_before": round(before.chi2_total, 4),
-        "chi2_after": round(after.chi2_total, 4),
-        "unexplained": _unexplained(after, problem.noise_known),
-        "noise_model": "camera gain from scan.yaml" if gain is not None else "gain estimated from the data",
-        "fit": {
-            "positions": [int(i) for i in subset],
-            "steps": [
-                {"added": s.added, "chi2_per_feature": round(s.chi2 / max(problem.n_features, 1), 4)}
-                for s in attribution.steps
-            ],
-            "registration": attribution.registration.to_dict(),
-        },
+        **_summary(before, after, attribution, problem),
+        "fit": _fit_record(subset, attribution, problem),
         "before": before.to_dict(),
         "after": after.to_dict(),
     }

@@ -163,3 +163,28 @@ def test_a_scan_taken_on_another_design_is_refused(simulator, positions):
         _check_magnification(analysis)
     same, exposure = measured(simulator, positions)
     _check_magnification(_analyse(simulator, positions, same, exposure))
+
+
+def test_calibrate_scan_end_to_end(simulator, positions, tmp_path, monkeypatch, v2):
+    """The whole `cm2 calibrate scan` loop on a scan file with an undeclared rotation, the
+    analytic model standing in for the tracer: effect named, error cut, corrected design saved."""
+    import cm2optics.calibrate.scan as calibration
+    from cm2optics.design import load_design
+    from cm2optics.formats.scan import ScanMeta, write_scan
+    from cm2optics.reports.calibrate import write_calibration_report
+
+    counts, exposure = measured(simulator, positions, {"mla_rotation": {"angle_deg": 0.4}})
+    extra = {"lenslets": [3, 3], "counts_per_electron": 1.0}
+    meta = ScanMeta(pixel_um=simulator.pixel_um, binning=8, bit_depth=12, dark_level=DARK, extra=extra)
+    scan = write_scan(tmp_path / "scan", counts, positions, exposure, meta)
+    monkeypatch.setattr(calibration, "TracerSimulator", lambda design, **options: simulator)
+    result = calibration.calibrate_scan(scan, v2)
+    doc = result.document
+    assert [e["name"] for e in doc["effects"]] == ["mla_rotation"]
+    assert doc["effects"][0]["parameters"]["angle_deg"] == pytest.approx(0.4, abs=0.05)
+    assert doc["nmse_after"] < doc["nmse_before"] / 5 and doc["chi2_after"] < 1.3
+    assert doc["unexplained"] == []
+    report = write_calibration_report(result, tmp_path / "report")
+    assert report.is_file() and (tmp_path / "report" / "residual_montage.png").is_file()
+    corrected = load_design(tmp_path / "report" / "corrected-design.yaml")
+    assert corrected.as_built.mla_rotation_deg == pytest.approx(0.4, abs=0.05)
