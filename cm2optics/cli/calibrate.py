@@ -53,6 +53,9 @@ def scan(
     corrected-design.yaml (passes cm2 design validate), residual and field-map figures and
     report.html into --out. JSON keys include effects, nmse_before, nmse_after, chi2_before,
     chi2_after and unexplained.
+
+    Status: the loop is validated on the analytic CM²-like model; through the tracer it does not
+    yet read the scan's calibration-source profile and takes minutes per perturbed design (issue 14).
     """
     from cm2optics.calibrate.scan import calibrate_scan
     from cm2optics.design import load_preset
