@@ -3,7 +3,6 @@ interrupted runs resume to the same bytes, and two runs into one folder never mi
 
 from __future__ import annotations
 
-import ast
 import hashlib
 import json
 import os
@@ -37,25 +36,10 @@ def _files(folder: Path, skip: tuple[str, ...] = ("manifest.json", MARKER)) -> d
 # ----------------------------------------------------------------------------- the layout
 
 
-def _imports(path: Path) -> set[str]:
-    names = set()
-    for node in ast.walk(ast.parse(path.read_text())):
-        if isinstance(node, ast.Import):
-            names |= {alias.name for alias in node.names}
-        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
-            names.add(node.module)
-    return names
-
-
 @pytest.mark.parametrize("module", sorted(PACKAGE.rglob("*.py")), ids=lambda p: str(p.relative_to(PACKAGE)))
-def test_stages_never_import_cli_or_reports_and_never_switch_backends(module: Path):
-    room = module.relative_to(PACKAGE).parts[0]
-    text = module.read_text()
-    assert "matplotlib.use(" not in text, f"{module}: switches a notebook user's matplotlib backend"
-    if room in ("cli", "reports"):
-        return
-    bad = {name for name in _imports(module) if name.startswith(("cm2optics.cli", "cm2optics.reports"))}
-    assert not bad, f"{module.relative_to(PACKAGE)} imports {bad}: stages never import cli or reports"
+def test_no_module_switches_the_plotting_backend(module: Path):
+    """(That no stage imports the command line or the reports is a rule of tests/test_architecture.py.)"""
+    assert "matplotlib.use(" not in module.read_text(), f"{module}: switches a notebook user's matplotlib backend"
 
 
 def test_every_command_that_writes_has_overwrite():

@@ -10,6 +10,7 @@ import types
 import numpy as np
 import pytest
 import torch
+from tiny_net import SYNTH, tiny
 
 from cm2optics.lsv.toy import gaussian_lsi_operator as gaussian_cm2
 from cm2optics.recon.net.config import ConfigError, NetConfig, load_config
@@ -29,25 +30,6 @@ from cm2optics.recon.net.weights import (
     save_weights,
 )
 from cm2optics.synth.config import SynthConfig
-
-SYNTH = SynthConfig.scaled(20, voxel_um=(100.0, 8.0, 8.0), view_px=64, patch_px=32, patches_per_volume=4)
-
-
-def tiny(**changes) -> NetConfig:
-    values = dict(
-        channels=8,
-        blocks=1,
-        n_planes=SYNTH.grid.shape[0],
-        forward_model="toy:gaussian",
-        synth=SYNTH,
-        train_volumes=2,
-        val_volumes=1,
-        epochs=1,
-        threads=1,
-        progress=False,
-    )
-    values.update(changes)
-    return NetConfig(**values)
 
 
 @pytest.fixture(autouse=True, scope="module")

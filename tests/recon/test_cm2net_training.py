@@ -13,33 +13,19 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from tiny_net import tiny as tiny_config
 
 from cm2optics.recon.net.checkpoint import CheckpointError
 from cm2optics.recon.net.config import NetConfig
 from cm2optics.recon.net.train import train
 from cm2optics.recon.net.weights import load_weights
-from cm2optics.synth.config import SynthConfig
 
-SYNTH = SynthConfig.scaled(20, voxel_um=(100.0, 8.0, 8.0), view_px=64, patch_px=32, patches_per_volume=4)
 REPO = Path(__file__).resolve().parents[2]
 
 
 def tiny(out: Path, **changes) -> NetConfig:
-    values = dict(
-        channels=8,
-        blocks=1,
-        n_planes=SYNTH.grid.shape[0],
-        forward_model="toy:gaussian",
-        synth=SYNTH,
-        train_volumes=2,
-        val_volumes=1,
-        epochs=2,
-        threads=1,
-        progress=False,
-        out_dir=str(out),
-    )
-    values.update(changes)
-    return NetConfig(**values)
+    """The shared tiny configuration, two epochs, writing into ``out``."""
+    return tiny_config(**{"epochs": 2, "out_dir": str(out), **changes})
 
 
 @pytest.fixture(autouse=True, scope="module")
