@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from cm2optics.calibrate.effects import Effect, apply_image_effects, leakage_counts
-from cm2optics.calibrate.features import focus_features, focus_windows
+from cm2optics.calibrate.features import away_from_foci, circular_windows, focus_features, focus_windows
 from cm2optics.calibrate.noise import SensorNoise, estimate_noise
 from cm2optics.calibrate.register import Registration, register
 from cm2optics.calibrate.simulate import Simulator, Values
@@ -65,48 +65,38 @@ class FeatureSpace:
         )
 
 
-def _block_means(signal: np.ndarray, block_of: np.ndarray) -> np.ndarray:
-    n = len(signal)
-    out = np.full((n, BLOCKS * BLOCKS), np.nan)
-    for i in range(n):
+def _block_sums(values: np.ndarray, block_of: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per image (N, B²) sums of ``values`` (N, y, x) over each background block, and pixel counts."""
+    n, blocks = len(values), BLOCKS * BLOCKS
+    sums, counts = np.zeros((n, blocks)), np.zeros((n, blocks))
+    for i in range(n):  # one bincount per image
         labels = block_of[i].ravel()
         keep = labels >= 0
-        sums = np.bincount(labels[keep], weights=signal[i].ravel()[keep], minlength=BLOCKS * BLOCKS)
-        counts = np.bincount(labels[keep], minlength=BLOCKS * BLOCKS)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            out[i] = np.where(counts > 20, sums / counts, np.nan)
-    return out
+        sums[i] = np.bincount(labels[keep], weights=values[i].ravel()[keep], minlength=blocks)
+        counts[i] = np.bincount(labels[keep], minlength=blocks)
+    return sums, counts
+
+
+def _block_means(signal: np.ndarray, block_of: np.ndarray) -> np.ndarray:
+    """(N, B²) mean signal of each background block (NaN where it holds 20 pixels or fewer)."""
+    sums, counts = _block_sums(signal, block_of)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(counts > 20, sums / counts, np.nan)
 
 
 def _blocks(shape: tuple[int, int], centres: np.ndarray, radii: np.ndarray) -> np.ndarray:
+    """(N, y, x) background block of every pixel (B × B blocks over the frame), −1 near a focus."""
     rows = np.arange(shape[0])[:, None]
     cols = np.arange(shape[1])[None, :]
     label = (rows * BLOCKS // shape[0]) * BLOCKS + (cols * BLOCKS // shape[1])
-    out = np.broadcast_to(label, (len(centres),) + tuple(shape)).copy()
-    for j in range(centres.shape[1]):
-        inside = (
-            np.hypot(rows - centres[:, j, 0, None, None], cols - centres[:, j, 1, None, None])
-            <= 2.5 * radii[:, j, None, None]
-        )
-        out[inside] = -1
-    return out
+    return np.where(away_from_foci(shape, centres, 2.5 * radii), label, -1)
 
 
 def _feature_sigma(space: FeatureSpace, model_signal: np.ndarray, noise: SensorNoise) -> np.ndarray:
     """σ of every feature propagated from the pixel noise of the model's expected counts."""
     var = noise.variance(model_signal).astype(np.float64)
-    n, j = space.centres.shape[:2]
-    half = int(np.ceil(np.nanmax(space.radii)))
-    offsets = np.arange(-half, half + 1)
-    base = np.rint(space.centres).astype(int)
-    rows = np.clip(base[..., 0, None, None] + offsets[:, None], 0, model_signal.shape[1] - 1)
-    cols = np.clip(base[..., 1, None, None] + offsets[None, :], 0, model_signal.shape[2] - 1)
-    rows, cols = np.broadcast_arrays(rows, cols)
-    idx = np.arange(n)[:, None, None, None]
-    inside = (
-        np.hypot(rows - space.centres[..., 0, None, None], cols - space.centres[..., 1, None, None])
-        <= space.radii[..., None, None]
-    )
+    rows, cols, inside, _ = circular_windows(model_signal.shape[-2:], space.centres, space.radii)
+    idx = np.arange(len(space.centres))[:, None, None, None]
     v = np.where(inside, var[idx, rows, cols], 0.0)
     signal = np.where(inside, np.clip(model_signal[idx, rows, cols], 0, None), 0.0)
     energy = signal.sum(axis=(-2, -1))
@@ -121,14 +111,9 @@ def _feature_sigma(space: FeatureSpace, model_signal: np.ndarray, noise: SensorN
         s_c = np.sqrt((v * dc2).sum(axis=(-2, -1))) / energy
         s_w2 = np.sqrt((v * (dr2 + dc2 - w2[..., None, None]) ** 2).sum(axis=(-2, -1))) / energy
         s_w = s_w2 / (2.0 * np.sqrt(w2))
-    blocks = np.full((n, BLOCKS * BLOCKS), np.nan)
-    for i in range(n):
-        labels = space.block_of[i].ravel()
-        keep = labels >= 0
-        sums = np.bincount(labels[keep], weights=var[i].ravel()[keep], minlength=BLOCKS * BLOCKS)
-        counts = np.bincount(labels[keep], minlength=BLOCKS * BLOCKS)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            blocks[i] = np.where(counts > 20, np.sqrt(sums) / counts, np.nan)
+    sums, counts = _block_sums(var, space.block_of)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        blocks = np.where(counts > 20, np.sqrt(sums) / counts, np.nan)
     return np.concatenate([s_e.ravel(), s_r.ravel(), s_c.ravel(), s_w.ravel(), blocks.ravel()])
 
 

@@ -9,7 +9,6 @@ are applied here, by :func:`apply_image_effects`, to any simulator's output.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -145,7 +144,3 @@ def leakage_counts(values: dict[str, dict[str, float]], exposure_ms: np.ndarray)
     """(N,) uniform leakage counts added to each frame."""
     rate = values.get("leakage_background", {}).get("counts_per_ms", 0.0)
     return rate * np.asarray(exposure_ms, float)
-
-
-def is_absent(effect: Effect, parameters: dict[str, float]) -> bool:
-    return all(math.isclose(parameters[p.name], p.default, abs_tol=1e-12) for p in effect.parameters)

@@ -38,33 +38,50 @@ def _windows(shape: tuple[int, int], centres: np.ndarray, half: int) -> tuple[np
     return np.clip(rows, 0, shape[0] - 1), np.clip(cols, 0, shape[1] - 1), inside
 
 
+def circular_windows(
+    shape: tuple[int, int], centres: np.ndarray, radius_px: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Row and col indices (N, J, w, w) of windows around ``centres`` (N, J, 2) px, which of their
+    pixels lie within ``radius_px`` (N, J) and on the frame, and whether each whole circle does."""
+    half = int(np.ceil(np.nanmax(radius_px)))
+    rows, cols, on_frame = _windows(shape, centres, half)
+    distance = np.hypot(rows - centres[..., 0, None, None], cols - centres[..., 1, None, None])
+    within = distance <= radius_px[..., None, None]
+    complete = np.all(on_frame | ~within, axis=(-2, -1))
+    return rows, cols, within & on_frame, complete
+
+
+def away_from_foci(shape: tuple[int, int], centres: np.ndarray, radius_px: np.ndarray) -> np.ndarray:
+    """(N, y, x) pixels farther than ``radius_px`` (N, J) from every focus centre (N, J, 2) px."""
+    rows = np.arange(shape[0])[:, None]
+    cols = np.arange(shape[1])[None, :]
+    out = np.ones((len(centres),) + tuple(shape), bool)
+    for j in range(centres.shape[1]):  # J ≈ 9 lenslets; every image at once
+        distance = np.hypot(rows - centres[:, j, 0, None, None], cols - centres[:, j, 1, None, None])
+        out &= distance > radius_px[:, j, None, None]
+    return out
+
+
 def focus_features(signal: np.ndarray, centres: np.ndarray, radius_px: np.ndarray) -> FocusFeatures:
     """Measure the foci of ``signal`` (N, y, x) (counts above dark).
 
     centres: (N, J, 2) window centres (row, col) px.
     radius_px: (N, J) window radii, px.
     """
-    n, j = centres.shape[:2]
-    half = int(np.ceil(np.nanmax(radius_px)))
-    rows, cols, inside = _windows(signal.shape[-2:], centres, half)
-    image_index = np.arange(n)[:, None, None, None]
-    values = signal[image_index, rows, cols].astype(np.float64)
-    distance = np.hypot(rows - centres[..., 0, None, None], cols - centres[..., 1, None, None])
-    weight = (distance <= radius_px[..., None, None]) & inside
-    values = np.where(weight, values, 0.0)
+    rows, cols, weight, complete = circular_windows(signal.shape[-2:], centres, radius_px)
+    image_index = np.arange(len(centres))[:, None, None, None]
+    values = np.where(weight, signal[image_index, rows, cols].astype(np.float64), 0.0)
     energy = values.sum(axis=(-2, -1))
-    complete = np.all(inside | (distance > radius_px[..., None, None]), axis=(-2, -1))
     # moments of the signal as it is (noise below zero included), so that noise averages out
     # and data and model are measured alike
-    mass = energy
     with np.errstate(invalid="ignore", divide="ignore"):
-        row_c = (values * rows).sum(axis=(-2, -1)) / mass
-        col_c = (values * cols).sum(axis=(-2, -1)) / mass
+        row_c = (values * rows).sum(axis=(-2, -1)) / energy
+        col_c = (values * cols).sum(axis=(-2, -1)) / energy
         second = (values * ((rows - row_c[..., None, None]) ** 2 + (cols - col_c[..., None, None]) ** 2)).sum(
             axis=(-2, -1)
-        ) / mass
+        ) / energy
     second = np.where(second > 0, second, np.nan)
-    dark = ~complete | (mass <= 0)
+    dark = ~complete | (energy <= 0)
     energy = np.where(complete, energy, np.nan)
     centroid = np.where(dark[..., None], np.nan, np.stack([row_c, col_c], axis=-1))
     width = np.where(dark, np.nan, np.sqrt(second))

@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from cm2optics.calibrate.features import FocusFeatures, focus_features, focus_windows
+from cm2optics.calibrate.features import FocusFeatures, away_from_foci, focus_features, focus_windows
 from cm2optics.calibrate.noise import SensorNoise, estimate_noise
 from cm2optics.calibrate.register import Registration, register
 from cm2optics.errors import UserError
@@ -70,14 +70,11 @@ class ResidualAnalysis:
 
     @property
     def nmse_total(self) -> float:
-        return float(self._totals()[0])
+        return _total_nmse(self)
 
     @property
     def chi2_total(self) -> float:
-        return float(self._totals()[1])
-
-    def _totals(self) -> tuple[float, float]:
-        return _total_nmse(self), _total_chi2(self)
+        return _total_chi2(self)
 
     @property
     def energy_ratio(self) -> np.ndarray:
@@ -166,7 +163,7 @@ def analyse_scan(
     if np.any(misplaced):
         flags["positions_do_not_match_images"] = [data.files[i] for i in np.flatnonzero(misplaced)]
 
-    outside = valid & _outside_windows(counts.shape[-2:], centres, radii)
+    outside = valid & away_from_foci(counts.shape[-2:], centres, 2.0 * radii)  # the wings kept out
     with np.errstate(invalid="ignore"):
         background = np.array(
             [float(np.median(residual[i][outside[i]])) if outside[i].any() else np.nan for i in range(len(counts))]
@@ -229,18 +226,6 @@ def _without_light(data: ScanData, model_rate: np.ndarray) -> np.ndarray:
     with np.errstate(invalid="ignore", divide="ignore"):
         ratio = light / expected
     return ratio < EMPTY_FRACTION * np.nanmedian(ratio[expected > 0])
-
-
-def _outside_windows(shape: tuple[int, int], centres: np.ndarray, radii: np.ndarray) -> np.ndarray:
-    """(N, y, x) pixels outside every focus window (2× the window radius, to keep the wings out)."""
-    rows = np.arange(shape[0])[:, None]
-    cols = np.arange(shape[1])[None, :]
-    out = np.ones((len(centres),) + tuple(shape), bool)
-    for j in range(centres.shape[1]):  # J ≈ 9 lenslets; every image at once
-        r = centres[:, j, 0, None, None]
-        c = centres[:, j, 1, None, None]
-        out &= np.hypot(rows - r, cols - c) > 2.0 * radii[:, j, None, None]
-    return out
 
 
 def _background_map(residual: np.ndarray, outside: np.ndarray, exposure_ms: np.ndarray, blocks: int = 16) -> np.ndarray:
