@@ -11,6 +11,7 @@ simulated measurement.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -23,7 +24,14 @@ from cm2optics.lsv.build import BuildResult
 from cm2optics.lsv.model import LSVModel
 from cm2optics.reports.document import Report
 
-__all__ = ["FIGURES", "add_lsv_section", "write_build_figures", "write_build_report"]
+__all__ = [
+    "FIGURES",
+    "add_lsv_section",
+    "heldout_positions",
+    "heldout_rows",
+    "write_build_figures",
+    "write_build_report",
+]
 
 FIGURES = {
     "nmse_vs_rank.png": "Approximation error of the truncated SVD on the calibration set against the number of basis PSFs K",
@@ -195,16 +203,23 @@ def add_lsv_section(
     *,
     rank: int = 64,
     title: str = "3D-LSV forward model",
+    oversample: int = 1,
+    traced: Callable[[tuple[float, float, float]], np.ndarray] | None = None,
 ) -> dict[str, Any]:
     """Build an LSV model from ``scan_dir`` (a small analytic scan is made when it is None),
     write its figures and a simulated measurement of random emitters into ``out_dir/lsv``, and
-    add a section to ``report``; returns the numbers shown."""
+    add a section to ``report``; returns the numbers shown.
+
+    oversample: S of the model's effective-PSF basis (the scan needs its ``epsf.h5``).
+    traced: position (x, y, z mm) → the traced image of a point there in the model's units; when
+    given, the model (and its whole-pixel twin) are checked against traced points between the
+    nodes (:func:`heldout_rows`)."""
     from cm2optics.formats.emitters import Emitters
     from cm2optics.lsv.build import build_model
 
     folder = Path(out_dir) / "lsv"
     folder.mkdir(parents=True, exist_ok=True)
-    source = "the scan given"
+    source = f"the scan {Path(scan_dir).name}" if scan_dir is not None else ""
     if scan_dir is None:
         from cm2optics.lsv.toy import AnalyticCM2, write_analytic_scan
 
@@ -220,7 +235,7 @@ def add_lsv_section(
         )
         source = "a 9×9×11 analytic CM²-like scan (binned 8×; cm2optics.lsv.toy)"
     start = time.perf_counter()
-    result = build_model(scan_dir, rank=rank, design=design)
+    result = build_model(scan_dir, rank=rank, design=design, oversample=oversample)
     build_seconds = time.perf_counter() - start
     model = result.model
     model.save(folder / "model.h5")
@@ -257,4 +272,55 @@ def add_lsv_section(
         report.figure(f"lsv/{name}", caption)
     report.paragraph(f"{n} random emitters rendered by the sparse path in {sparse_seconds:.2f} s.")
     report.figure("lsv/measurement.png", "A measurement simulated with the model (no noise)")
-    return {"build_seconds": build_seconds, "sparse_seconds": sparse_seconds, **summary}
+    numbers = {"build_seconds": build_seconds, "sparse_seconds": sparse_seconds, **summary}
+    if traced is not None:
+        models = {f"oversample {oversample} (this model)": model}
+        if oversample > 1:
+            models["oversample 1 (whole pixels)"] = build_model(scan_dir, rank=rank, design=design).model
+        rows, errors = heldout_rows(models, traced)
+        report.paragraph(
+            "Between the nodes, against the emission tracer: single 2-µm beads at seeded random positions that "
+            "are not on the calibration grid, traced through the design (`cm2 psf image`) and rendered by the model; "
+            "error ‖m − t‖/‖t‖ with the flux included (`benchmarks/bench_lsv_heldout.py` does the same at "
+            "full scale; `BENCHMARKS.md`)."
+        )
+        report.table(["position (x, y, z mm)", *models], rows)
+        numbers["heldout_error"] = errors
+    return numbers
+
+
+def heldout_positions(model: LSVModel, count: int = 4, seed: int = 0) -> list[tuple[float, float, float]]:
+    """``count`` seeded positions (x, y, z mm) between ``model``'s nodes: radii spread from the
+    axis to 3/4 of the grid's half-width, depths in the inner 80 % of its depth range."""
+    rng = np.random.default_rng(seed)
+    xs, _, zs = model.axes
+    reach = 0.75 * min(abs(xs[0]), abs(xs[-1]))
+    depth = zs[-1] - zs[0]
+    out = []
+    for r in np.linspace(0.0, reach, count):
+        angle = rng.uniform(0, 2 * np.pi)
+        z = rng.uniform(zs[0] + 0.1 * depth, zs[-1] - 0.1 * depth)
+        r = max(float(r), 0.02)  # off the axis node too
+        out.append((round(r * np.cos(angle), 4), round(r * np.sin(angle), 4), round(float(z), 4)))
+    return out
+
+
+def heldout_rows(
+    models: dict[str, LSVModel], traced: Callable[[tuple[float, float, float]], np.ndarray]
+) -> tuple[list[list[str]], dict[str, list[float]]]:
+    """Error of each of ``models`` against ``traced`` points at :func:`heldout_positions` of the
+    first model: the table's rows and {model name: errors}."""
+    from cm2optics.lsv.validate import image_errors
+
+    positions = heldout_positions(next(iter(models.values())))
+    errors: dict[str, list[float]] = {name: [] for name in models}
+    rows = []
+    for position in positions:
+        truth = traced(position)
+        row = [", ".join(f"{v:+.3f}" for v in position)]
+        for name, model in models.items():
+            error = image_errors(model.point_image(*position), truth)["error"]
+            errors[name].append(error)
+            row.append(f"{error:.3f}")
+        rows.append(row)
+    return rows, errors

@@ -249,3 +249,30 @@ def test_user_errors_are_one_line(model, scan, arguments, message):
     assert result.exit_code == 2, result.output
     assert message in result.output
     assert "Traceback" not in result.output
+
+
+def test_demo_lsv_section_checks_the_model_between_its_nodes(v2, scan, tmp_path):
+    """The demo's chain section: the model built from a scan, scored against points between the
+    nodes; a reference that is the model itself scores 0, a scaled one exactly its scale error."""
+    from cm2optics.lsv.model import load_model
+    from cm2optics.reports.document import Report
+    from cm2optics.reports.lsv import add_lsv_section, heldout_positions
+
+    report = Report("t")
+    calls = []
+
+    def traced(position):
+        calls.append(position)
+        built = load_model(tmp_path / "lsv" / "model.h5")
+        return 1.25 * built.point_image(*position)
+
+    numbers = add_lsv_section(report, v2, scan, tmp_path, rank=16, traced=traced)
+    errors = numbers["heldout_error"]["oversample 1 (this model)"]
+    assert len(errors) == len(calls) == 4
+    np.testing.assert_allclose(errors, 0.2, atol=1e-9)  # ‖m − 1.25 m‖ / ‖1.25 m‖
+    model = load_model(tmp_path / "lsv" / "model.h5")
+    xs, ys, zs = model.axes
+    for x, y, z in heldout_positions(model):
+        assert zs[0] < z < zs[-1] and xs[0] < x < xs[-1] and ys[0] < y < ys[-1]
+        assert not (np.isclose(xs, x).any() and np.isclose(ys, y).any() and np.isclose(zs, z).any())
+    assert "Between the nodes" in report.to_markdown()
