@@ -1,6 +1,8 @@
-"""``cm2 reconstruct MEAS.tif --model MODEL --method fista|admm|rl --out VOL.tif``.
+"""``cm2 reconstruct MEAS.tif --model MODEL --method fista|admm|rl --out VOL.tif`` and
+``cm2 reconstruct MEAS.tif --method net --weights reconstruction/NAME [--out VOL.tif] [--emitters-out E.csv]``.
 
-Registered by :mod:`cm2optics.cli`; the work is :func:`cm2optics.recon.reconstruct.reconstruct_file`.
+Registered by :mod:`cm2optics.cli`; the work is :func:`cm2optics.recon.reconstruct.reconstruct_file`
+(model-based) or :func:`cm2optics.recon.net.infer.reconstruct_net_file` (CM²Net).
 """
 
 from __future__ import annotations
@@ -30,15 +32,47 @@ def reconstruct_command(
         Path, typer.Argument(metavar="MEAS", help="Measurement: one image (TIFF or .npy), e.g. a raw 16-bit frame.")
     ],
     model: Annotated[
-        Path, typer.Option("--model", "-m", help="Forward model: an LSV model (cm2 lsv build) or a PSF stack.")
-    ],
-    out: Annotated[
-        Path,
+        Path | None,
         typer.Option(
-            "--out", "-o", help="Reconstructed volume (.tif with ImageJ spacing, or .npy); a .json record beside it."
+            "--model",
+            "-m",
+            help="Forward model: an LSV model (cm2 lsv build) or a PSF stack. Required for fista, admm and rl; "
+            "with --method net it gives the chief rays and refocusing geometry (default: the model the weights "
+            "were trained through).",
         ),
-    ],
-    method: Annotated[str, typer.Option("--method", help="fista, admm or rl.")] = "fista",
+    ] = None,
+    out: Annotated[
+        Path | None,
+        typer.Option(
+            "--out",
+            "-o",
+            help="Reconstructed volume (.tif with ImageJ spacing, or .npy); a .json record beside it "
+            "(default: MEAS's name with .volume.tif, beside it).",
+        ),
+    ] = None,
+    method: Annotated[
+        str, typer.Option("--method", help="fista, admm or rl (model-based), or net (CM²Net, with --weights).")
+    ] = "fista",
+    weights: Annotated[
+        Path | None,
+        typer.Option("--weights", help="--method net: a weights folder, e.g. reconstruction/cm2net-cpu."),
+    ] = None,
+    emitters_out: Annotated[
+        Path | None,
+        typer.Option("--emitters-out", help="--method net: also write the detected emitters here (CSV, µm)."),
+    ] = None,
+    preprocess: Annotated[
+        str,
+        typer.Option(
+            "--preprocess",
+            help="--method net: histogram (match the training views' histogram: measured frames, the paper's way), "
+            "max (divide by the maximum) or none (a measurement simulated like the training data).",
+        ),
+    ] = "histogram",
+    threshold: Annotated[
+        float | None,
+        typer.Option("--threshold", help="--method net: detection threshold on [0, 1] (default: the weights')."),
+    ] = None,
     forward: Annotated[
         str,
         typer.Option("--forward", help="lsv (the 3D-LSV model) or lsi (the V1 depth-wise LSI model derived from it)."),
@@ -64,12 +98,28 @@ def reconstruct_command(
     overwrite: OverwriteOption = False,
     as_json: JsonOption = False,
 ) -> None:
-    """Model-based reconstruction: FISTA, ADMM or Richardson–Lucy with non-negativity, ℓ1 and
-    3-D TV. With --forward lsi and --method admm this is the V1 paper's depth-wise LSI ADMM."""
+    """Reconstruct a volume from one frame: model-based (FISTA, ADMM or Richardson–Lucy with
+    non-negativity, ℓ1 and 3-D TV; with --forward lsi and --method admm the V1 paper's depth-wise
+    LSI ADMM) or with trained CM²Net weights (--method net --weights DIR: one pass, seconds).
+
+    Examples:
+      cm2 reconstruct meas.tif --model model.h5 --method fista --out vol.tif
+      cm2 reconstruct meas.tif --method net --weights reconstruction/cm2net-cpu --emitters-out found.csv"""
     from rich.console import Console
 
     from cm2optics.recon.reconstruct import ReconOptions, reconstruct_file
 
+    if out is None:
+        out = measurement.with_name(measurement.stem + ".volume.tif")
+    if method == "net":
+        _reconstruct_net(
+            measurement, model, out, weights, emitters_out, preprocess, threshold, dark_level, overwrite, as_json
+        )
+        return
+    if weights is not None or emitters_out is not None:
+        raise UserError("--weights and --emitters-out go with --method net")
+    if model is None:
+        raise UserError(f"--method {method}: give the forward model with --model (an LSV model or a PSF stack)")
     for path in (out, out.with_suffix(".json")):
         check_output(path, command="reconstruct", inputs=[measurement, model], overwrite=overwrite)
     options = ReconOptions(
@@ -98,6 +148,52 @@ def reconstruct_command(
     state = "converged" if record["converged"] else "stopped at the iteration cap"
     Console().print(
         f"[green]{out}[/]: {record['variant']}, {record['iterations']} iterations ({state}), {record['seconds']:.1f} s"
+    )
+
+
+def _reconstruct_net(
+    measurement: Path,
+    model: Path | None,
+    out: Path,
+    weights: Path | None,
+    emitters_out: Path | None,
+    preprocess: str,
+    threshold: float | None,
+    dark_level: float,
+    overwrite: bool,
+    as_json: bool,
+) -> None:
+    """``--method net``: check the options and outputs, run CM²Net, print the record."""
+    from rich.console import Console
+
+    from cm2optics.recon.net.infer import PREPROCESS, reconstruct_net_file
+
+    if weights is None:
+        raise UserError("--method net needs --weights (a weights folder, e.g. reconstruction/cm2net-cpu)")
+    if preprocess not in PREPROCESS:
+        raise UserError(f"--preprocess {preprocess}: must be one of {', '.join(PREPROCESS)}")
+    if threshold is not None and not 0.0 < threshold < 1.0:
+        raise UserError(f"--threshold {threshold}: must lie strictly between 0 and 1")
+    inputs = [p for p in (measurement, model, weights) if p is not None]
+    outputs = [out, out.with_suffix(".json")] + ([emitters_out] if emitters_out is not None else [])
+    for path in outputs:
+        check_output(path, command="reconstruct", inputs=inputs, overwrite=overwrite)
+    record = reconstruct_net_file(
+        measurement,
+        weights,
+        out,
+        model=model,
+        emitters_out=emitters_out,
+        preprocess=preprocess,
+        threshold=threshold,
+        dark_level=dark_level,
+    )
+    if as_json:
+        print(json.dumps(record, indent=2, ensure_ascii=False))
+        return
+    Console().print(
+        f"[green]{out}[/]: CM²Net, {record['n_emitters']} emitters at threshold {record['threshold']:g}, "
+        f"{record['seconds']['total']:.1f} s"
     )
 
 

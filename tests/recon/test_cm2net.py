@@ -245,6 +245,58 @@ def test_full_field_inference_checks_its_inputs_and_returns_a_volume(weights):
         reconstruct_with_net(sample.measurement, weights, other)
 
 
+def test_cm2_reconstruct_method_net_writes_the_volume_record_and_emitters(weights, tmp_path):
+    """`cm2 reconstruct MEAS --method net --weights DIR`: the model defaults to the weights' own
+    (whole sensor), the volume, its JSON record and the emitter CSV are written; misuse is one line."""
+    import json
+
+    from typer.testing import CliRunner
+
+    from cm2optics.cli import app
+    from cm2optics.formats.emitters import read_emitters
+    from cm2optics.formats.volume import read_volume
+    from cm2optics.recon.net.data import inference_model
+    from cm2optics.synth.generate import synthesize_sample
+    from cm2optics.synth.imaging import Imaging
+
+    config = load_weights(weights).config
+    model = inference_model(config)
+    assert tuple(model.sensor_shape) == (config.toy_sensor_px,) * 2
+    grid = config.synth.grid
+    sample = synthesize_sample(config.synth.with_changes(patches_per_volume=0), Imaging(model, grid), 0, 3)
+    np.save(tmp_path / "meas.npy", sample.measurement)
+    (tmp_path / "empty").mkdir()
+    runner = CliRunner()
+    args = ["reconstruct", str(tmp_path / "meas.npy"), "--method", "net", "--weights", str(weights)]
+    result = runner.invoke(
+        app, [*args, "--preprocess", "none", "--threshold", "0.3", "--emitters-out", str(tmp_path / "e.csv"), "--json"]
+    )
+    assert result.exit_code == 0, result.output
+    record = json.loads(result.stdout)
+    volume_path = tmp_path / "meas.volume.tif"
+    assert record["volume"] == str(volume_path) and record["threshold"] == 0.3 and record["method"] == "net"
+    volume, volume_grid = read_volume(volume_path)
+    assert volume.shape == (config.n_planes, config.synth.view_px, config.synth.view_px)
+    np.testing.assert_allclose(volume_grid.voxel_um, grid.voxel_um, rtol=1e-4)
+    assert json.loads((tmp_path / "meas.volume.json").read_text())["n_emitters"] == len(
+        read_emitters(tmp_path / "e.csv")
+    )
+    for extra, message in (
+        ([], "exists; pass --overwrite"),  # the volume is there now
+        (["--out", str(tmp_path / "v.tif"), "--weights", str((tmp_path / "empty").resolve())], "empty"),
+        (["--out", str(tmp_path / "v.tif"), "--preprocess", "gamma"], "--preprocess"),
+        (["--out", str(tmp_path / "v.tif"), "--threshold", "1.5"], "--threshold"),
+    ):
+        failed = runner.invoke(app, [*args, *extra])
+        assert failed.exit_code == 2 and message in failed.output, failed.output
+    failed = runner.invoke(
+        app, ["reconstruct", str(tmp_path / "meas.npy"), "--method", "net", "--out", str(tmp_path / "w.tif")]
+    )
+    assert failed.exit_code == 2 and "--weights" in failed.output
+    failed = runner.invoke(app, ["reconstruct", str(tmp_path / "meas.npy"), "--out", str(tmp_path / "w.tif")])
+    assert failed.exit_code == 2 and "--model" in failed.output
+
+
 def test_histogram_matching_maps_quantiles():
     rng = np.random.default_rng(0)
     image = rng.exponential(3.0, (64, 64))

@@ -38,6 +38,7 @@ __all__ = [
     "PatchDataset",
     "PatchSource",
     "epoch_items",
+    "inference_model",
     "forward_imaging",
     "pixel_voxel_um",
     "sensor_window",
@@ -102,14 +103,16 @@ def sensor_window(model: Any, view_px: int, margin_px: int = 8) -> Any:
 
 
 @functools.lru_cache(maxsize=4)
-def _imaging(spec: str, grid_key: tuple, toy_px: int, fov_mm: float, depth_um: float, view_px: int):
-    from cm2optics.synth.imaging import Imaging, load_imaging
+def _source(spec: str, grid_key: tuple, toy_px: int, fov_mm: float, depth_um: float):
+    """The forward model ``spec`` names, on its whole sensor: ``toy:gaussian``,
+    ``analytic:<preset>:<binning>`` or a model file (3D-LSV model or PSF stack)."""
+    from cm2optics.synth.imaging import load_imaging
 
     grid = VolumeGrid(grid_key[0], grid_key[1])
     if spec == "toy:gaussian":
         from cm2optics.lsv.toy import gaussian_lsi_operator as gaussian_cm2
 
-        return Imaging(gaussian_cm2(grid, (toy_px, toy_px), defocus_px_per_um=0.006), grid)
+        return gaussian_cm2(grid, (toy_px, toy_px), defocus_px_per_um=0.006)
     if spec.startswith("analytic:"):
         parts = spec.split(":")
         try:
@@ -118,25 +121,35 @@ def _imaging(spec: str, grid_key: tuple, toy_px: int, fov_mm: float, depth_um: f
             raise ConfigError(
                 f"forward_model = {spec!r}: write analytic:<preset>:<binning>, e.g. analytic:cm2-v2:8"
             ) from None
-        return Imaging(sensor_window(_analytic_lsv(preset, binning, grid_key, fov_mm, depth_um), view_px), grid)
-    imaging = load_imaging(spec, grid)
-    windowed = sensor_window(imaging.source, view_px)
-    return imaging if windowed is imaging.source else Imaging(windowed, grid)
+        return _analytic_lsv(preset, binning, grid_key, fov_mm, depth_um)
+    return load_imaging(spec, grid).source
+
+
+def _source_of(config: NetConfig):
+    grid = config.synth.grid
+    return _source(
+        config.forward_model,
+        (grid.shape, grid.voxel_um),
+        config.toy_sensor_px,
+        config.synth.fov_mm[1],
+        config.synth.depth_um,
+    )
+
+
+def inference_model(config: NetConfig):
+    """The forward model the weights of ``config`` were trained through, on its whole sensor (not
+    the training window): what ``cm2 reconstruct --method net`` uses when no ``--model`` is given."""
+    return _source_of(config)
 
 
 def forward_imaging(config: NetConfig):
     """The :class:`~cm2optics.synth.imaging.Imaging` of ``config.forward_model`` on the config's
     grid (cached per process; a 3D-LSV model on its :func:`sensor_window`), checked: one view pixel must image one voxel at the focal plane
     (the network maps a view patch onto a volume patch of the same size)."""
+    from cm2optics.synth.imaging import Imaging
+
     grid = config.synth.grid
-    imaging = _imaging(
-        config.forward_model,
-        (grid.shape, grid.voxel_um),
-        config.toy_sensor_px,
-        config.synth.fov_mm[1],
-        config.synth.depth_um,
-        config.synth.view_px,
-    )
+    imaging = Imaging(sensor_window(_source_of(config), config.synth.view_px), grid)
     scale = imaging.pixels_per_voxel()
     if scale is None:
         raise ConfigError(f"forward_model = {config.forward_model!r}: its views are rotated against the volume grid")

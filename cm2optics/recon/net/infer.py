@@ -37,7 +37,14 @@ from cm2optics.recon.net.data import pixel_voxel_um
 from cm2optics.recon.net.refocus import refocus_planes
 from cm2optics.recon.net.weights import GeometryMismatchError, LoadedNet, NetInputError, load_weights
 
-__all__ = ["NetResult", "PREPROCESS", "histogram_match", "reconstruct_with_net", "views_from_measurement"]
+__all__ = [
+    "NetResult",
+    "PREPROCESS",
+    "histogram_match",
+    "reconstruct_net_file",
+    "reconstruct_with_net",
+    "views_from_measurement",
+]
 
 PREPROCESS = ("none", "max", "histogram")
 
@@ -91,7 +98,11 @@ def views_from_measurement(measurement: np.ndarray, model: Any, view_px: int) ->
     return crop_views(np.asarray(measurement, np.float32), _chief_rays(model), view_px)
 
 
-def _load_model(model: Any, grid: VolumeGrid) -> Any:
+def _load_model(model: Any, grid: VolumeGrid, config: Any) -> Any:
+    if model is None:
+        from cm2optics.recon.net.data import inference_model
+
+        return inference_model(config)
     if isinstance(model, str | Path):
         from cm2optics.synth.imaging import load_imaging
 
@@ -165,7 +176,8 @@ def reconstruct_with_net(
 
     measurement: (H, W) sensor frame (integers or floats; a synthetic one is already normalised).
     weights: a weights folder (or :func:`load_weights`' result). model: the forward model (a
-    3D-LSV model or its file, or an operator with chief rays). preprocess: ``none``, ``max`` or
+    3D-LSV model or its file, or an operator with chief rays; None: the one the weights were
+    trained through, on its whole sensor). preprocess: ``none``, ``max`` or
     ``histogram``. threshold: detection threshold on [0, 1] (default: the config's).
     view_px: side of the views (default: the training views'). name: how errors call the input."""
     t0 = time.perf_counter()
@@ -173,15 +185,15 @@ def reconstruct_with_net(
         raise ValueError(f"preprocess = {preprocess!r}: must be one of {', '.join(PREPROCESS)}")
     loaded = weights if isinstance(weights, LoadedNet) else load_weights(weights, device=device)
     config = loaded.config
-    model = _load_model(model, config.synth.grid)
+    model = _load_model(model, config.synth.grid, config)
     scale, model = check_geometry(loaded, model)
     image = _check_measurement(measurement, tuple(int(v) for v in model.sensor_shape), name)
     if preprocess == "max":
         image = image / max(float(image.max()), 1e-12)
     elif preprocess == "histogram":
         if loaded.histogram is None:
-            raise ValueError(
-                f"{loaded.folder}: these weights carry no reference histogram; use preprocess='max' or 'none'"
+            raise NetInputError(
+                f"{loaded.folder}: these weights carry no reference histogram; use preprocess 'max' or 'none'"
             )
         image = histogram_match(image, loaded.histogram)
     V = int(view_px or config.synth.view_px)
@@ -213,3 +225,55 @@ def reconstruct_with_net(
         loaded.planes.max_shift_px,
         {"prepare": t1 - t0, "network": t2 - t1, "detect": t3 - t2, "total": t3 - t0},
     )
+
+
+def reconstruct_net_file(
+    measurement_path: str | Path,
+    weights: str | Path,
+    out_path: str | Path,
+    *,
+    model: str | Path | None = None,
+    emitters_out: str | Path | None = None,
+    preprocess: str = "histogram",
+    threshold: float | None = None,
+    dark_level: float = 0.0,
+) -> dict[str, Any]:
+    """Read a measurement, reconstruct it with the weights folder ``weights``, write the volume
+    (TIFF with ImageJ spacing, or .npy), ``<out>.json`` beside it and, if asked, the detected
+    emitters (CSV, µm, centred on the axis); returns the JSON record."""
+    from cm2optics.errors import UserError
+    from cm2optics.formats.atomic import write_json_atomic
+    from cm2optics.formats.emitters import write_emitters
+    from cm2optics.formats.measurement import read_measurement
+    from cm2optics.formats.volume import write_volume
+
+    out_path = Path(out_path)
+    if out_path.suffix.lower() not in (".tif", ".tiff", ".npy"):
+        raise UserError(f"--out {out_path}: give a .tif or .npy file name")
+    if emitters_out is not None and Path(emitters_out).suffix.lower() != ".csv":
+        raise UserError(f"--emitters-out {emitters_out}: give a .csv file name")
+    measurement = read_measurement(measurement_path, dark_level)
+    loaded = load_weights(weights)
+    result = reconstruct_with_net(
+        measurement, loaded, model, preprocess=preprocess, threshold=threshold, name=str(measurement_path)
+    )
+    write_volume(out_path, result.volume, result.grid.voxel_um)
+    record: dict[str, Any] = {
+        "method": "net",
+        "measurement": str(measurement_path),
+        "weights": str(weights),
+        "model": str(model) if model is not None else loaded.config.forward_model,
+        "volume": str(out_path),
+        "shape": list(result.volume.shape),
+        "voxel_um": list(result.grid.voxel_um),
+        "preprocess": preprocess,
+        "threshold": result.threshold,
+        "n_emitters": len(result.emitters),
+        "border_px": result.border_px,
+        "seconds": {k: round(v, 3) for k, v in result.seconds.items()},
+    }
+    if emitters_out is not None:
+        write_emitters(emitters_out, result.emitters)
+        record["emitters"] = str(emitters_out)
+    write_json_atomic(out_path.with_suffix(".json"), record)
+    return record
