@@ -29,6 +29,14 @@ def train_command(
     device: Annotated[
         str | None, typer.Option("--device", help="cpu or cuda:N (default: the process's GPU if any, else cpu).")
     ] = None,
+    export: Annotated[
+        Path | None,
+        typer.Option(
+            "--export",
+            help="Do not train: write the weights of the run's latest checkpoint (out_dir/checkpoint.pt, a run still "
+            "training or stopped) into this folder as a weights folder, e.g. reconstruction/cm2net-cpu.",
+        ),
+    ] = None,
     overwrite: OverwriteOption = False,
     as_json: JsonOption = False,
 ) -> None:
@@ -49,6 +57,9 @@ def train_command(
         raise FileNotFoundError(f"{config}: no such config file")
     settings = load_config(config)
     out_dir = Path(settings.out_dir)
+    if export is not None:
+        _export(out_dir, export, config, overwrite)
+        return
     check_output(out_dir, command="train", kind="folder", inputs=[config], overwrite=overwrite, option="out_dir")
     claim_folder(out_dir, "train")
     summary = train(settings, resume=resume, max_steps=max_steps, device=device)
@@ -57,3 +68,18 @@ def train_command(
         print(json.dumps(summary, indent=2, default=str))
     else:
         typer.echo(json.dumps(shown, indent=1, default=str))
+
+
+def _export(run_dir: Path, folder: Path, config: Path, overwrite: bool) -> None:
+    """``--export``: the run's latest checkpoint as a weights folder."""
+    from rich.console import Console
+
+    from cm2optics.formats.outputs import claim_folder
+    from cm2optics.recon.net.train import export_weights
+
+    check_output(
+        folder, command="train", kind="folder", inputs=[config, run_dir], overwrite=overwrite, option="--export"
+    )
+    claim_folder(folder, "train")
+    saved = export_weights(run_dir, folder)
+    Console(stderr=True).print(f"[green]weights:[/] {saved}")

@@ -40,7 +40,7 @@ from torch.utils.data import DataLoader
 from cm2optics.formats.atomic import write_atomic
 from cm2optics.formats.volume import VolumeGrid
 from cm2optics.progress import progress_bar
-from cm2optics.recon.net.checkpoint import load_checkpoint, save_checkpoint, set_rng_state
+from cm2optics.recon.net.checkpoint import CheckpointError, load_checkpoint, save_checkpoint, set_rng_state
 from cm2optics.recon.net.config import NetConfig, load_config
 from cm2optics.recon.net.data import (
     PatchDataset,
@@ -518,6 +518,33 @@ def _save_final_weights(
     return save_weights_safe(net, config, out / "weights", metrics, training, histogram)
 
 
+def export_weights(run_dir: str | Path, folder: str | Path) -> Path:
+    """The weights of the latest checkpoint in ``run_dir`` (a run that is still training, or
+    stopped) as a weights folder: safetensors, config, model card with the training facts and the
+    last validation metrics, SHA256SUMS, and the reference histogram of the training views."""
+    path = Path(run_dir) / "checkpoint.pt"
+    if not path.is_file():
+        raise CheckpointError(f"{path}: no checkpoint to export")
+    config = NetConfig.from_dict(torch.load(path, map_location="cpu", weights_only=False)["config"])
+    state = load_checkpoint(path, config.hash())
+    net, _ = make_net(config)
+    net.load_state_dict({k.removeprefix("module."): v for k, v in state["model"].items()})
+    history = state["history"]
+    seconds = history.get("seconds_per_step") or []
+    training = {
+        "epochs completed": state["epoch"],
+        "optimiser steps": state["global_step"],
+        "patches seen": state["global_step"] * config.batch_size,
+        "median seconds per step": round(float(np.median(seconds)), 3) if seconds else None,
+        "training wall time (h, steps only)": round(float(np.sum(seconds)) / 3600.0, 2),
+        "hardware": f"CPU, {torch.get_num_threads()} torch threads",
+    }
+    last = history["epochs"][-1] if history.get("epochs") else {}
+    metrics = {k: v for k, v in last.items() if isinstance(v, int | float)}
+    histogram = _histogram(PatchSource(config), config)
+    return save_weights_safe(net, config, folder, metrics, training, histogram)
+
+
 def save_weights_safe(net, config, folder, metrics, training, histogram) -> Path:
     from cm2optics.recon.net.weights import save_weights
 
@@ -527,7 +554,6 @@ def save_weights_safe(net, config, folder, metrics, training, histogram) -> Path
 def main(argv: list[str] | None = None) -> int:
     import argparse
 
-    from cm2optics.recon.net.checkpoint import CheckpointError
     from cm2optics.recon.net.config import ConfigError
 
     parser = argparse.ArgumentParser(
