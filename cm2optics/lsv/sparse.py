@@ -12,7 +12,11 @@ magnification). Two approximations keep 5,000 emitters at full size within secon
   matrix product forms all their patches;
 - the ball's axial extent is not integrated: its whole image uses the PSF at its centre depth
   (a 20-µm ball spans two 10-µm planes; the PSF changes little over that), and ball diameters are
-  rounded to 0.25 px on the sensor, each size blurred once, on its own canvas, by FFT.
+  rounded to 0.25 px on the sensor.
+
+Each emitter's focus patch is blurred by its ball on the patch itself (a batched FFT of the
+patch, a few tens of pixels wide, with its full linear support) before it is added to the
+sensor: the same image as blurring whole sensor canvases, at the cost of the patches only.
 
 :func:`point_image` is the exact image of one point source (validation, tests).
 """
@@ -105,18 +109,6 @@ def ball_kernel(diameter_px: float, supersample: int = 8) -> np.ndarray:
     return density / total
 
 
-def _kernel_dft(kernel: np.ndarray, shape: tuple[int, int]) -> torch.Tensor:
-    """rfft2 (shape) of a centred odd ``kernel`` placed with its centre at index (0, 0)."""
-    kh, kw = kernel.shape
-    rows = np.arange(kh) - kh // 2
-    cols = np.arange(kw) - kw // 2
-    fr = np.fft.fftfreq(shape[0])
-    fc = np.fft.rfftfreq(shape[1])
-    er = np.exp(-2j * np.pi * np.outer(fr, rows))  # (Fr, kh)
-    ec = np.exp(-2j * np.pi * np.outer(cols, fc))  # (kw, Fc)
-    return torch.as_tensor(er @ kernel @ ec, dtype=torch.complex64)
-
-
 def render_emitters(
     model: LSVModel,
     emitters: Emitters,
@@ -134,18 +126,15 @@ def render_emitters(
     intensity = emitters.intensity[keep]
     diameters_um = emitters.diameter_um[keep]
     n_out = J if per_lenslet else 1
+    out = torch.zeros((n_out, H, W), dtype=torch.float32)
     if len(positions) == 0:
-        out = np.zeros((n_out, H, W), np.float32)
-        return out if per_lenslet else out[0]
+        return out.numpy() if per_lenslet else out[0].numpy()
     x, y, z = positions.T
     A = model.geometry.A(z)
     scale = np.sqrt(np.abs(np.linalg.det(A))) / 1000.0  # px per µm at each emitter's depth
     diameter_px = diameters_um * scale
     size_bin = np.where(diameter_px < POINT_BELOW_PX, 0, np.round(diameter_px / SIZE_STEP_PX).astype(np.int64))
-    margin = int(math.ceil(diameter_px.max() / 2.0)) + 2
-    bins = sorted(set(size_bin.tolist()))
-    slot_of = {b: i for i, b in enumerate(bins)}
-    canvases = torch.zeros((len(bins), n_out, H + 2 * margin, W + 2 * margin), dtype=torch.float32)
+    balls = _BallSpectra()
     focus = model.geometry.focus(x, y, z)  # (N, J, 2)
     coefficients = model.coefficients
     for j in range(J):
@@ -158,11 +147,9 @@ def render_emitters(
         c = np.einsum("kne,ne->nk", coefficients[:, nodes[..., 0], nodes[..., 1], nodes[..., 2]], weights)
         c = torch.as_tensor(c * intensity[index, None], dtype=torch.float32)
         n, phases, phase_values = _phases(corner[index], subpixel_steps)
-        slot = j if per_lenslet else 0
+        target = out[j if per_lenslet else 0]
         basis_j = np.ascontiguousarray(model.basis[:, j], dtype=np.float32)
-        targets = [canvases[slot_of[int(b)], slot] for b in size_bin[index]]
-        tops = (n[:, 0] - 1 + margin).tolist()
-        lefts = (n[:, 1] - 1 + margin).tolist()
+        bins, tops, lefts = size_bin[index], n[:, 0] - 1, n[:, 1] - 1
         for phase in np.unique(phases):
             members = np.nonzero(phases == phase)[0]
             shifted = torch.from_numpy(
@@ -171,9 +158,11 @@ def render_emitters(
             for start in range(0, len(members), chunk):
                 part = members[start : start + chunk]
                 patches = (c[part] @ shifted).reshape(len(part), h + 3, w + 3)
-                for patch, m in zip(patches, part.tolist(), strict=True):
-                    _add_torch(targets[m], patch, tops[m], lefts[m])
-    result = _blur_sizes(canvases, slot_of, margin, (H, W)).numpy()
+                for b in np.unique(bins[part]):
+                    sel = np.nonzero(bins[part] == b)[0]
+                    blurred, pad = balls.blur(patches[sel], int(b))
+                    _scatter_add(target, blurred, tops[part[sel]] - pad, lefts[part[sel]] - pad)
+    result = out.numpy()
     return result if per_lenslet else result[0]
 
 
@@ -199,28 +188,38 @@ def _phases(corner: np.ndarray, subpixel_steps: int | None) -> tuple[np.ndarray,
     return n, phases, phase_values
 
 
-def _blur_sizes(
-    canvases: torch.Tensor, slot_of: dict[int, int], margin: int, sensor_shape: tuple[int, int]
-) -> torch.Tensor:
-    """The (n_out, H, W) image: each size bin's canvas (px, with ``margin``) convolved with its ball, summed."""
-    H, W = sensor_shape
-    shape = (fast_length(H + 2 * margin), fast_length(W + 2 * margin))
-    total = None
-    out = torch.zeros((canvases.shape[1], H, W), dtype=torch.float32)
-    for b, i in slot_of.items():
-        if b == 0:
-            out += canvases[i][:, margin : margin + H, margin : margin + W]
-            continue
-        spectrum = torch.fft.rfft2(canvases[i], s=shape) * _kernel_dft(ball_kernel(b * SIZE_STEP_PX), shape)
-        total = spectrum if total is None else total + spectrum
-    if total is not None:
-        out += torch.fft.irfft2(total, s=shape)[:, margin : margin + H, margin : margin + W]
-    return out
+class _BallSpectra:
+    """The rfft2 of ball kernels (size bin × FFT shape), made once per render."""
+
+    def __init__(self) -> None:
+        self._spectra: dict[tuple[int, tuple[int, int]], torch.Tensor] = {}
+        self._kernels: dict[int, np.ndarray] = {}
+
+    def blur(self, patches: torch.Tensor, size_bin: int) -> tuple[torch.Tensor, int]:
+        """(n, P, Q) patches convolved (full linear support) with the ball of ``size_bin`` ×
+        SIZE_STEP_PX px diameter: (n, P + 2R, Q + 2R) and R; bin 0 (a point) returns them as they are."""
+        if size_bin == 0:
+            return patches, 0
+        if size_bin not in self._kernels:
+            self._kernels[size_bin] = ball_kernel(size_bin * SIZE_STEP_PX)
+        kernel = self._kernels[size_bin]
+        k = kernel.shape[0]
+        P, Q = patches.shape[-2:]
+        shape = (fast_length(P + k - 1), fast_length(Q + k - 1))
+        key = (size_bin, shape)
+        if key not in self._spectra:
+            self._spectra[key] = torch.fft.rfft2(torch.as_tensor(kernel, dtype=torch.float32), s=shape)
+        full = torch.fft.irfft2(torch.fft.rfft2(patches, s=shape) * self._spectra[key], s=shape)
+        return full[:, : P + k - 1, : Q + k - 1], k // 2
 
 
-def _add_torch(target: torch.Tensor, block: torch.Tensor, r: int, c: int) -> None:
+def _scatter_add(target: torch.Tensor, blocks: torch.Tensor, tops: np.ndarray, lefts: np.ndarray) -> None:
+    """Add (n, P, Q) ``blocks`` into ``target`` (H, W) with their corners at (tops, lefts) px,
+    clipped at the edges, in one indexed accumulation."""
     H, W = target.shape
-    rs, re = max(r, 0), min(r + block.shape[0], H)
-    cs, ce = max(c, 0), min(c + block.shape[1], W)
-    if rs < re and cs < ce:
-        target[rs:re, cs:ce] += block[rs - r : re - r, cs - c : ce - c]
+    n, P, Q = blocks.shape
+    rows = torch.as_tensor(tops, dtype=torch.int64)[:, None] + torch.arange(P)  # (n, P)
+    cols = torch.as_tensor(lefts, dtype=torch.int64)[:, None] + torch.arange(Q)  # (n, Q)
+    inside = ((rows >= 0) & (rows < H))[:, :, None] & ((cols >= 0) & (cols < W))[:, None, :]
+    flat = rows[:, :, None] * W + cols[:, None, :]
+    target.view(-1).index_put_((flat[inside],), blocks[inside], accumulate=True)

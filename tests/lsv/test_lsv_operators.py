@@ -285,3 +285,34 @@ def test_a_sub_pixel_cross_coupling_stays_exact_and_keeps_no_per_voxel_data(grid
     assert op.memory_bytes() <= aligned.memory_bytes()
     # and it differs from the aligned model's image by the sub-pixel amount only
     assert 0 < np.linalg.norm(Ax - aligned.forward(x)) / np.linalg.norm(Ax) < 0.2
+
+
+def test_sparse_ball_is_the_point_image_blurred_by_its_ball():
+    """A ball's image is the exact point image convolved with the ball's projection, also where
+    the blurred focus runs over the sensor's edge (light from foci just off the sensor blurs in)."""
+    from dataclasses import replace
+
+    from scipy.signal import fftconvolve
+
+    from cm2optics.lsv.sparse import SIZE_STEP_PX, ball_kernel
+
+    model = synthetic_model("general")
+    H, W = model.sensor_shape
+    diameter_px = 24 * SIZE_STEP_PX  # a whole size bin: no rounding of the diameter
+    kernel = ball_kernel(diameter_px)
+    pad = kernel.shape[0]
+    g = model.geometry
+    r0 = np.array(g.r0_poly, float, copy=True)
+    r0[0] += pad
+    wider = replace(
+        model, geometry=type(g)(r0, g.A_poly, g.o_poly, g.rows, g.cols), sensor_shape=(H + 2 * pad, W + 2 * pad)
+    )
+    scale = np.sqrt(abs(np.linalg.det(model.geometry.A(0.05)))) / 1000.0  # px per µm
+    for x_um in (0.0, -900.0):  # the second set of foci straddles the sensor's left edge
+        ball = Emitters(
+            np.array([x_um]), np.array([120.0]), np.array([50.0]), np.array([diameter_px / scale]), np.ones(1)
+        )
+        image = model.forward_sparse(ball, subpixel_steps=None, per_lenslet=True)
+        point = wider.point_image(x_um / 1000, 0.12, 0.05, per_lenslet=True)
+        expected = np.stack([fftconvolve(p, kernel, mode="same") for p in point])[:, pad:-pad, pad:-pad]
+        assert np.linalg.norm(image - expected) / np.linalg.norm(expected) < 1e-5
