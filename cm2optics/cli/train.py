@@ -71,15 +71,16 @@ def train_command(
 
 
 def _export(run_dir: Path, folder: Path, config: Path, overwrite: bool) -> None:
-    """``--export``: the run's latest checkpoint as a weights folder."""
+    """``--export``: the run's latest checkpoint as a weights folder (written whole, or not at all)."""
     from rich.console import Console
 
-    from cm2optics.formats.outputs import claim_folder
-    from cm2optics.recon.net.train import export_weights
+    from cm2optics.recon.net.checkpoint import CheckpointError
+    from cm2optics.recon.net.train import CHECKPOINT, export_weights
 
+    if not (run_dir / CHECKPOINT).is_file():
+        raise CheckpointError(f"{run_dir / CHECKPOINT}: no checkpoint to export (out_dir of {config}); train first")
     check_output(
         folder, command="train", kind="folder", inputs=[config, run_dir], overwrite=overwrite, option="--export"
     )
-    claim_folder(folder, "train")
     saved = export_weights(run_dir, folder)
     Console(stderr=True).print(f"[green]weights:[/] {saved}")

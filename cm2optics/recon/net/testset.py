@@ -45,8 +45,7 @@ def net_test_set(
 
     loaded = load_weights(weights)
     config = loaded.config
-    if config.seed == seed:
-        raise ValueError(f"seed {seed} is the training data's seed: choose another for a test set")
+    _check_seed(seed, config.seed)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     model_path = out_dir / "forward-model.lsv.h5"
@@ -74,6 +73,20 @@ def net_test_set(
         reuse=reuse,
         log=log,
     )
+
+
+def _check_seed(seed: int, training_seed: int) -> None:
+    """Refuse a test seed whose volumes the run made: training, validation or reference histogram."""
+    from cm2optics.recon.net.data import VALIDATION_SEED_OFFSET
+    from cm2optics.recon.net.train import REFERENCE_SEED_OFFSET
+
+    used = {
+        training_seed: "training",
+        training_seed + VALIDATION_SEED_OFFSET: "validation",
+        training_seed + REFERENCE_SEED_OFFSET: "reference-histogram",
+    }
+    if seed in used:
+        raise ValueError(f"seed {seed} is the {used[seed]} data's seed: choose another for a test set")
 
 
 def main(argv: list[str] | None = None) -> int:
