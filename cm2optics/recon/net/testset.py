@@ -19,7 +19,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-__all__ = ["TEST_SEED", "net_test_set"]
+__all__ = ["TEST_SEED", "check_seed", "net_test_set"]
 
 #: The test set's seed: the training data use the config's seed, validation that + 7919.
 TEST_SEED = 1_000_003
@@ -45,7 +45,7 @@ def net_test_set(
 
     loaded = load_weights(weights)
     config = loaded.config
-    _check_seed(seed, config.seed)
+    check_seed(seed, config.seed)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     model_path = out_dir / "forward-model.lsv.h5"
@@ -75,7 +75,7 @@ def net_test_set(
     )
 
 
-def _check_seed(seed: int, training_seed: int) -> None:
+def check_seed(seed: int, training_seed: int) -> None:
     """Refuse a test seed whose volumes the run made: training, validation or reference histogram."""
     from cm2optics.recon.net.data import VALIDATION_SEED_OFFSET
     from cm2optics.recon.net.train import REFERENCE_SEED_OFFSET

@@ -44,10 +44,13 @@ __all__ = [
     "WeightsError",
     "load_weights",
     "net_from_tensors",
+    "shipped_weights",
     "save_weights",
 ]
 
 FORMAT = "cm2optics-cm2net"
+#: The weights shipped with the project: ``reconstruction/<name>`` at the top of the repository.
+SHIPPED = "cm2net-cpu"
 WEIGHTS_FILE, CONFIG_FILE, CARD_FILE, SUMS_FILE = "model.safetensors", "config.yaml", "MODEL_CARD.md", "SHA256SUMS"
 
 
@@ -271,3 +274,13 @@ def net_from_tensors(config: NetConfig, tensors: dict, where: str, config_name: 
         raise WeightsError(f"{where}: tensors do not match {config_name}: {detail}")
     net.load_state_dict(tensors)
     return net
+
+
+def shipped_weights(name: str = SHIPPED) -> Path:
+    """Where the project's shipped weights ``name`` lie: ``reconstruction/<name>`` in the
+    repository that holds this package (a clone, or an editable install of one), found from the
+    package's own location, never from the current directory. The folder may be absent (an
+    installed wheel carries no weights): check ``.is_dir()``."""
+    import cm2optics
+
+    return Path(cm2optics.__file__).resolve().parent.parent / "reconstruction" / name
