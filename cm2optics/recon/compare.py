@@ -175,8 +175,13 @@ def compare_baselines(
     keep_volumes: bool = True,
     reuse: bool = False,
     log: Callable[[str], None] | None = print,
+    imaging: Any = None,
 ) -> dict[str, Any]:
-    """Make the test set, run every run, evaluate; returns the summary (also ``comparison.json``)."""
+    """Make the test set, run every run, evaluate; returns the summary (also ``comparison.json``).
+
+    imaging: what makes the test set's measurements, in this process (a
+    :class:`~cm2optics.synth.imaging.Imaging`, e.g. of frames traced by the emission simulator);
+    default: the model at ``model_path``, on Dask workers. The runs reconstruct with ``model_path``."""
     from cm2optics.formats.atomic import write_json_atomic, write_text_atomic
     from cm2optics.lsv.model import load_model
     from cm2optics.metrics.plots import plot_breakdowns
@@ -190,7 +195,7 @@ def compare_baselines(
     grid = config.grid
     say(f"test set: {n_volumes} volumes, grid {grid.shape} of {'×'.join(f'{v:.3g}' for v in grid.voxel_um)} µm")
     manifest, samples, truths, densities = _test_set(
-        config, model_path, out_dir, n_volumes, seed, workers=workers, dask_address=dask_address, say=say
+        config, imaging or model_path, out_dir, n_volumes, seed, workers=workers, dask_address=dask_address, say=say
     )
     results = _reconstruct_runs(
         model_path, grid, runs, samples, out_dir, threads=threads, dask_address=dask_address, reuse=reuse, say=say
@@ -198,6 +203,7 @@ def compare_baselines(
 
     summary: dict[str, Any] = {
         "model": str(model_path),
+        "measurements": manifest["model"].get("kind"),
         "n_volumes": n_volumes,
         "seed": seed,
         "config": config.to_dict(),
@@ -230,7 +236,7 @@ def compare_baselines(
 
 def _test_set(
     config: SynthConfig,
-    model_path: Path,
+    model_path: Any,
     out_dir: Path,
     n_volumes: int,
     seed: int,
@@ -240,13 +246,21 @@ def _test_set(
     say: Callable[[str], None],
 ) -> tuple[dict[str, Any], list[str], list, list[float]]:
     """The test set in ``out_dir/testset`` (made, or reused when it matches): its manifest, the
-    sample paths, the true emitters of each sample and each sample's density (per mm²)."""
+    sample paths, the true emitters of each sample and each sample's density (per mm²).
+    ``model_path``: a model file, or an in-process imaging (made here, never reused)."""
     from cm2optics.synth.dataset import make_dataset, read_sample
 
-    manifest = _reusable_testset(out_dir / "testset", config, seed, n_volumes, model_path)
+    in_process = not isinstance(model_path, str | Path)
+    manifest = None if in_process else _reusable_testset(out_dir / "testset", config, seed, n_volumes, model_path)
     if manifest is None:
         manifest = make_dataset(
-            config, model_path, out_dir / "testset", n_volumes, seed, workers=workers, dask_address=dask_address
+            config,
+            model_path,
+            out_dir / "testset",
+            n_volumes,
+            seed,
+            workers=0 if in_process else workers,
+            dask_address=None if in_process else dask_address,
         )
     else:
         say("reusing the test set already in " + str(out_dir / "testset"))

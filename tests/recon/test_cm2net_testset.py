@@ -16,7 +16,7 @@ from tiny_net import tiny
 from cm2optics.recon.net.data import VALIDATION_SEED_OFFSET
 from cm2optics.recon.net.testset import TEST_SEED, net_test_set
 from cm2optics.recon.net.train import make_net
-from cm2optics.recon.net.weights import save_weights
+from cm2optics.recon.net.weights import load_weights, save_weights
 from cm2optics.synth.config import SynthConfig
 
 
@@ -111,3 +111,76 @@ def test_the_demo_section_says_in_one_line_when_the_weights_are_absent(tmp_path,
     assert shipped_weights() == Path(__file__).resolve().parents[2] / "reconstruction" / "cm2net-cpu"
     refused = CliRunner().invoke(app, ["demo", "--out", str(tmp_path / "d"), "--weights", str(tmp_path / "none")])
     assert refused.exit_code == 2 and "--weights" in refused.output and not (tmp_path / "d").exists()
+
+
+# ----------------------------------------------------------------------------- set (b): traced
+@pytest.fixture(scope="module")
+def analytic_weights(lsv_model, tmp_path_factory):
+    """Untrained tiny weights through the analytic CM² V2 model binned 8× (the shipped weights'
+    kind of forward model), on a 0.6-mm field so that tracing a test volume takes seconds."""
+    voxel = lsv_model.default_grid.voxel_um[1]
+    synth = SynthConfig.scaled(
+        4,
+        voxel_um=(50.0, voxel, voxel),
+        depth_um=300.0,
+        fov_mm=(0.6, 0.6),
+        view_px=32,
+        patch_px=16,
+        patches_per_volume=2,
+    )
+    config = tiny(forward_model="analytic:cm2-v2:8", synth=synth, n_planes=synth.grid.shape[0], seed=3)
+    net, _ = make_net(config)
+    return save_weights(net, config, tmp_path_factory.mktemp("analytic-weights") / "weights")
+
+
+def test_a_traced_point_lands_on_the_reference_models_chief_rays(analytic_weights, v2):
+    """Known answer: an in-focus point on the axis, traced (no LSV model) and cut to the weights'
+    sensor window, peaks within 1.5 px of the chief rays of the model the net was trained through."""
+    from cm2optics.emission.image import TracedSource
+    from cm2optics.formats.emitters import Emitters
+    from cm2optics.recon.net.data import forward_imaging
+
+    model = forward_imaging(load_weights(analytic_weights).config).source
+    source = TracedSource(v2, model, 8)
+    point = Emitters.from_positions_um(np.zeros((1, 3)), np.array([8.0]), np.ones(1))
+    frame = source.forward_sparse(point)
+    assert frame.shape == tuple(model.sensor_shape)
+    for r, c in np.asarray(model.geometry.focus(0.0, 0.0, 0.0)).reshape(-1, 2):
+        r0, c0 = int(round(r)), int(round(c))
+        local = frame[r0 - 4 : r0 + 5, c0 - 4 : c0 + 5]
+        dr, dc = np.unravel_index(np.argmax(local), local.shape)
+        assert np.hypot(r0 - 4 + dr - r, c0 - 4 + dc - c) <= 1.5, (r, c)
+    with pytest.raises(ValueError, match="per-lenslet"):
+        source.forward_sparse(point, per_lenslet=True)
+    with pytest.raises(ValueError, match="binning"):
+        TracedSource(v2, model, 16).forward_sparse(point)
+
+
+def test_cm2_net_testset_traced_scores_the_net_and_fista_on_traced_measurements(
+    analytic_weights, lsv_weights, tmp_path
+):
+    """`cm2 net-testset W OUT --traced`: issue 15's set (b) on one traced volume at the paper's
+    densities, both runs scored; misuse is one line (exit 2)."""
+    from typer.testing import CliRunner
+
+    from cm2optics.cli import app
+
+    runner = CliRunner()
+    out = tmp_path / "b"
+    args = ["net-testset", str(analytic_weights), str(out), "--n-volumes", "1", "--fista-iterations", "4"]
+    result = runner.invoke(app, [*args, "--traced", "--json"])
+    assert result.exit_code == 0, result.output
+    summary = json.loads((out / "comparison.json").read_text())
+    assert summary["measurements"] == "TracedSource" and summary["seed"] == TEST_SEED
+    assert summary["config"]["density_per_mm2"] == [10.0, 100.0] and summary["n_emitters"] > 0
+    for name in ("cm2net", "lsv-fista"):
+        run = summary["runs"][name]
+        assert 0.0 <= run["f1"] <= 1.0 and run["n_tp"] + run["n_fn"] == summary["n_emitters"]
+    assert json.loads(result.stdout)["cm2net"]["f1"] == summary["runs"]["cm2net"]["f1"]
+    for extra, weights, message in (
+        (["--binning", "8"], analytic_weights, "--traced"),
+        (["--traced"], lsv_weights, "--preset and --binning"),
+    ):
+        failed = runner.invoke(app, ["net-testset", str(weights), str(tmp_path / "x"), *extra])
+        assert failed.exit_code == 2 and message in failed.output, failed.output
+        assert not (tmp_path / "x").exists()
