@@ -28,7 +28,7 @@ from cm2optics.cli.psf import psf_app
 from cm2optics.cli.reconstruct import reconstruct_command
 from cm2optics.cli.spectra import spectra_app
 from cm2optics.cli.synth import synth_command
-from cm2optics.cli.train import train_command
+from cm2optics.cli.train import net_testset_command, train_command
 
 __all__ = ["app"]
 
@@ -58,6 +58,7 @@ app.command("reconstruct")(reconstruct_command)
 app.command("demo")(demo_command)
 app.command("compare-baselines")(compare_baselines_command)
 app.command("train")(train_command)
+app.command("net-testset")(net_testset_command)
 
 
 def _version(value: bool) -> None:

@@ -37,19 +37,29 @@ def demo_command(
             "about two minutes sooner) instead of the traced calibration scan of section 5.",
         ),
     ] = False,
+    weights: Annotated[
+        Path | None,
+        typer.Option(
+            "--weights",
+            help="CM²Net weights folder for section 8 (default: the repository's reconstruction/cm2net-cpu).",
+        ),
+    ] = None,
     overwrite: OverwriteOption = False,
 ) -> None:
     """Run every stage built so far at demo size and write `report.html` and `report.md`.
 
     One chain: the design's parts, spectra and illumination; a traced PSF calibration scan; the
     3D-LSV model built from that scan; a synthetic volume simulated through it, reconstructed
-    and scored."""
+    and scored; CM²Net with the shipped weights beside FISTA."""
     from cm2optics.design import load_preset
+    from cm2optics.errors import UserError
     from cm2optics.reports.demo import run_demo
 
+    if weights is not None and not weights.is_dir():
+        raise UserError(f"--weights {weights}: no such weights folder")
     design = load_preset(preset)
-    output_folder(out_dir, "demo", inputs=[preset], overwrite=overwrite)
-    report = run_demo(design, out_dir, analytic=analytic)
+    output_folder(out_dir, "demo", inputs=[preset, weights], overwrite=overwrite)
+    report = run_demo(design, out_dir, analytic=analytic, weights=weights)
     out.print(f"[green]demo report:[/] {report}")
 
 

@@ -71,15 +71,97 @@ def train_command(
 
 
 def _export(run_dir: Path, folder: Path, config: Path, overwrite: bool) -> None:
-    """``--export``: the run's latest checkpoint as a weights folder."""
+    """``--export``: the run's latest checkpoint as a weights folder (written whole, or not at all)."""
     from rich.console import Console
 
-    from cm2optics.formats.outputs import claim_folder
-    from cm2optics.recon.net.train import export_weights
+    from cm2optics.recon.net.checkpoint import CheckpointError
+    from cm2optics.recon.net.train import CHECKPOINT, export_weights
 
+    if not (run_dir / CHECKPOINT).is_file():
+        raise CheckpointError(f"{run_dir / CHECKPOINT}: no checkpoint to export (out_dir of {config}); train first")
     check_output(
         folder, command="train", kind="folder", inputs=[config, run_dir], overwrite=overwrite, option="--export"
     )
-    claim_folder(folder, "train")
     saved = export_weights(run_dir, folder)
     Console(stderr=True).print(f"[green]weights:[/] {saved}")
+
+
+@user_errors
+def net_testset_command(
+    weights: Annotated[Path, typer.Argument(help="Weights folder, e.g. reconstruction/cm2net-cpu.")],
+    out_dir: Annotated[
+        Path,
+        typer.Argument(metavar="OUT", help="Folder for the test set, the reconstructions and comparison.json/.md."),
+    ],
+    traced: Annotated[
+        bool,
+        typer.Option(
+            "--traced",
+            help="Issue 15's set (b): image the test volumes with the emission ray tracer (cm2 psf image; no 3D-LSV "
+            "model in the loop) instead of the weights' forward model (set (a)).",
+        ),
+    ] = False,
+    preset: Annotated[
+        str | None,
+        typer.Option(
+            "--preset", "-p", help="--traced: the design to trace (default: the preset of an analytic forward model)."
+        ),
+    ] = None,
+    binning: Annotated[
+        int | None,
+        typer.Option("--binning", "-b", help="--traced: the sensor binning (default: an analytic forward model's)."),
+    ] = None,
+    n_volumes: Annotated[int, typer.Option("--n-volumes", min=1, help="Test volumes.")] = 10,
+    seed: Annotated[int, typer.Option("--seed", min=0, help="Seed of the test volumes (never the run's).")] = 1_000_003,
+    fista_iterations: Annotated[int, typer.Option("--fista-iterations", min=1, help="FISTA iterations.")] = 60,
+    workers: Annotated[int, typer.Option("--workers", min=0, help="Dask workers making set (a).")] = 1,
+    overwrite: OverwriteOption = False,
+    as_json: JsonOption = False,
+) -> None:
+    """CM²Net beside FISTA (the weights' 3D-LSV model) on a test set it never saw, at the paper's
+    densities (U[10, 100] per mm²) and diameters (8–20 µm), each at its own F1-optimal threshold,
+    with the paper's Fig. 6 breakdowns: comparison.json, comparison.md and figures in OUT."""
+    from cm2optics.cli.options import output_folder
+    from cm2optics.errors import UserError
+    from cm2optics.recon.net.testset import net_test_set
+    from cm2optics.recon.net.weights import load_weights
+
+    loaded = load_weights(weights)
+    factory = None
+    if traced:
+        factory = _traced_factory(loaded.config.forward_model, preset, binning)
+    elif preset is not None or binning is not None:
+        raise UserError("--preset and --binning choose what --traced traces; give --traced or leave them out")
+    output_folder(out_dir, "net-testset", inputs=[weights], overwrite=overwrite)
+    summary = net_test_set(
+        weights,
+        out_dir,
+        n_volumes=n_volumes,
+        seed=seed,
+        fista_iterations=fista_iterations,
+        workers=workers,
+        traced=factory,
+        log=(lambda _: None) if as_json else typer.echo,
+    )
+    keys = ("recall", "precision", "f1", "rmse_lateral_um", "rmse_axial_um", "seconds_per_volume", "threshold")
+    shown = {name: {k: run.get(k) for k in keys} for name, run in summary["runs"].items()}
+    typer.echo(json.dumps(shown, indent=1 if not as_json else 2, default=str))
+
+
+def _traced_factory(forward_model: str, preset: str | None, binning: int | None):
+    """``model → TracedSource`` of the design ``preset`` at ``binning``, both defaulting to those of
+    an ``analytic:<preset>:<binning>`` forward model."""
+    from cm2optics.design import load_preset
+    from cm2optics.emission.image import TracedSource
+    from cm2optics.errors import UserError
+
+    parts = forward_model.split(":")
+    if parts[0] == "analytic":
+        preset = preset or parts[1]
+        binning = binning or (int(parts[2]) if len(parts) > 2 else 1)
+    if preset is None or binning is None:
+        raise UserError(
+            f"--traced: the weights' forward model {forward_model!r} names no design; give --preset and --binning"
+        )
+    design = load_preset(preset)
+    return lambda model: TracedSource(design, model, binning)

@@ -30,7 +30,7 @@ from cm2optics.formats.emitters import Emitters
 from cm2optics.formats.measurement import write_measurement
 from cm2optics.optics.sensor_effects import apply_as_built
 
-__all__ = ["MAX_DIAMETER_UM", "render_emitters", "write_traced_measurement"]
+__all__ = ["MAX_DIAMETER_UM", "TracedSource", "render_emitters", "write_traced_measurement"]
 
 #: The largest bead the tracer renders (a uniform disc in the image), µm.
 MAX_DIAMETER_UM = 200.0
@@ -67,6 +67,46 @@ def render_emitters(
                     add_focus(frame, focus, intensity)
             bar.advance(task)
     return apply_as_built(frame, design.as_built, model.grid.pitch_mm * 1000.0)
+
+
+class TracedSource:
+    """Frames traced by :func:`render_emitters` (no 3D-LSV model in the loop) presented as the
+    forward model the synthesiser renders sparsely (``forward_sparse``, ``geometry``,
+    ``sensor_shape``, ``n_lenslets``), so that synthetic test sets can be *traced*: the paper's
+    experiments, where the mismatch between the model and the device is real.
+
+    reference: the 3D-LSV model the test set is for — its sensor window (``provenance
+    ["sensor_window"]``, [top, left, bottom, right] px of the full binned sensor) is cut out of
+    each traced frame, and its geometry (chief rays, pixels per voxel) is the one the views and
+    reconstructions use; binning: the sensor binning of the reference model. Units: photons per
+    unit intensity (the synthesiser scales each clean frame to a peak of 1)."""
+
+    def __init__(self, design: SystemDesign, reference: Any, binning: int):
+        self.design = design
+        self.settings = PSFSettings(binning=binning)
+        self.geometry = reference.geometry
+        self.sensor_shape = tuple(int(v) for v in reference.sensor_shape)
+        self.n_lenslets = int(reference.n_lenslets)
+        window = getattr(reference, "provenance", {}).get("sensor_window") or [0, 0, *self.sensor_shape]
+        self.window = tuple(int(v) for v in window)
+        self.provenance = {"traced": design.name, "binning": int(binning), "sensor_window": list(self.window)}
+
+    def forward_sparse(self, emitters: Emitters, per_lenslet: bool = False) -> np.ndarray:
+        """The traced frame of ``emitters`` on the reference's sensor window, (rows, cols) float64."""
+        if per_lenslet:
+            raise ValueError(
+                "a traced frame has no per-lenslet images (demixed views): make the test set with view_px = 0"
+            )
+        if len(emitters) == 0:
+            return np.zeros(self.sensor_shape)
+        frame = render_emitters(self.design, emitters, self.settings)
+        top, left, bottom, right = self.window
+        if frame.shape[0] < bottom or frame.shape[1] < right:
+            raise ValueError(
+                f"the traced {frame.shape[0]} × {frame.shape[1]}-px frame (binning {self.settings.binning}) does not hold "
+                f"the reference model's sensor window {list(self.window)}: is the binning the model's?"
+            )
+        return frame[top:bottom, left:right]
 
 
 def write_traced_measurement(

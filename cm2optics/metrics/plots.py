@@ -1,6 +1,6 @@
 """Figures of an evaluation (PNG, written atomically): breakdowns as in the paper's Fig. 6,
-recall/precision maps, and maximum-intensity projections with true positives, misses and
-false positives marked."""
+recall/precision maps, maximum-intensity projections with true positives, misses and
+false positives marked, and depth-coloured projections of several volumes side by side."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ from cm2optics.formats.atomic import write_atomic
 from cm2optics.metrics.breakdown import BREAKDOWNS
 from cm2optics.metrics.scores import Evaluation
 
-__all__ = ["plot_breakdowns", "plot_maps", "plot_overlay", "save_figure"]
+__all__ = ["depth_coded_mip", "plot_breakdowns", "plot_depth_mips", "plot_maps", "plot_overlay", "save_figure"]
 
 
 def save_figure(figure: Any, path: str | Path, dpi: int = 110) -> Path:
@@ -162,4 +162,60 @@ def plot_overlay(recon: np.ndarray, evaluation: Evaluation, path: str | Path, *,
     axes[0].legend(loc="upper right", fontsize=7, framealpha=0.5)
     axes[0].set_title(title or f"threshold {evaluation.threshold:.4g}: {m.n_tp} TP, {m.n_fp} FP, {m.n_fn} FN")
     fig.tight_layout()
+    return save_figure(fig, path)
+
+
+def depth_coded_mip(volume: np.ndarray, *, vmax: float | None = None, cmap: str = "turbo") -> np.ndarray:
+    """The depth-coloured maximum projection of a (z, y, x) volume along z: (y, x, 3) RGB in [0, 1]
+    whose hue is the colour map at the plane of the maximum (plane 0 → 0, the last plane → 1)
+    and whose brightness is that maximum ÷ ``vmax`` (default: the volume's maximum), clipped."""
+    from matplotlib import colormaps
+
+    volume = np.asarray(volume, float)
+    if volume.ndim != 3 or volume.shape[0] < 1:
+        raise ValueError(f"volume of shape {volume.shape}: need (z, y, x)")
+    peak = volume.max(axis=0)
+    scale = float(vmax) if vmax is not None else float(peak.max())
+    colours = colormaps[cmap](np.linspace(0.0, 1.0, volume.shape[0]))[:, :3]
+    brightness = np.clip(peak / scale, 0.0, 1.0) if scale > 0 else np.zeros_like(peak)
+    return colours[volume.argmax(axis=0)] * brightness[..., None]
+
+
+def plot_depth_mips(
+    panels: Sequence[tuple[str, np.ndarray, Any, float | None]],
+    path: str | Path,
+    *,
+    cmap: str = "turbo",
+    title: str = "",
+) -> Path:
+    """Depth-coloured maximum projections side by side, one per (title, volume (z, y, x), its
+    grid, vmax or None for its own maximum), with one colour bar of depth (µm, +z towards the
+    device); the grids must share their depth axis. Every panel shows the smallest panel's field."""
+    from matplotlib.cm import ScalarMappable
+    from matplotlib.colors import Normalize
+
+    z_um = panels[0][2].axis_um(0)
+    half_mm = min(min(grid.shape[a] * grid.voxel_um[a] for a in (1, 2)) for _, _, grid, _ in panels) / 2000.0
+    fig, axes = _figure(1, len(panels), figsize=(4.2 * len(panels) + 1.0, 4.4), squeeze=False)
+    for ax, (name, volume, grid, vmax) in zip(axes[0], panels, strict=True):
+        if not np.allclose(grid.axis_um(0), z_um):
+            raise ValueError(f"{name}: its planes are not those of {panels[0][0]}")
+        y, x = (grid.axis_um(a) / 1000.0 for a in (1, 2))
+        ax.imshow(
+            depth_coded_mip(volume, vmax=vmax, cmap=cmap),
+            extent=(x[0], x[-1], y[-1], y[0]),
+            interpolation="nearest",
+        )
+        ax.set_xlim(-half_mm, half_mm)
+        ax.set_ylim(half_mm, -half_mm)
+        ax.set_title(name, fontsize=9)
+        ax.set_xlabel("x (mm)")
+        ax.set_facecolor("black")
+    axes[0][0].set_ylabel("y (mm)")
+    bar = fig.colorbar(
+        ScalarMappable(Normalize(float(z_um[0]), float(z_um[-1])), cmap=cmap), ax=list(axes[0]), fraction=0.02
+    )
+    bar.set_label("depth z (µm), +z towards the device")
+    if title:
+        fig.suptitle(title)
     return save_figure(fig, path)

@@ -19,7 +19,8 @@ import math
 import resource
 import shutil
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -27,7 +28,7 @@ import numpy as np
 
 from cm2optics.synth.config import SynthConfig
 
-__all__ = ["DEFAULT_RUNS", "compare_baselines", "scaled_test_config"]
+__all__ = ["DEFAULT_RUNS", "compare_baselines", "demo_baselines", "demo_net", "scaled_test_config"]
 
 #: run name → forward model, method and options (see :class:`~cm2optics.recon.reconstruct.ReconOptions`).
 DEFAULT_RUNS: dict[str, dict[str, Any]] = {
@@ -174,8 +175,13 @@ def compare_baselines(
     keep_volumes: bool = True,
     reuse: bool = False,
     log: Callable[[str], None] | None = print,
+    imaging: Any = None,
 ) -> dict[str, Any]:
-    """Make the test set, run every run, evaluate; returns the summary (also ``comparison.json``)."""
+    """Make the test set, run every run, evaluate; returns the summary (also ``comparison.json``).
+
+    imaging: what makes the test set's measurements, in this process (a
+    :class:`~cm2optics.synth.imaging.Imaging`, e.g. of frames traced by the emission simulator);
+    default: the model at ``model_path``, on Dask workers. The runs reconstruct with ``model_path``."""
     from cm2optics.formats.atomic import write_json_atomic, write_text_atomic
     from cm2optics.lsv.model import load_model
     from cm2optics.metrics.plots import plot_breakdowns
@@ -189,7 +195,7 @@ def compare_baselines(
     grid = config.grid
     say(f"test set: {n_volumes} volumes, grid {grid.shape} of {'×'.join(f'{v:.3g}' for v in grid.voxel_um)} µm")
     manifest, samples, truths, densities = _test_set(
-        config, model_path, out_dir, n_volumes, seed, workers=workers, dask_address=dask_address, say=say
+        config, imaging or model_path, out_dir, n_volumes, seed, workers=workers, dask_address=dask_address, say=say
     )
     results = _reconstruct_runs(
         model_path, grid, runs, samples, out_dir, threads=threads, dask_address=dask_address, reuse=reuse, say=say
@@ -197,6 +203,7 @@ def compare_baselines(
 
     summary: dict[str, Any] = {
         "model": str(model_path),
+        "measurements": manifest["model"].get("kind"),
         "n_volumes": n_volumes,
         "seed": seed,
         "config": config.to_dict(),
@@ -229,7 +236,7 @@ def compare_baselines(
 
 def _test_set(
     config: SynthConfig,
-    model_path: Path,
+    model_path: Any,
     out_dir: Path,
     n_volumes: int,
     seed: int,
@@ -239,13 +246,21 @@ def _test_set(
     say: Callable[[str], None],
 ) -> tuple[dict[str, Any], list[str], list, list[float]]:
     """The test set in ``out_dir/testset`` (made, or reused when it matches): its manifest, the
-    sample paths, the true emitters of each sample and each sample's density (per mm²)."""
+    sample paths, the true emitters of each sample and each sample's density (per mm²).
+    ``model_path``: a model file, or an in-process imaging (made here, never reused)."""
     from cm2optics.synth.dataset import make_dataset, read_sample
 
-    manifest = _reusable_testset(out_dir / "testset", config, seed, n_volumes, model_path)
+    in_process = not isinstance(model_path, str | Path)
+    manifest = None if in_process else _reusable_testset(out_dir / "testset", config, seed, n_volumes, model_path)
     if manifest is None:
         manifest = make_dataset(
-            config, model_path, out_dir / "testset", n_volumes, seed, workers=workers, dask_address=dask_address
+            config,
+            model_path,
+            out_dir / "testset",
+            n_volumes,
+            seed,
+            workers=0 if in_process else workers,
+            dask_address=None if in_process else dask_address,
         )
     else:
         say("reusing the test set already in " + str(out_dir / "testset"))
@@ -471,11 +486,8 @@ def demo_baselines(
     ``folder``), reconstructed with each of ``runs`` (``forward`` and ReconOptions fields) and
     evaluated at each run's F1-optimal threshold. Returns the config, grid, sample, truth,
     chief rays (px), timings and per run its volume, record and evaluation."""
-    import torch
-
     from cm2optics.lsv.model import load_model
     from cm2optics.lsv.toy import analytic_lsv_model_file
-    from cm2optics.metrics import evaluate_volume, f1_optimal_threshold
     from cm2optics.recon.operators import load_operator
     from cm2optics.recon.reconstruct import ReconOptions, reconstruct
     from cm2optics.synth.dataset import make_dataset, read_sample
@@ -483,9 +495,7 @@ def demo_baselines(
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)  # small tensors: one thread is faster, and kind to a shared machine
-    try:
+    with _one_torch_thread():
         start = time.perf_counter()
         if model_path is None or not Path(model_path).is_file():
             model_path = analytic_lsv_model_file(
@@ -516,11 +526,7 @@ def demo_baselines(
             operator = load_operator(model_path, grid, forward=run["forward"])
             options = ReconOptions(**{k: v for k, v in run.items() if k != "forward"})
             volume, record = reconstruct(sample["measurement"], operator, options)
-            threshold, _ = f1_optimal_threshold([(volume, grid, truth)])
-            evaluation = evaluate_volume(volume, grid, truth, threshold)
-            results[name] = {"volume": volume, "record": record, "evaluation": evaluation}
-    finally:
-        torch.set_num_threads(threads)
+            results[name] = {"volume": volume, "record": record, "evaluation": _scored(volume, grid, truth)}
     return {
         "config": config,
         "grid": grid,
@@ -531,4 +537,94 @@ def demo_baselines(
         "build_s": build_s,
         "synth_s": synth_s,
         "runs": results,
+    }
+
+
+@contextmanager
+def _one_torch_thread() -> Iterator[None]:
+    """Small tensors: one intra-op thread is faster, and kind to a shared machine."""
+    import torch
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _scored(volume: np.ndarray, grid: Any, truth: Any) -> Any:
+    """The evaluation of one volume at its own F1-optimal threshold (``cm2 evaluate``'s default)."""
+    from cm2optics.metrics import evaluate_volume, f1_optimal_threshold
+
+    threshold, _ = f1_optimal_threshold([(volume, grid, truth)])
+    return evaluate_volume(volume, grid, truth, threshold)
+
+
+def demo_net(
+    weights: str | Path,
+    *,
+    fov_mm: float = 0.6,
+    view_px: int = 192,
+    index: int = 0,
+    fista_iterations: int = 30,
+    l1: float = 0.02,
+) -> dict[str, Any]:
+    """The demo's CM²Net comparison on one measurement simulated at the weights' own geometry.
+
+    The weights' synthetic recipe (forward model, voxels and planes, diameters, densities, noise)
+    on a ``fov_mm`` disc with ``view_px``-px views, volume ``index`` of the test set's seed
+    (:data:`~cm2optics.recon.net.testset.TEST_SEED`, which no training, validation or reference
+    volume uses), imaged through the weights' forward model on the sensor window that holds the
+    views; reconstructed by the network (:func:`~cm2optics.recon.net.infer.reconstruct_with_net`)
+    and by FISTA (non-negativity + ``l1``, ``fista_iterations``) through that same model, each
+    scored at its own F1-optimal threshold. Returns the config, grid, sample, truth and per run
+    (``net``, ``fista``) its volume, grid and evaluation, and the seconds of each stage."""
+    from cm2optics.recon.net.data import inference_model, sensor_window
+    from cm2optics.recon.net.infer import reconstruct_with_net
+    from cm2optics.recon.net.testset import TEST_SEED, check_seed
+    from cm2optics.recon.net.weights import load_weights
+    from cm2optics.recon.reconstruct import ReconOptions, reconstruct
+    from cm2optics.synth.generate import synthesize_sample
+    from cm2optics.synth.imaging import Imaging
+
+    seconds: dict[str, float] = {}
+    with _one_torch_thread():
+        start = time.perf_counter()
+        loaded = load_weights(weights)
+        check_seed(TEST_SEED, loaded.config.seed)
+        config = loaded.config.synth.with_changes(
+            fov_mm=(fov_mm, fov_mm), view_px=view_px, patch_px=0, patches_per_volume=0, store_volume=False
+        )
+        grid = config.grid
+        model = sensor_window(inference_model(loaded.config), view_px)
+        seconds["model"] = time.perf_counter() - start
+        start = time.perf_counter()
+        sample = synthesize_sample(config, Imaging(model, grid), index, TEST_SEED)
+        truth = sample.draw.emitters
+        seconds["simulate"] = time.perf_counter() - start
+        start = time.perf_counter()
+        net = reconstruct_with_net(sample.measurement, loaded, model, view_px=view_px, name="the demo's measurement")
+        seconds["net"] = time.perf_counter() - start
+        start = time.perf_counter()
+        fista, record = reconstruct(
+            sample.measurement, model.operator(grid), ReconOptions(method="fista", l1=l1, max_iter=fista_iterations)
+        )
+        seconds["fista"] = time.perf_counter() - start
+        start = time.perf_counter()
+        runs = {
+            "net": {"volume": net.volume, "grid": net.grid, "evaluation": _scored(net.volume, net.grid, truth)},
+            "fista": {"volume": fista, "grid": grid, "evaluation": _scored(fista, grid, truth), "record": record},
+        }
+        seconds["score"] = time.perf_counter() - start
+    return {
+        "weights": loaded,
+        "config": config,
+        "grid": grid,
+        "seed": TEST_SEED,
+        "sample": sample,
+        "truth": truth,
+        "sensor_shape": tuple(int(v) for v in model.sensor_shape),
+        "runs": runs,
+        "seconds": seconds,
     }

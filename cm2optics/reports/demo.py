@@ -6,7 +6,8 @@ data is present beside the repository; the spectra, filters and the hybrid filte
 collimators and excitation filters onto the sample; a traced PSF calibration scan; the 3D-LSV
 forward model built from that scan (effective-PSF basis), checked against traced points between
 its nodes; a synthetic volume simulated through that model, reconstructed with the model-based
-baselines and evaluated. One chain: design → traced scan → model → data → volume.
+baselines and evaluated; CM²Net with the shipped weights beside FISTA on a measurement simulated
+at the weights' own geometry. One chain: design → traced scan → model → data → volume.
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ from cm2optics.reports.document import Report
 from cm2optics.reports.emission import CHAIN_SCAN, add_psf_section
 from cm2optics.reports.illumination import add_illumination_section
 from cm2optics.reports.lsv import add_lsv_section
-from cm2optics.reports.recon import add_baseline_section
+from cm2optics.reports.recon import add_baseline_section, add_net_section
 from cm2optics.reports.spectra import add_spectra_section
 
 #: Where the original device's reference data sits in a developer checkout (absent for users).
@@ -110,27 +111,30 @@ def _traced_in_model_units(design: SystemDesign) -> Callable[[tuple[float, float
     return lambda position: image(position) / unit
 
 
-def run_demo(design: SystemDesign, out_dir: str | Path, *, analytic: bool = False) -> Path:
+def run_demo(
+    design: SystemDesign, out_dir: str | Path, *, analytic: bool = False, weights: str | Path | None = None
+) -> Path:
     """Run the demo pipeline for ``design`` and return the path of the HTML report.
 
     The 3D-LSV model of sections 6–7 is built from section 5's traced calibration scan (one
     chain); ``analytic``: from a closed-form CM²-like scan instead (the fast fallback, about
-    two minutes sooner)."""
+    two minutes sooner). Section 8 uses the CM²Net weights ``weights`` (default: the shipped
+    ones, :func:`~cm2optics.recon.net.weights.shipped_weights`); without them it says so."""
     out_dir = Path(out_dir)
     console = Console(stderr=True)
     report = Report(f"cm2optics demo — {design.name}")
-    console.print("[bold]1/7[/] design optics")
+    console.print("[bold]1/8[/] design optics")
     _design_section(report, design)
-    console.print("[bold]2/7[/] CAD export and checks")
+    console.print("[bold]2/8[/] CAD export and checks")
     _cad_section(report, design, out_dir)
-    console.print("[bold]3/7[/] spectra, filters and SBR")
+    console.print("[bold]3/8[/] spectra, filters and SBR")
     add_spectra_section(report, design, out_dir, title="3. Spectra, filters and the hybrid emission filter")
-    console.print("[bold]4/7[/] illumination")
+    console.print("[bold]4/8[/] illumination")
     add_illumination_section(report, design, out_dir, heading="4. Illumination")
-    console.print("[bold]5/7[/] PSFs and the calibration scan")
+    console.print("[bold]5/8[/] PSFs and the calibration scan")
     scan = add_psf_section(report, design, out_dir, title="5. PSFs and calibration scans")
     console.print(
-        "[bold]6/7[/] 3D-LSV forward model" + (" (analytic fallback)" if analytic else " from the traced scan")
+        "[bold]6/8[/] 3D-LSV forward model" + (" (analytic fallback)" if analytic else " from the traced scan")
     )
     title = "6. The 3D-LSV forward model"
     if analytic:
@@ -140,7 +144,9 @@ def run_demo(design: SystemDesign, out_dir: str | Path, *, analytic: bool = Fals
         add_lsv_section(
             report, design, scan, out_dir, rank=48, title=title, oversample=CHAIN_SCAN["oversample"], traced=traced
         )
-    console.print("[bold]7/7[/] synthetic volume, model-based reconstruction, metrics")
+    console.print("[bold]7/8[/] synthetic volume, model-based reconstruction, metrics")
     model = None if analytic else out_dir / "lsv" / "model.h5"
     add_baseline_section(report, design, model, out_dir, title="7. Synthetic data, baselines and metrics")
+    console.print("[bold]8/8[/] CM²Net with the shipped weights beside FISTA")
+    add_net_section(report, out_dir, weights=weights, title="8. CM²Net")
     return report.write(out_dir)

@@ -322,3 +322,38 @@ def test_merged_evaluations_pool_like_pooled_scores():
         assert merged.metrics[key] == pooled[key], key
     assert merged.matching.true_matched().sum() == 4 and len(merged.truth) == 6
     assert detection_maps(merged)["n_true"].sum() == 6
+
+
+def test_depth_coded_mip_colours_each_pixel_by_the_plane_of_its_maximum(tmp_path):
+    """Known answer: a voxel at plane k of nz takes the colour map's colour at k / (nz − 1),
+    scaled by its value ÷ vmax; the brighter of two voxels in a column wins; empty pixels are
+    black; the figure of three panels is written."""
+    from matplotlib import colormaps
+
+    from cm2optics.metrics.plots import depth_coded_mip, plot_depth_mips
+
+    volume = np.zeros((5, 4, 6))
+    volume[0, 1, 2] = 1.0
+    volume[4, 2, 3] = 0.5
+    volume[1, 3, 5], volume[3, 3, 5] = 0.2, 0.8  # the brighter one, at plane 3, wins
+    rgb = depth_coded_mip(volume, vmax=1.0, cmap="viridis")
+    colours = colormaps["viridis"](np.linspace(0, 1, 5))[:, :3]
+    assert rgb.shape == (4, 6, 3)
+    np.testing.assert_allclose(rgb[1, 2], colours[0])
+    np.testing.assert_allclose(rgb[2, 3], 0.5 * colours[4])
+    np.testing.assert_allclose(rgb[3, 5], 0.8 * colours[3])
+    lit = np.zeros((4, 6), bool)
+    lit[1, 2] = lit[2, 3] = lit[3, 5] = True
+    assert np.all(rgb[~lit] == 0)
+    np.testing.assert_allclose(depth_coded_mip(volume, cmap="viridis"), rgb)  # own maximum is 1 here
+    np.testing.assert_allclose(depth_coded_mip(2 * volume, vmax=1.0, cmap="viridis")[2, 3], colours[4])  # clipped
+    assert np.all(depth_coded_mip(np.zeros((3, 2, 2))) == 0)
+    with pytest.raises(ValueError, match="z, y, x"):
+        depth_coded_mip(np.zeros((4, 4)))
+    grid = VolumeGrid((5, 4, 6), (10.0, 2.0, 2.0))
+    path = plot_depth_mips(
+        [("a", volume, grid, 1.0), ("b", volume, grid, None), ("c", volume, grid, None)], tmp_path / "m.png"
+    )
+    assert path.stat().st_size > 1000
+    with pytest.raises(ValueError, match="planes"):
+        plot_depth_mips([("a", volume, grid, 1.0), ("b", volume, VolumeGrid((5, 4, 6), (20.0, 2, 2)), 1.0)], path)

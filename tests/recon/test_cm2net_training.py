@@ -125,3 +125,92 @@ def test_cm2_train_runs_resumes_and_refuses_a_users_folder(tmp_path: Path):
     assert (mine / "notes.txt").read_text() == "keep"
     missing = runner.invoke(app, ["train", str(tmp_path / "nope.yaml")])
     assert missing.exit_code == 2 and "nope.yaml" in missing.output
+
+
+# ----------------------------------------------------------------------------- export
+def test_exported_weights_of_a_stopped_run_load_and_give_the_checkpoints_outputs(tmp_path, monkeypatch):
+    """`export_weights` of a run stopped after 2 steps: the folder passes its SHA-256 check at
+    load, its network gives the checkpoint's outputs, the reference histogram is the one the run
+    made at its start (carried by the checkpoint, not rendered again) and the card's hardware is
+    the run's (1 thread), not the exporter's; a checkpoint of the older version without these
+    facts still exports (histogram rendered, threads from the config)."""
+    from cm2optics.recon.net import train as training
+    from cm2optics.recon.net.data import PatchSource
+    from cm2optics.recon.net.train import export_weights, make_net
+
+    config = tiny(tmp_path / "run", epochs=1, val_volumes=0)
+    assert train(config, max_steps=2)["stopped"]
+    state = torch.load(tmp_path / "run" / "checkpoint.pt", map_location="cpu", weights_only=False)
+    reference = training._histogram(PatchSource(config), config)
+    np.testing.assert_array_equal(state["histogram"], reference)
+    assert state["hardware"] == {"device": "cpu", "threads": 1, "processes": 1}
+
+    def rendered(*args, **kwargs):
+        raise AssertionError("the export rendered the reference volumes again")
+
+    monkeypatch.setattr(training, "_histogram", rendered)
+    torch.set_num_threads(2)  # the exporter's threads must not reach the card
+    try:
+        folder = export_weights(tmp_path / "run", tmp_path / "exported")
+    finally:
+        torch.set_num_threads(1)
+    monkeypatch.undo()
+    loaded = load_weights(folder)
+    np.testing.assert_array_equal(loaded.histogram, reference)
+    net, _ = make_net(config)
+    net.load_state_dict(state["model"])
+    net.eval()
+    x = torch.rand(1, 9, 32, 32, generator=torch.Generator().manual_seed(5))
+    with torch.no_grad():
+        for mine, theirs in zip(net(x), loaded.net(x), strict=True):
+            torch.testing.assert_close(theirs, mine, rtol=0, atol=0)
+    card = (folder / "MODEL_CARD.md").read_text()
+    assert "- optimiser steps: 2" in card and "- patches seen: 4" in card
+    assert "- hardware: CPU, 1 torch thread per process, 1 process" in card
+
+    del state["histogram"], state["hardware"]  # as written by the previous version
+    torch.save(state, tmp_path / "run" / "checkpoint.pt")
+    old = load_weights(export_weights(tmp_path / "run", tmp_path / "exported-old"))
+    np.testing.assert_array_equal(old.histogram, reference)
+    assert (
+        "- hardware: 1 torch thread per process (the config's threads)"
+        in (tmp_path / "exported-old" / "MODEL_CARD.md").read_text()
+    )
+    with pytest.raises(CheckpointError, match="no checkpoint to export"):
+        export_weights(tmp_path / "nowhere", tmp_path / "never")
+    assert not (tmp_path / "never").exists()
+
+
+def test_cm2_train_export_refuses_a_missing_checkpoint_and_a_users_folder(tmp_path: Path):
+    """`cm2 train CONFIG --export DIR`: no checkpoint yet is one line (exit 2) and writes nothing;
+    a folder holding a user's file is refused without --overwrite and kept with it; the run's
+    own export folder may be written again."""
+    from typer.testing import CliRunner
+
+    from cm2optics.cli import app
+
+    runner = CliRunner()
+    config = tiny(tmp_path / "run", epochs=1, val_volumes=0).save(tmp_path / "tiny.yaml")
+    weights = tmp_path / "w"
+    missing = runner.invoke(app, ["train", str(config), "--export", str(weights)])
+    assert missing.exit_code == 2 and "no checkpoint to export" in missing.output, missing.output
+    assert "Traceback" not in missing.output and not weights.exists()
+    assert runner.invoke(app, ["train", str(config), "--max-steps", "1"]).exit_code == 0
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("keep")
+    refused = runner.invoke(app, ["train", str(config), "--export", str(mine)])
+    assert refused.exit_code == 2 and "--export" in refused.output and "--overwrite" in refused.output
+    assert sorted(p.name for p in mine.iterdir()) == ["notes.txt"]
+    forced = runner.invoke(app, ["train", str(config), "--export", str(mine), "--overwrite"])
+    assert forced.exit_code == 0, forced.output
+    assert (mine / "notes.txt").read_text() == "keep" and load_weights(mine).config.channels == 8
+    for _ in range(2):  # a new folder, then again into the command's own folder
+        exported = runner.invoke(app, ["train", str(config), "--export", str(weights)])
+        assert exported.exit_code == 0, exported.output
+    assert sorted(p.name for p in weights.iterdir() if not p.name.startswith(".")) == [
+        "MODEL_CARD.md",
+        "SHA256SUMS",
+        "config.yaml",
+        "model.safetensors",
+    ]

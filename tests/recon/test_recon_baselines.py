@@ -278,19 +278,6 @@ def test_cli_reconstruct_errors_are_one_line(op, tmp_path):
 # ----------------------------------------------------------------------------- LSV → LSI
 
 
-@pytest.fixture(scope="module")
-def lsv_model(tmp_path_factory):
-    """A small LSV model (analytic PSF scan binned 8×, 1.2-mm lateral step), built once per session."""
-    from cm2optics.design import load_preset
-    from cm2optics.lsv.model import load_model
-    from cm2optics.lsv.toy import analytic_lsv_model_file
-
-    path = tmp_path_factory.getbasetemp() / "shared-lsv-b8.h5"
-    analytic_lsv_model_file(path, load_preset("cm2-v2"), binning=8, rank=6, lateral_nodes=7, depth_nodes=3)
-    model = load_model(path)
-    return model
-
-
 def test_lsi_of_an_lsv_model_is_exact_on_the_axis_and_wrong_off_it(lsv_model):
     model = lsv_model
     grid = VolumeGrid((5, 61, 61), (200.0,) + model.default_grid.voxel_um[1:])

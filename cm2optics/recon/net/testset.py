@@ -1,25 +1,34 @@
-"""CM²Net on a test set it never saw, beside FISTA on the same measurements (issue 15's set (a)).
+"""CM²Net on test sets it never saw, beside FISTA on the same measurements (issue 15's sets).
 
-The test volumes are made the paper's way through the forward model the weights were trained
-through — on the same sensor window, grid and noise as training, with the paper's densities
-(U[10, 100] per mm²) and diameters (8–20 µm) and a seed no training or validation volume used —
-then reconstructed by the network and by FISTA with that model, each thresholded at its own
-F1-optimal threshold, scored, and broken down against field radius, depth, size and density
-(the paper's Fig. 6) by :func:`cm2optics.recon.compare.compare_baselines`.
+The test volumes are made the paper's way — on the training sensor window, grid and noise, with
+the paper's densities (U[10, 100] per mm²) and diameters (8–20 µm) and a seed no training,
+validation or reference volume used — and imaged
 
-Run it::
+(a) through the forward model the weights were trained through (as in training), or
+(b) by the emission ray tracer (``traced``: a factory of an imaging source such as
+    :class:`cm2optics.emission.image.TracedSource`, given the weights' 3D-LSV model; no LSV model
+    in the loop — the analogue of the paper's experiments, where the model mismatch is real);
+
+then reconstructed by the network and by FISTA with the weights' 3D-LSV model, each thresholded
+at its own F1-optimal threshold, scored, and broken down against field radius, depth, size and
+density (the paper's Fig. 6) by :func:`cm2optics.recon.compare.compare_baselines`.
+
+Run (a)::
 
     python -m cm2optics.recon.net.testset reconstruction/cm2net-cpu out/cm2net-test-a --n-volumes 10
+
+and (b), which needs the tracer, from the command line: ``cm2 net-testset WEIGHTS OUT --traced``.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-__all__ = ["TEST_SEED", "net_test_set"]
+__all__ = ["TEST_SEED", "check_seed", "net_test_set"]
 
 #: The test set's seed: the training data use the config's seed, validation that + 7919.
 TEST_SEED = 1_000_003
@@ -35,25 +44,29 @@ def net_test_set(
     workers: int = 1,
     threads: int = 1,
     reuse: bool = False,
+    traced: Callable[[Any], Any] | None = None,
     log=print,
 ) -> dict[str, Any]:
     """Make the test set, reconstruct it with the weights and with FISTA, evaluate; returns the
-    summary that ``out_dir/comparison.json`` holds (runs ``cm2net`` and ``lsv-fista``)."""
+    summary that ``out_dir/comparison.json`` holds (runs ``cm2net`` and ``lsv-fista``).
+
+    traced: ``traced(model)`` → the source that images the test volumes instead of the weights'
+    3D-LSV ``model`` (set (b); made in this process, never reused)."""
     from cm2optics.recon.compare import compare_baselines
     from cm2optics.recon.net.data import forward_imaging
     from cm2optics.recon.net.weights import load_weights
+    from cm2optics.synth.imaging import Imaging
 
     loaded = load_weights(weights)
     config = loaded.config
-    if config.seed == seed:
-        raise ValueError(f"seed {seed} is the training data's seed: choose another for a test set")
+    check_seed(seed, config.seed)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     model_path = out_dir / "forward-model.lsv.h5"
+    model = forward_imaging(config).source  # the training sensor window
+    if not hasattr(model, "save"):
+        raise ValueError(f"{config.forward_model}: a test set needs a 3D-LSV forward model, not a toy operator")
     if not model_path.is_file():
-        model = forward_imaging(config).source  # the training sensor window
-        if not hasattr(model, "save"):
-            raise ValueError(f"{config.forward_model}: a test set needs a 3D-LSV forward model, not a toy operator")
         model.save(model_path)
     test = config.synth.with_changes(
         view_px=0, patch_px=0, patches_per_volume=0, store_volume=False, density_per_mm2=(10.0, 100.0)
@@ -62,6 +75,7 @@ def net_test_set(
         "cm2net": {"method": "net", "weights": str(Path(weights).resolve()), "preprocess": "none"},
         "lsv-fista": {"forward": "lsv", "method": "fista", "l1": 0.02, "max_iter": fista_iterations},
     }
+    imaging = Imaging(traced(model), test.grid) if traced is not None else None
     return compare_baselines(
         model_path,
         out_dir,
@@ -71,9 +85,24 @@ def net_test_set(
         runs=runs,
         workers=workers,
         threads=threads,
-        reuse=reuse,
+        reuse=reuse and traced is None,
         log=log,
+        imaging=imaging,
     )
+
+
+def check_seed(seed: int, training_seed: int) -> None:
+    """Refuse a test seed whose volumes the run made: training, validation or reference histogram."""
+    from cm2optics.recon.net.data import VALIDATION_SEED_OFFSET
+    from cm2optics.recon.net.train import REFERENCE_SEED_OFFSET
+
+    used = {
+        training_seed: "training",
+        training_seed + VALIDATION_SEED_OFFSET: "validation",
+        training_seed + REFERENCE_SEED_OFFSET: "reference-histogram",
+    }
+    if seed in used:
+        raise ValueError(f"seed {seed} is the {used[seed]} data's seed: choose another for a test set")
 
 
 def main(argv: list[str] | None = None) -> int:

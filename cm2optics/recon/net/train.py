@@ -246,10 +246,18 @@ def _write_history(out: Path, history: dict[str, Any]) -> None:
     write_atomic(out / HISTORY, lambda tmp: tmp.write_text(text, encoding="utf-8"))
 
 
-def _histogram(source: PatchSource, config: NetConfig, count: int = 4) -> np.ndarray:
-    """Quantiles (0…1 in 256 steps) of training views: the reference for histogram matching."""
+#: Volumes whose views make the reference histogram (seeded apart from training and validation).
+REFERENCE_VOLUMES = 4
+REFERENCE_SEED_OFFSET = 104729
+
+
+def _histogram(source: PatchSource, config: NetConfig, count: int = REFERENCE_VOLUMES) -> np.ndarray:
+    """Quantiles (0…1 in 256 steps) of the views of ``count`` volumes made like the training ones
+    (the final density range, seed ``config.seed + REFERENCE_SEED_OFFSET``): the reference for
+    histogram matching. A run computes it once, at its start, and carries it in its checkpoints
+    (key ``histogram``), so that the final weights and ``export_weights`` need not render again."""
     values = [
-        source.volume(config.seed + 104729, i, tuple(config.synth.density_per_mm2))["views"].ravel()
+        source.volume(config.seed + REFERENCE_SEED_OFFSET, i, tuple(config.synth.density_per_mm2))["views"].ravel()
         for i in range(count)
     ]
     return np.quantile(np.concatenate(values), np.linspace(0.0, 1.0, 256))
@@ -299,8 +307,9 @@ def train(
     scheduler = make_scheduler(optimiser, config)
     history: dict[str, Any] = {"config_hash": config.hash(), "steps": [], "epochs": [], "seconds_per_step": []}
     pos = _Position()
+    carried: dict[str, Any] = {}
     if resume:
-        pos.epoch, pos.step_in_epoch, pos.global_step, history = _restore(
+        pos.epoch, pos.step_in_epoch, pos.global_step, history, carried = _restore(
             out / CHECKPOINT, config, net, optimiser, scheduler
         )
     model: torch.nn.Module = net
@@ -308,7 +317,13 @@ def train(
         model = torch.nn.parallel.DistributedDataParallel(net, device_ids=[dev.index] if dev.type == "cuda" else None)
     n_steps = _steps_per_epoch_or_raise(config)
     source = PatchSource(config) if rank == 0 or config.val_volumes else None
-    checkpoint = _checkpointer(out / CHECKPOINT, net, optimiser, scheduler, config, history, pos, rank, world)
+    facts = {
+        "histogram": carried.get("histogram"),
+        "hardware": _hardware(dev, world),
+    }
+    if rank == 0 and facts["histogram"] is None:
+        facts["histogram"] = [float(v) for v in _histogram(source, config)]
+    checkpoint = _checkpointer(out / CHECKPOINT, net, optimiser, scheduler, config, history, pos, rank, world, facts)
 
     while pos.epoch < config.epochs and not pos.stopped:
         loader = _epoch_loader(config, pos, rank, world)
@@ -338,7 +353,7 @@ def train(
             pos.stopped = True
     summary = _summary(out, config, history, pos, world=world)
     if rank == 0 and not pos.stopped and pos.epoch >= config.epochs:
-        summary["weights"] = str(_save_final_weights(net, config, out, summary, source, pos, world))
+        summary["weights"] = str(_save_final_weights(net, config, out, history, pos, facts))
     if world > 1:
         dist.barrier()
     return summary
@@ -354,9 +369,10 @@ def _checkpointer(
     pos: _Position,
     rank: int,
     world: int,
+    facts: dict[str, Any],
 ) -> Callable[[int, int], None]:
-    """``checkpoint(epoch, step_in_epoch)``: rank 0 saves the whole state to ``path``; every rank
-    waits for it when there are several."""
+    """``checkpoint(epoch, step_in_epoch)``: rank 0 saves the whole state to ``path`` with the
+    run's ``facts`` (reference histogram, hardware); every rank waits for it when there are several."""
 
     def checkpoint(e: int, s: int) -> None:
         if rank == 0:
@@ -371,6 +387,7 @@ def _checkpointer(
                 history=history,
                 config_hash=config.hash(),
                 config=config.to_dict(),
+                **facts,
             )
         if world > 1:
             dist.barrier()
@@ -437,15 +454,17 @@ def _step_hook(
 
 def _restore(
     path: Path, config: NetConfig, net: torch.nn.Module, optimiser: torch.optim.Optimizer, scheduler: Any
-) -> tuple[int, int, int, dict[str, Any]]:
+) -> tuple[int, int, int, dict[str, Any], dict[str, Any]]:
     """Load a checkpoint into the net, optimiser, scheduler and the RNGs; returns the epoch, the
-    step within it, the global step and the history to continue from."""
+    step within it, the global step, the history to continue from and what else it carried
+    (``histogram``; absent from checkpoints of older versions)."""
     state = load_checkpoint(path, config.hash())
     net.load_state_dict(state["model"])
     optimiser.load_state_dict(state["optimiser"])
     scheduler.load_state_dict(state["scheduler"])
     set_rng_state(state["rng"])
-    return state["epoch"], state["step_in_epoch"], state["global_step"], state["history"]
+    carried = {"histogram": state.get("histogram")}
+    return state["epoch"], state["step_in_epoch"], state["global_step"], state["history"], carried
 
 
 def _steps_per_epoch_or_raise(config: NetConfig) -> int:
@@ -497,58 +516,99 @@ def _summary(out: Path, config: NetConfig, history: dict[str, Any], pos: _Positi
     }
 
 
+def _hardware(device: torch.device, world: int) -> dict[str, Any]:
+    """Where the run trains: device type, torch threads per process and processes."""
+    return {"device": device.type, "threads": torch.get_num_threads(), "processes": world}
+
+
+def _hardware_line(hardware: dict[str, Any] | None, config: NetConfig) -> str:
+    """The model card's hardware line, from the run's own facts (its checkpoint's), or — for a
+    checkpoint that predates them — from the config's ``threads``."""
+    if hardware:
+        threads = hardware["threads"]
+        return (
+            f"{str(hardware['device']).upper()}, {threads} torch thread{'s' if threads != 1 else ''} per process, "
+            f"{hardware['processes']} process{'es' if hardware['processes'] != 1 else ''}"
+        )
+    if config.threads:
+        return f"{config.threads} torch thread{'s' if config.threads != 1 else ''} per process (the config's threads)"
+    return "torch's default threads (the config's threads = 0); device not recorded"
+
+
+def _training_facts(
+    epoch: int, global_step: int, history: dict[str, Any], config: NetConfig, hardware: dict[str, Any] | None
+) -> dict[str, Any]:
+    """The model card's training facts of a run at ``epoch`` (epochs done) and ``global_step``."""
+    seconds = history.get("seconds_per_step") or []
+    return {
+        "epochs completed": epoch,
+        "optimiser steps": global_step,
+        "patches seen": global_step * config.batch_size,
+        "median seconds per step": round(float(np.median(seconds)), 3) if seconds else None,
+        "training wall time (h, steps only)": round(float(np.sum(seconds)) / 3600.0, 2),
+        "hardware": _hardware_line(hardware, config),
+    }
+
+
+def _last_metrics(history: dict[str, Any]) -> dict[str, Any]:
+    last = history["epochs"][-1] if history.get("epochs") else {}
+    return {k: v for k, v in last.items() if isinstance(v, int | float)}
+
+
 def _save_final_weights(
-    net: torch.nn.Module,
-    config: NetConfig,
-    out: Path,
-    summary: dict[str, Any],
-    source: PatchSource | None,
-    pos: _Position,
-    world: int,
+    net: torch.nn.Module, config: NetConfig, out: Path, history: dict[str, Any], pos: _Position, facts: dict[str, Any]
 ) -> Path:
     """Save the trained weights to ``out/weights`` with the training facts and the metrics."""
-    histogram = _histogram(source, config) if source is not None else None
-    training = {
-        "epochs": pos.epoch,
-        "steps": pos.global_step,
-        "processes": world,
-        "median seconds per step": summary["seconds_per_step"],
-    }
-    metrics = {k: v for k, v in summary["metrics"].items() if isinstance(v, int | float)}
-    return save_weights_safe(net, config, out / "weights", metrics, training, histogram)
+    from cm2optics.recon.net.weights import save_weights
+
+    training = _training_facts(pos.epoch, pos.global_step, history, config, facts["hardware"])
+    return save_weights(
+        net, config, out / "weights", metrics=_last_metrics(history), training=training, histogram=facts["histogram"]
+    )
 
 
 def export_weights(run_dir: str | Path, folder: str | Path) -> Path:
     """The weights of the latest checkpoint in ``run_dir`` (a run that is still training, or
     stopped) as a weights folder: safetensors, config, model card with the training facts and the
-    last validation metrics, SHA256SUMS, and the reference histogram of the training views."""
-    path = Path(run_dir) / "checkpoint.pt"
+    last validation metrics, SHA256SUMS, and the reference histogram of the training views.
+
+    The network is rebuilt from the checkpoint's tensors (no forward model); the histogram is the
+    one the checkpoint carries — only a checkpoint of an older version makes it again
+    (:data:`REFERENCE_VOLUMES` volumes, minutes at full resolution). The folder is written under a
+    temporary name and swapped in whole (files of others in it are kept)."""
+    import shutil
+    import tempfile
+
+    from cm2optics.formats.outputs import swap_in_folder
+    from cm2optics.recon.net.weights import WeightsError, net_from_tensors, save_weights
+
+    path = Path(run_dir) / CHECKPOINT
     if not path.is_file():
-        raise CheckpointError(f"{path}: no checkpoint to export")
-    config = NetConfig.from_dict(torch.load(path, map_location="cpu", weights_only=False)["config"])
+        raise CheckpointError(f"{path}: no checkpoint to export (has the run `{run_dir}` written one yet?)")
+    try:
+        config = NetConfig.from_dict(torch.load(path, map_location="cpu", weights_only=False)["config"])
+    except Exception as error:  # noqa: BLE001 - any unreadable file is the same user error
+        raise CheckpointError(f"{path}: not a readable CM²Net checkpoint ({error})") from None
     state = load_checkpoint(path, config.hash())
-    net, _ = make_net(config)
-    net.load_state_dict({k.removeprefix("module."): v for k, v in state["model"].items()})
-    history = state["history"]
-    seconds = history.get("seconds_per_step") or []
-    training = {
-        "epochs completed": state["epoch"],
-        "optimiser steps": state["global_step"],
-        "patches seen": state["global_step"] * config.batch_size,
-        "median seconds per step": round(float(np.median(seconds)), 3) if seconds else None,
-        "training wall time (h, steps only)": round(float(np.sum(seconds)) / 3600.0, 2),
-        "hardware": f"CPU, {torch.get_num_threads()} torch threads",
-    }
-    last = history["epochs"][-1] if history.get("epochs") else {}
-    metrics = {k: v for k, v in last.items() if isinstance(v, int | float)}
-    histogram = _histogram(PatchSource(config), config)
-    return save_weights_safe(net, config, folder, metrics, training, histogram)
-
-
-def save_weights_safe(net, config, folder, metrics, training, histogram) -> Path:
-    from cm2optics.recon.net.weights import save_weights
-
-    return save_weights(net, config, folder, metrics=metrics, training=training, histogram=histogram)
+    tensors = {k.removeprefix("module."): v for k, v in state["model"].items()}
+    try:
+        net = net_from_tensors(config, tensors, str(path), "its config")
+    except WeightsError as error:
+        raise CheckpointError(str(error)) from None
+    histogram = state.get("histogram")
+    if histogram is None:
+        histogram = _histogram(PatchSource(config), config)
+    training = _training_facts(state["epoch"], state["global_step"], state["history"], config, state.get("hardware"))
+    folder = Path(folder)
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=f".{folder.name}.partial-", dir=folder.parent))
+    try:
+        save_weights(
+            net, config, staging, metrics=_last_metrics(state["history"]), training=training, histogram=histogram
+        )
+        return swap_in_folder(staging, folder, "train")
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -43,10 +43,14 @@ __all__ = [
     "WEIGHTS_FILE",
     "WeightsError",
     "load_weights",
+    "net_from_tensors",
+    "shipped_weights",
     "save_weights",
 ]
 
 FORMAT = "cm2optics-cm2net"
+#: The weights shipped with the project: ``reconstruction/<name>`` at the top of the repository.
+SHIPPED = "cm2net-cpu"
 WEIGHTS_FILE, CONFIG_FILE, CARD_FILE, SUMS_FILE = "model.safetensors", "config.yaml", "MODEL_CARD.md", "SHA256SUMS"
 
 
@@ -233,6 +237,16 @@ def load_weights(folder: str | Path, device: str = "cpu") -> LoadedNet:
         raise WeightsError(
             f"{path}: trained with config {metadata.get('config_hash', '?')[:12]}…, {CONFIG_FILE} is {config.hash()[:12]}…"
         )
+    net = net_from_tensors(config, tensors, f"{path}", f"{folder / CONFIG_FILE}")
+    net.to(device).eval()
+    histogram = np.asarray(json.loads(metadata["histogram"]), float) if "histogram" in metadata else None
+    return LoadedNet(net, config, folder, histogram, metadata)
+
+
+def net_from_tensors(config: NetConfig, tensors: dict, where: str, config_name: str = CONFIG_FILE) -> CM2Net:
+    """The CM²Net of ``config`` with the state ``tensors`` (a state dict: the refocusing planes and
+    output depths are among its buffers, so no forward model is needed), in train mode; a
+    :class:`WeightsError` naming ``where`` when the tensors do not describe that network."""
     try:
         planes = RefocusPlanes(
             tensors["refocus_z_mm"].numpy(), tensors["refocus_disparity_px"].numpy(), tensors["refocus.shifts"].numpy()
@@ -240,7 +254,7 @@ def load_weights(folder: str | Path, device: str = "cpu") -> LoadedNet:
         z_out = tensors["volume_z_mm"].numpy()
         net = CM2Net(config, planes, z_out)
     except (KeyError, ValueError) as error:
-        raise WeightsError(f"{path}: does not describe a CM²Net of {folder / CONFIG_FILE} ({error})") from None
+        raise WeightsError(f"{where}: does not describe a CM²Net of {config_name} ({error})") from None
     expected = net.state_dict()
     missing = sorted(set(expected) - set(tensors))
     unexpected = sorted(set(tensors) - set(expected))
@@ -257,8 +271,16 @@ def load_weights(folder: str | Path, device: str = "cpu") -> LoadedNet:
             )
             if part
         )
-        raise WeightsError(f"{path}: tensors do not match {folder / CONFIG_FILE}: {detail}")
+        raise WeightsError(f"{where}: tensors do not match {config_name}: {detail}")
     net.load_state_dict(tensors)
-    net.to(device).eval()
-    histogram = np.asarray(json.loads(metadata["histogram"]), float) if "histogram" in metadata else None
-    return LoadedNet(net, config, folder, histogram, metadata)
+    return net
+
+
+def shipped_weights(name: str = SHIPPED) -> Path:
+    """Where the project's shipped weights ``name`` lie: ``reconstruction/<name>`` in the
+    repository that holds this package (a clone, or an editable install of one), found from the
+    package's own location, never from the current directory. The folder may be absent (an
+    installed wheel carries no weights): check ``.is_dir()``."""
+    import cm2optics
+
+    return Path(cm2optics.__file__).resolve().parent.parent / "reconstruction" / name
