@@ -23,7 +23,7 @@ import numpy as np
 
 from cm2optics.calibrate.effects import Effect, apply_image_effects, leakage_counts
 from cm2optics.calibrate.features import away_from_foci, circular_windows, focus_features, focus_windows
-from cm2optics.calibrate.noise import SensorNoise, estimate_noise
+from cm2optics.calibrate.noise import SensorNoise, estimate_noise, quantisation_step
 from cm2optics.calibrate.register import Registration, register
 from cm2optics.calibrate.simulate import Simulator, Values
 
@@ -174,7 +174,13 @@ class Problem:
         model_signal = model_counts - np.float32(self.registration.dark_level)
         residual = self.counts - model_counts
         lit = model_signal > 1e-3 * float(model_signal.max())
-        self.noise = estimate_noise(residual[valid], model_signal[valid], (valid & ~lit)[valid], counts_per_electron)
+        self.noise = estimate_noise(
+            residual[valid],
+            model_signal[valid],
+            (valid & ~lit)[valid],
+            counts_per_electron,
+            quantisation_step(counts[valid]),
+        )
         self.noise_known = counts_per_electron is not None
         predicted = simulator.focus_centres_px(self.positions) + np.asarray(self.registration.offset_px)
         centres, radii = focus_windows(model_signal, predicted, simulator.pitch_px())

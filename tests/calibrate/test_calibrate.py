@@ -12,6 +12,7 @@ import pytest
 
 from cm2optics.calibrate.attribute import Problem, attribute
 from cm2optics.calibrate.effects import apply_image_effects, leakage_counts, library
+from cm2optics.calibrate.noise import raw_frames
 from cm2optics.calibrate.residual import CalibrationError, ScanData, analyse_scan
 from cm2optics.calibrate.simulate import AnalyticSimulator
 from cm2optics.lsv.toy import AnalyticCM2
@@ -38,8 +39,7 @@ def measured(simulator, positions, values=None, seed=0, peak=3000.0):
     rate = apply_image_effects(simulator.rates(positions, values), values, simulator.pixel_um)
     exposure = np.round(peak / rate.reshape(len(rate), -1).max(axis=1), 2)
     signal = rate * exposure[:, None, None] + leakage_counts(values, exposure)[:, None, None]
-    counts = rng.poisson(np.clip(signal, 0, None)) + rng.normal(0.0, READ_NOISE, signal.shape) + DARK
-    return np.clip(np.round(counts), 0, 4095).astype(np.uint16), exposure
+    return raw_frames(signal + DARK, DARK, 1.0, READ_NOISE, 12, rng), exposure
 
 
 def _data(counts, exposure, positions):
