@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -131,3 +132,34 @@ def estimate_noise(
     # the median of a χ²₁-distributed r²/σ² is 0.4549 of its mean
     slope = float(np.sum(mean_level * median_square) / np.sum(mean_level**2))
     return SensorNoise(read, max(slope, 1e-6), "photon transfer", step_counts)
+
+
+def add_scan_noise(
+    scan_dir: str | Path,
+    out_dir: str | Path,
+    *,
+    read_noise_counts: float = 2.0,
+    dark_level: float = 100.0,
+    counts_per_electron: float | None = None,
+    seed: int = 0,
+) -> Path:
+    """A noise-free (synthetic) scan ``scan_dir`` as a sensor would record it, written to
+    ``out_dir``: its frames raised by ``dark_level`` counts and passed through :func:`raw_frames`
+    (shot noise at the scan's ``counts_per_electron`` unless given, read noise, 12-bit or the
+    scan's bit depth clipping), exposures and positions kept; ``scan.yaml`` records the new dark
+    level, gain and the noise. Raises :class:`ValueError` for a scan that already holds noise."""
+    from cm2optics.formats.scan import ScanMeta, read_scan, write_scan
+
+    scan = read_scan(scan_dir)
+    extra = dict(scan.meta.extra)
+    if str(extra.get("noise", "")).strip().lower() != "none":
+        raise ValueError(f"{scan_dir}: scan.yaml does not say noise: none; its frames may already hold noise")
+    gain = float(counts_per_electron if counts_per_electron is not None else extra.get("counts_per_electron", 1.0))
+    expected = scan.images.astype(np.float64) - scan.meta.dark_level + dark_level
+    frames = raw_frames(expected, dark_level, gain, read_noise_counts, scan.meta.bit_depth, np.random.default_rng(seed))
+    extra.update(
+        counts_per_electron=gain,
+        noise=f"shot (Poisson, {gain:g} counts per electron) + read ({read_noise_counts:g} counts), seed {seed}",
+    )
+    meta = ScanMeta(scan.meta.pixel_um, scan.meta.binning, scan.meta.bit_depth, float(dark_level), extra)
+    return write_scan(out_dir, frames, scan.positions_mm, scan.exposure_ms, meta, names=list(scan.files))

@@ -189,8 +189,11 @@ class TracerSimulator:
         the scan says it used (default: an isotropic point); the ``source_profile`` effect
         multiplies its profile. settings: PSF sampling (None: ``PSFSettings(binning)``; its
         binning and oversampling are set to ``binning`` and ``oversample``). oversample: ePSF
-        samples per pixel along each axis (2–16) for moving traced foci. cache_mib: traced foci
-        kept, MiB (least recently used dropped first).
+        samples per pixel along each axis (2–16) for moving traced foci (None: ``binning``, so
+        that the samples lie one sensor pixel apart, 2.4 µm for cm2-v2, at any binning).
+        cache_mib: traced foci kept, MiB (least recently used dropped first). anchor: values of
+        the moving effects that are traced too (:meth:`trace_at`); only departures from them are
+        applied to traced foci.
 
     Effects that move a lenslet's vertex in the plane of the array (``mla_decenter``,
     ``mla_rotation``, ``lenslet_pitch``, ``lenslet_decenter``) move its focus rigidly by
@@ -206,14 +209,17 @@ class TracerSimulator:
     binning: int = 8
     source: PointSource = field(default_factory=lambda: PointSource(0.0, AngularProfile(ProfileKind.ISOTROPIC)))
     settings: PSFSettings | None = None
-    oversample: int = 8
+    oversample: int | None = None
     cache_mib: float = 1024.0
+    anchor: Values = field(default_factory=dict)
     _models: OrderedDict = field(default_factory=OrderedDict, init=False, repr=False)
     _foci: OrderedDict = field(default_factory=OrderedDict, init=False, repr=False)
     _bytes: int = field(default=0, init=False, repr=False)
     traced_positions: int = field(default=0, init=False, repr=False)
 
     def __post_init__(self) -> None:
+        if self.oversample is None:
+            self.oversample = max(2, min(16, self.binning))
         if not (isinstance(self.oversample, int) and 2 <= self.oversample <= 16):
             raise ValueError(f"oversample = {self.oversample!r}: must be an integer within 2–16")
         base = self.settings or PSFSettings(binning=self.binning)
@@ -236,6 +242,11 @@ class TracerSimulator:
     def supports(self, effect: Effect) -> bool:
         return effect.name in OPTICAL or effect.name in SENSOR_SIDE
 
+    @property
+    def retraced(self) -> frozenset[str]:
+        """Effects that cost a fresh trace of every position (the attribution linearises them)."""
+        return frozenset(RETRACED)
+
     def pitch_px(self) -> float:
         """Distance between neighbouring foci of an on-axis source, px: (1 + m) × the lenslet pitch."""
         pitch_mm = self.design.mla.pitch_mm + self.design.as_built.lenslet_pitch_delta_mm
@@ -248,7 +259,7 @@ class TracerSimulator:
         the sensor displaced by ``offset_px`` (row, col) px (see the class docstring)."""
         optical = {k: v for k, v in values.items() if k.partition("[")[0] not in SENSOR_SIDE}
         traced = {k: v for k, v in optical.items() if k.partition("[")[0] in RETRACED}
-        base = design_with(self.design, traced)
+        base = design_with(self.design, {**self.anchor, **traced})
         model = self._model(base, source_for(traced, self.source))
         moved = design_with(self.design, optical)
         vertex_shift = _vertices_mm(moved) - _vertices_mm(base)  # (cells, 2) x, y mm
@@ -268,6 +279,16 @@ class TracerSimulator:
                 _render(frame, focus, shift, transmission[focus.lenslet], self.oversample)
             out[i] = frame * UNIT_SOURCE
         return out
+
+    def trace_at(self, values: Values) -> None:
+        """Trace the moving effects (decentres, rotation, pitch, transmissions) of ``values`` from
+        now on, so that images near them are exact traces and only small departures are applied
+        to traced foci."""
+        self.anchor = {
+            k: dict(v)
+            for k, v in values.items()
+            if k.partition("[")[0] not in RETRACED and k.partition("[")[0] not in SENSOR_SIDE
+        }
 
     def focus_centres_px(self, positions_mm: np.ndarray) -> np.ndarray:
         """(N, J, 2) (row, col) px of each full lenslet's focus in the nominal design: the traced
