@@ -23,7 +23,7 @@ import numpy as np
 
 from cm2optics.calibrate.effects import Effect, apply_image_effects, leakage_counts
 from cm2optics.calibrate.features import away_from_foci, circular_windows, focus_features, focus_windows
-from cm2optics.calibrate.noise import SensorNoise, estimate_noise
+from cm2optics.calibrate.noise import SensorNoise, estimate_noise, quantisation_step
 from cm2optics.calibrate.register import Registration, register
 from cm2optics.calibrate.simulate import Simulator, Values
 
@@ -174,7 +174,13 @@ class Problem:
         model_signal = model_counts - np.float32(self.registration.dark_level)
         residual = self.counts - model_counts
         lit = model_signal > 1e-3 * float(model_signal.max())
-        self.noise = estimate_noise(residual[valid], model_signal[valid], (valid & ~lit)[valid], counts_per_electron)
+        self.noise = estimate_noise(
+            residual[valid],
+            model_signal[valid],
+            (valid & ~lit)[valid],
+            counts_per_electron,
+            quantisation_step(counts[valid]),
+        )
         self.noise_known = counts_per_electron is not None
         predicted = simulator.focus_centres_px(self.positions) + np.asarray(self.registration.offset_px)
         centres, radii = focus_windows(model_signal, predicted, simulator.pitch_px())
@@ -186,6 +192,10 @@ class Problem:
         self.space = space
         self.use = np.isfinite(space.data) & np.isfinite(space.sigma) & (space.sigma > 0)
         self._rates: dict[tuple, np.ndarray] = {}
+        self.expensive = frozenset(getattr(simulator, "retraced", ()))
+        self.anchor: Values = {}
+        self._anchor_state = self.start()
+        self._derivatives: dict[tuple[str, str], np.ndarray] = {}
 
     def start(self) -> State:
         r = self.registration
@@ -209,10 +219,77 @@ class Problem:
         scale, dark = state.nuisance[2], state.nuisance[3]
         return (dark + self.exposure[:, None, None] * (scale * rate) + leak).astype(np.float32)
 
-    def features(self, state: State) -> np.ndarray:
-        """The model's features under ``state``, measured like the data's (the same windows, the
-        same dark level subtracted, so that a change of the fitted dark shows)."""
+    def exact_features(self, state: State) -> np.ndarray:
+        """The model's features under ``state``, the simulator run with every value as it is,
+        measured like the data's (the same windows, the same dark level subtracted, so that a
+        change of the fitted dark shows)."""
         return self.space.features(self.model_counts(state), self.registration.dark_level)
+
+    def features(self, state: State) -> np.ndarray:
+        """The model's features under ``state``: exact, except that the simulator's expensive
+        effects (``simulator.retraced``: a fresh trace each) are run at their anchor values and
+        their departures from it added linearly, by derivatives taken once at the anchor
+        (:meth:`reanchor` moves the anchor to where the fit went, so the fit converges on the
+        exact model)."""
+        keys = [k for k in state.values if k in self._expensive_keys]
+        if not keys:
+            return self.exact_features(state)
+        anchored = state.copy()
+        for key in keys:
+            anchored.values[key] = dict(self.anchor.get(key, _effect(self, key).defaults()))
+        f = self.exact_features(anchored)
+        for key in keys:
+            for name, value in state.values[key].items():
+                delta = value - anchored.values[key][name]
+                if delta != 0.0:
+                    f = f + self._derivative(key, name) * delta
+        return f
+
+    @property
+    def _expensive_keys(self) -> set[str]:
+        return {c.key for c in self.candidates if c.name in self.expensive}
+
+    def _derivative(self, key: str, name: str) -> np.ndarray:
+        """d(features)/d(parameter) of an expensive effect at the anchor (finite difference of
+        the exact features, the other values as they were when the anchor was set; cached)."""
+        if (key, name) not in self._derivatives:
+            base = self._anchor_state.copy()
+            for k in self._expensive_keys:
+                base.values.pop(k, None)
+            base.values.update({k: dict(v) for k, v in self.anchor.items()})
+            column = _columns(self, base, [(key, name)], self.exact_features(base), exact=True)[:, 0]
+            self._derivatives[(key, name)] = np.nan_to_num(column)
+        return self._derivatives[(key, name)]
+
+    def _departed(self, state: State, keys: set[str], anchor: Values) -> bool:
+        """Whether any effect of ``keys`` in ``state`` (or in ``anchor``) is more than half its
+        finite-difference step away from its value in ``anchor`` (default: absent)."""
+        for key in keys & (set(state.values) | set(anchor)):
+            effect = _effect(self, key)
+            now, then = state.values.get(key, effect.defaults()), anchor.get(key, effect.defaults())
+            if any(abs(now[p.name] - then[p.name]) > 0.5 * p.step for p in effect.parameters):
+                return True
+        return False
+
+    def reanchor(self, state: State) -> bool:
+        """Move the anchors to ``state`` where it has left them by more than half a
+        finite-difference step: the expensive effects' linearisation point, and, for a simulator
+        that traces its moving effects on request (``trace_at``), the moving effects; whether
+        anything moved (then the next evaluations are exact at ``state``)."""
+        moved = False
+        trace_at = getattr(self.simulator, "trace_at", None)
+        if trace_at is not None:
+            moving = {c.key for c in self.candidates if c.name not in self.expensive and not _is_image_side(c.key)}
+            if self._departed(state, moving, self.simulator.anchor):
+                trace_at({k: v for k, v in state.values.items() if k in moving})
+                self._rates.clear()
+                moved = True
+        if moved or self._departed(state, self._expensive_keys, self.anchor):
+            self.anchor = {k: dict(state.values[k]) for k in self._expensive_keys & set(state.values)}
+            self._anchor_state = state.copy()
+            self._derivatives = {}
+            moved = True
+        return moved
 
     def chi2(self, f: np.ndarray) -> float:
         r = (self.space.data[self.use] - f[self.use]) / self.space.sigma[self.use]
@@ -227,9 +304,11 @@ def _is_image_side(key: str) -> bool:
     return key in {"stray_light", "pixel_crosstalk", "leakage_background"}
 
 
-def _columns(problem: Problem, state: State, params: list[tuple[str, str]], base: np.ndarray) -> np.ndarray:
+def _columns(
+    problem: Problem, state: State, params: list[tuple[str, str]], base: np.ndarray, exact: bool = False
+) -> np.ndarray:
     """Finite-difference Jacobian columns (features × params) at ``state``; params are
-    (effect key, parameter name) or ("nuisance", index)."""
+    (effect key, parameter name) or ("nuisance", index); ``exact``: of the exact features."""
     cols = []
     for key, name in params:
         trial = state.copy()
@@ -244,7 +323,7 @@ def _columns(problem: Problem, state: State, params: list[tuple[str, str]], base
             h = parameter.step  # a step across the range's edge goes the other way
             h = -h if not parameter.low <= values[name] + h <= parameter.high else h
             values[name] = values[name] + h
-        cols.append((problem.features(trial) - base) / h)
+        cols.append(((problem.exact_features if exact else problem.features)(trial) - base) / h)
     return np.stack(cols, axis=1) if cols else np.zeros((len(base), 0))
 
 
@@ -375,6 +454,10 @@ def attribute(problem: Problem, *, max_effects: int = 6, progress: Progress | No
             break
         kept.append(best[1])
         state, chi2, cov = _refine(problem, best[2], kept)
+        for _ in range(4):  # Newton on the exact model: re-linearise the expensive effects where the fit went
+            if not problem.reanchor(state):
+                break
+            state, chi2, cov = _refine(problem, state, kept)
         steps.append(Step(best[1], chi2, bic(chi2, len(_parameters(problem, kept)))))
         say(f"added {best[1]}: χ²/n = {chi2 / n:.3f}")
     params = _parameters(problem, kept)

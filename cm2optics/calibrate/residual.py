@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from cm2optics.calibrate.features import FocusFeatures, away_from_foci, focus_features, focus_windows
-from cm2optics.calibrate.noise import SensorNoise, estimate_noise
+from cm2optics.calibrate.noise import SensorNoise, estimate_noise, quantisation_step
 from cm2optics.calibrate.register import Registration, register
 from cm2optics.errors import UserError
 
@@ -149,7 +149,13 @@ def analyse_scan(
     model_signal = model_counts - registration.dark_level
     residual = counts - model_counts
     dark_mask = valid & (model_signal <= 1e-3 * float(model_signal.max()))
-    noise = estimate_noise(residual[valid], model_signal[valid], dark_mask[valid], counts_per_electron)
+    noise = estimate_noise(
+        residual[valid],
+        model_signal[valid],
+        dark_mask[valid],
+        counts_per_electron,
+        quantisation_step(data.counts[valid]),
+    )
     nmse, chi2 = _per_image_misfit(residual, signal, noise.variance(model_signal), valid, used)
 
     centres, radii = focus_windows(model_signal, centres_px + np.asarray(registration.offset_px), pitch_px)

@@ -32,6 +32,7 @@ from cm2optics.calibrate.effects import apply_image_effects, library
 from cm2optics.calibrate.residual import CalibrationError, ResidualAnalysis, ScanData, analyse_scan
 from cm2optics.calibrate.tracer import TracerSimulator, design_with
 from cm2optics.design import SystemDesign
+from cm2optics.emission.source import AngularProfile, PointSource
 from cm2optics.formats.scan import PSFScan, grid_index, read_scan
 
 __all__ = ["ScanCalibration", "calibrate_scan", "corrected_design", "fit_subset"]
@@ -203,6 +204,40 @@ def _fit_record(subset: np.ndarray, attribution: Attribution, problem: Problem) 
     }
 
 
+def scan_source(
+    extra: dict[str, Any], diameter_um: float | None = None, profile: str | None = None
+) -> tuple[PointSource, list[str]]:
+    """The calibration source a scan says it used (``source_diameter_um``, ``source_profile`` in
+    its ``scan.yaml``), the arguments overriding them; with no profile anywhere, an isotropic
+    point and a warning. A profile that cannot be read is a :class:`CalibrationError`."""
+    warnings = []
+    diameter = diameter_um if diameter_um is not None else extra.get("source_diameter_um", 0.0)
+    text = profile if profile is not None else extra.get("source_profile")
+    if text is None:
+        text = "isotropic"
+        warnings.append(
+            "scan.yaml does not record the calibration source's angular profile (source_profile): "
+            "assumed isotropic, the source_profile effect fits a narrower one"
+        )
+    try:
+        return PointSource(float(diameter), AngularProfile.parse(str(text))), warnings
+    except (TypeError, ValueError) as error:
+        raise CalibrationError(f"the scan's calibration source: {error}") from None
+
+
+def scan_gain(extra: dict[str, Any]) -> tuple[float | None, list[str]]:
+    """The camera's gain (counts per electron) from ``scan.yaml``, or None to estimate it. A scan
+    that says it holds no noise (``noise: none``, as an unmodified synthetic scan does) has no
+    shot noise to go with that gain: its noise scale is estimated and profiled out instead."""
+    gain = extra.get("counts_per_electron")
+    if str(extra.get("noise", "")).strip().lower() == "none":
+        return None, [
+            "scan.yaml says the frames hold no noise: the noise scale is profiled out of the fit "
+            "(only relative misfits count; the χ² values are against a floor of quantisation steps)"
+        ]
+    return (float(gain) if gain is not None else None), []
+
+
 def calibrate_scan(
     scan_dir: str | Path,
     design: SystemDesign,
@@ -210,23 +245,29 @@ def calibrate_scan(
     fit_positions: int = 27,
     max_effects: int = 6,
     source_diameter_um: float | None = None,
+    source_profile: str | None = None,
     progress: Progress | None = None,
 ) -> ScanCalibration:
     """Run the loop of the module docstring on the scan folder ``scan_dir`` taken on ``design``.
 
     fit_positions: positions traced for the attribution (spread over the grid).
     max_effects: effects kept at most.
-    source_diameter_um: the calibration source's diameter (default: the scan's
+    source_diameter_um: the calibration source's diameter, µm (default: the scan's
         ``source_diameter_um`` metadata, else a point).
+    source_profile: the calibration source's angular profile as
+        :meth:`~cm2optics.emission.source.AngularProfile.describe` writes it (default: the scan's
+        ``source_profile`` metadata, else isotropic, said in the document's ``warnings``).
     """
     say = progress or (lambda message: None)
     scan = read_scan(scan_dir, sensor_pixel_um=design.sensor.pixel_um)
     _check_scan(scan, design)
     extra = scan.meta.extra
-    diameter = source_diameter_um if source_diameter_um is not None else float(extra.get("source_diameter_um", 0.0))
-    gain = extra.get("counts_per_electron")
-    gain = float(gain) if gain is not None else None
-    simulator = TracerSimulator(design, binning=scan.meta.binning, source_diameter_um=diameter)
+    source, warnings = scan_source(extra, source_diameter_um, source_profile)
+    gain, noise_warning = scan_gain(extra)
+    warnings += noise_warning
+    for warning in warnings:
+        say(f"warning: {warning}")
+    simulator = TracerSimulator(design, binning=scan.meta.binning, source=source)
     files = tuple(scan.files)
     positions = scan.positions_mm
     data = ScanData(scan.images, scan.exposure_ms, positions, files, scan.meta.bit_depth)
@@ -261,6 +302,8 @@ def calibrate_scan(
         "scan": str(scan_dir),
         "design": design.name,
         "design_hash": design.parameter_hash(),
+        "source": source.describe(),
+        "warnings": warnings,
         "corrected_design_hash": corrected.parameter_hash(),
         **_summary(before, after, attribution, problem),
         "fit": _fit_record(subset, attribution, problem),

@@ -46,7 +46,7 @@ import numpy as np
 from cm2optics.calibrate.effects import Effect
 from cm2optics.calibrate.simulate import OPTICAL, Values
 from cm2optics.design import SystemDesign
-from cm2optics.emission.psf import EmissionModel, PSFSettings, SensorGrid, add_focus
+from cm2optics.emission.psf import EmissionModel, Focus, PSFSettings, SensorGrid
 from cm2optics.emission.scan import simulate_position
 from cm2optics.emission.source import AngularProfile, PointSource, ProfileKind
 from cm2optics.optics import first_order
@@ -57,6 +57,8 @@ __all__ = ["UNIT_SOURCE", "TracerSimulator", "design_with"]
 #: Counts per ms of a unit source per photon detected per emitted photon.
 UNIT_SOURCE = 1e6
 SENSOR_SIDE = {"stray_light", "pixel_crosstalk", "leakage_background"}
+#: Optical effects that change the foci's shape, traced; the others move or scale traced foci.
+RETRACED = {"mla_spacing", "vignetting", "source_profile"}
 
 
 def design_with(
@@ -96,13 +98,86 @@ def design_with(
     return design.with_changes(changes) if changes else design
 
 
-def source_for(values: Values, diameter_um: float) -> PointSource:
-    """The calibration source of ``values``' ``source_profile`` (isotropic without it)."""
+def source_for(values: Values, base: PointSource) -> PointSource:
+    """The calibration source ``base`` (the one the scan says it used) with ``values``'
+    ``source_profile`` on top: its relative intensity × exp(−2·falloff·θ²). A Gaussian (or
+    isotropic) base stays a Gaussian of 1/e² half-angle θ' with 1/θ'² = 1/θ² + falloff (at most
+    180°); any other base, or a profile that would widen an isotropic one, becomes a table
+    sampled every degree."""
     falloff = values.get("source_profile", {}).get("falloff_per_rad2", 0.0)
-    if falloff <= 0:
-        return PointSource(diameter_um, AngularProfile(ProfileKind.ISOTROPIC))
-    half_angle = min(math.degrees(1.0 / math.sqrt(falloff)), 180.0)
-    return PointSource(diameter_um, AngularProfile(ProfileKind.GAUSSIAN, half_angle))
+    profile = base.profile
+    if falloff == 0.0:
+        return base
+    if profile.kind in (ProfileKind.GAUSSIAN, ProfileKind.ISOTROPIC):
+        inverse = falloff + (math.radians(profile.parameter) ** -2 if profile.kind is ProfileKind.GAUSSIAN else 0.0)
+        if inverse > 0:
+            half_angle = min(math.degrees(1.0 / math.sqrt(inverse)), 180.0)
+            return PointSource(base.diameter_um, AngularProfile(ProfileKind.GAUSSIAN, max(half_angle, 1.0)))
+    angles = np.arange(91.0)
+    theta = np.radians(angles)
+    relative = profile.relative_intensity(theta) * np.exp(-2.0 * falloff * theta**2)
+    return PointSource(
+        base.diameter_um, AngularProfile(ProfileKind.TABLE, 0.0, tuple(angles), tuple(map(float, relative)))
+    )
+
+
+@dataclass(frozen=True)
+class _Traced:
+    """One traced focus kept for re-use: its lenslet (index into the optics' lenslets), its ePSF
+    cropped to where it holds light (float32, fine samples 1/S px apart), the fine (row, col) of
+    the crop's [0, 0] (fine index u is the pixel coordinate u/S), and its rays' centroid (x, y) mm."""
+
+    lenslet: int
+    epsf: np.ndarray
+    origin: tuple[int, int]
+    ray_centroid_mm: tuple[float, float]
+    ray_power: float
+
+
+def _crop(focus: Focus, oversample: int) -> _Traced:
+    """The focus's ePSF cut to the box where it exceeds 10⁻⁷ of its peak (the window's empty
+    diffraction margin dropped; the light outside is below 10⁻⁵ of the focus)."""
+    epsf = focus.epsf
+    lit = epsf > 1e-7 * float(epsf.max()) if epsf.size and epsf.max() > 0 else np.zeros(epsf.shape, bool)
+    if not lit.any():
+        return _Traced(focus.lenslet, np.zeros((0, 0), np.float32), (0, 0), focus.ray_centroid_mm, 0.0)
+    rows, cols = np.flatnonzero(lit.any(axis=1)), np.flatnonzero(lit.any(axis=0))
+    a0, a1, b0, b1 = rows[0], rows[-1] + 1, cols[0], cols[-1] + 1
+    crop = np.ascontiguousarray(epsf[a0:a1, b0:b1], np.float32)
+    origin = (oversample * focus.row0 + int(a0), oversample * focus.col0 + int(b0))
+    return _Traced(focus.lenslet, crop, origin, focus.ray_centroid_mm, focus.ray_power)
+
+
+def _axis_samples(origin: int, length: int, shift: float, oversample: int, size: int):
+    """Output pixels and linear-interpolation taps along one axis for an ePSF of ``length`` fine
+    samples starting at fine index ``origin``, moved by ``shift`` px, on an axis of ``size`` px:
+    (pixels, index of the first tap into the ePSF padded by one zero each side, weight of the
+    second tap). Pixel m samples the ePSF at the pixel coordinate m − shift."""
+    s = oversample * shift
+    k = math.floor(s)
+    f = s - k
+    first = max(int(math.floor((origin + k - 1) / oversample)), 0)
+    last = min(int(math.ceil((origin + k + length + 1) / oversample)), size - 1)
+    pixels = np.arange(first, last + 1)
+    index = oversample * pixels - origin - k  # fine index at weight 1 − f; index − 1 at weight f
+    return pixels, np.clip(index + 1, 0, length + 1), f
+
+
+def _render(frame: np.ndarray, traced: _Traced, shift_px: tuple[float, float], scale: float, oversample: int) -> None:
+    """Add ``scale`` × the focus moved by ``shift_px`` (row, col) px into ``frame`` (in place): its
+    ePSF sampled at the pixel centres, linear between fine samples 1/S px apart."""
+    if traced.epsf.size == 0 or scale == 0:
+        return
+    length_r, length_c = traced.epsf.shape
+    rows, ir, fr = _axis_samples(traced.origin[0], length_r, shift_px[0], oversample, frame.shape[0])
+    cols, ic, fc = _axis_samples(traced.origin[1], length_c, shift_px[1], oversample, frame.shape[1])
+    if rows.size == 0 or cols.size == 0:
+        return
+    padded = np.pad(traced.epsf, 1)
+    lower_r, lower_c = np.clip(ir - 1, 0, length_r + 1), np.clip(ic - 1, 0, length_c + 1)
+    along_rows = (1.0 - fr) * padded[ir] + fr * padded[lower_r]
+    patch = (1.0 - fc) * along_rows[:, ic] + fc * along_rows[:, lower_c]
+    frame[rows[0] : rows[-1] + 1, cols[0] : cols[-1] + 1] += scale * patch
 
 
 @dataclass
@@ -110,24 +185,45 @@ class TracerSimulator:
     """The emission tracer as a :class:`~cm2optics.calibrate.simulate.Simulator` (module docstring).
 
     design: the nominal design (its own ``as_built`` values are the starting point; effects add
-        to them). binning: sensor pixels per image pixel (1–16). source_diameter_um: the
-        calibration source's diameter, µm. settings: PSF sampling (None: ``PSFSettings(binning)``;
-        its binning must equal ``binning``). cache: traced models kept (one per design and source).
+        to them). binning: sensor pixels per image pixel (1–16). source: the calibration source
+        the scan says it used (default: an isotropic point); the ``source_profile`` effect
+        multiplies its profile. settings: PSF sampling (None: ``PSFSettings(binning)``; its
+        binning and oversampling are set to ``binning`` and ``oversample``). oversample: ePSF
+        samples per pixel along each axis (2–16) for moving traced foci (None: ``binning``, so
+        that the samples lie one sensor pixel apart, 2.4 µm for cm2-v2, at any binning).
+        cache_mib: traced foci kept, MiB (least recently used dropped first). anchor: values of
+        the moving effects that are traced too (:meth:`trace_at`); only departures from them are
+        applied to traced foci.
+
+    Effects that move a lenslet's vertex in the plane of the array (``mla_decenter``,
+    ``mla_rotation``, ``lenslet_pitch``, ``lenslet_decenter``) move its focus rigidly by
+    (1 + m)·d (d the vertex's displacement, m the chief-ray magnification at the source's height);
+    ``lenslet_transmission`` scales it; the frame offset moves every focus. These are applied to
+    the traced foci of the design without them, each focus's ePSF sampled at its moved pixel
+    centres (exact for undersampled foci, where resampling the image would not be). The other
+    optical effects (``mla_spacing``, ``vignetting``, ``source_profile``) change the foci's shape
+    and are traced; a traced design's foci are cached by (design, source, position).
     """
 
     design: SystemDesign
     binning: int = 8
-    source_diameter_um: float = 0.0
+    source: PointSource = field(default_factory=lambda: PointSource(0.0, AngularProfile(ProfileKind.ISOTROPIC)))
     settings: PSFSettings | None = None
-    cache: int = 8
+    oversample: int | None = None
+    cache_mib: float = 1024.0
+    anchor: Values = field(default_factory=dict)
     _models: OrderedDict = field(default_factory=OrderedDict, init=False, repr=False)
-    _centres: dict = field(default_factory=dict, init=False, repr=False)
+    _foci: OrderedDict = field(default_factory=OrderedDict, init=False, repr=False)
+    _bytes: int = field(default=0, init=False, repr=False)
+    traced_positions: int = field(default=0, init=False, repr=False)
 
     def __post_init__(self) -> None:
-        if self.settings is None:
-            self.settings = PSFSettings(binning=self.binning)
-        elif self.settings.binning != self.binning:
-            self.settings = replace(self.settings, binning=self.binning)
+        if self.oversample is None:
+            self.oversample = max(2, min(16, self.binning))
+        if not (isinstance(self.oversample, int) and 2 <= self.oversample <= 16):
+            raise ValueError(f"oversample = {self.oversample!r}: must be an integer within 2–16")
+        base = self.settings or PSFSettings(binning=self.binning)
+        self.settings = replace(base, binning=self.binning, oversample=self.oversample)
         self.grid = SensorGrid.of(self.design, self.binning)
 
     # -- the protocol ----------------------------------------------------------------------------
@@ -146,6 +242,11 @@ class TracerSimulator:
     def supports(self, effect: Effect) -> bool:
         return effect.name in OPTICAL or effect.name in SENSOR_SIDE
 
+    @property
+    def retraced(self) -> frozenset[str]:
+        """Effects that cost a fresh trace of every position (the attribution linearises them)."""
+        return frozenset(RETRACED)
+
     def pitch_px(self) -> float:
         """Distance between neighbouring foci of an on-axis source, px: (1 + m) × the lenslet pitch."""
         pitch_mm = self.design.mla.pitch_mm + self.design.as_built.lenslet_pitch_delta_mm
@@ -154,56 +255,107 @@ class TracerSimulator:
     def rates(
         self, positions_mm: np.ndarray, values: Values, offset_px: tuple[float, float] = (0.0, 0.0)
     ) -> np.ndarray:
-        """Images (N, y, x) in counts per ms of a unit source, the effects in ``values`` traced and
-        the sensor displaced by ``offset_px`` (row, col) px (traced there, not resampled)."""
-        offset = (float(offset_px[0]), float(offset_px[1]))
+        """Images (N, y, x) in counts per ms of a unit source with the effects in ``values`` and
+        the sensor displaced by ``offset_px`` (row, col) px (see the class docstring)."""
         optical = {k: v for k, v in values.items() if k.partition("[")[0] not in SENSOR_SIDE}
-        design = design_with(self.design, optical, offset, self.pixel_um)
-        model = self._model(design, source_for(optical, self.source_diameter_um))
-        shift = first_order.object_plane_z_mm(model.design) - first_order.object_plane_z_mm(self.design)
+        traced = {k: v for k, v in optical.items() if k.partition("[")[0] in RETRACED}
+        base = design_with(self.design, {**self.anchor, **traced})
+        model = self._model(base, source_for(traced, self.source))
+        moved = design_with(self.design, optical)
+        vertex_shift = _vertices_mm(moved) - _vertices_mm(base)  # (cells, 2) x, y mm
+        before, after = _transmissions(base), _transmissions(moved)
+        transmission = np.divide(after, before, out=np.zeros_like(after), where=before > 0)
         positions = np.asarray(positions_mm, float).reshape(-1, 3)
         out = np.zeros((len(positions),) + self.shape, np.float32)
-        for i, (x, y, z) in enumerate(positions):
-            frame = np.zeros(self.shape)
-            for focus in simulate_position(model, np.array([x, y, z + shift])):
-                add_focus(frame, focus)
+        frame = np.zeros(self.shape)
+        pitch_mm = self.grid.pitch_mm
+        for i, position in enumerate(positions):
+            frame[:] = 0.0
+            device = model.device_point_mm(self._in_design(model, position))
+            gain = 1.0 + first_order.chief_ray_magnification(base, float(device[2]))
+            for focus in self._traced(model, position):
+                dx, dy = gain * vertex_shift[focus.lenslet] / pitch_mm
+                shift = (offset_px[0] + dy, offset_px[1] + dx)
+                _render(frame, focus, shift, transmission[focus.lenslet], self.oversample)
             out[i] = frame * UNIT_SOURCE
         return out
+
+    def trace_at(self, values: Values) -> None:
+        """Trace the moving effects (decentres, rotation, pitch, transmissions) of ``values`` from
+        now on, so that images near them are exact traces and only small departures are applied
+        to traced foci."""
+        self.anchor = {
+            k: dict(v)
+            for k, v in values.items()
+            if k.partition("[")[0] not in RETRACED and k.partition("[")[0] not in SENSOR_SIDE
+        }
 
     def focus_centres_px(self, positions_mm: np.ndarray) -> np.ndarray:
         """(N, J, 2) (row, col) px of each full lenslet's focus in the nominal design: the traced
         rays' power-weighted centroid where the lenslet sends light onto the sensor, else the
         chief ray through its vertex (first-order magnification at the source's height)."""
+        model = self._model(self.design, self.source)
         positions = np.asarray(positions_mm, float).reshape(-1, 3)
-        return np.stack([self._centres_of((float(x), float(y), float(z))) for x, y, z in positions])
+        cols = self.design.mla.cols
+        out = np.empty((len(positions), self.lenslets, 2))
+        for i, (x, y, z) in enumerate(positions):
+            m = first_order.chief_ray_magnification(self.design, first_order.object_z_to_height_mm(self.design, z))
+            for cell in lens_cells(self.design.mla, self.design.as_built):
+                if not cell.partial:
+                    sx, sy = cell.vertex_x - m * (x - cell.vertex_x), cell.vertex_y - m * (y - cell.vertex_y)
+                    out[i, cell.row * cols + cell.col] = self.grid.row(sy), self.grid.col(sx)
+            for focus in self._traced(model, np.array([x, y, z])):
+                lenslet = model.optics.lenslets[focus.lenslet]
+                if not lenslet.partial and focus.ray_power > 0:
+                    cx, cy = focus.ray_centroid_mm
+                    out[i, lenslet.row * cols + lenslet.col] = self.grid.row(cy), self.grid.col(cx)
+        return out
 
     # -- helpers -----------------------------------------------------------------------------
+    def _in_design(self, model: EmissionModel, position: np.ndarray) -> np.ndarray:
+        """A position (object space of the nominal design, mm) in ``model``'s design's object space."""
+        shift = first_order.object_plane_z_mm(model.design) - first_order.object_plane_z_mm(self.design)
+        return np.array([position[0], position[1], position[2] + shift])
+
     def _model(self, design: SystemDesign, source: PointSource) -> EmissionModel:
         key = (design, source)
         model = self._models.get(key)
         if model is None:
             model = EmissionModel(design, source, settings=self.settings)
             self._models[key] = model
-            while len(self._models) > self.cache:
+            while len(self._models) > 16:
                 self._models.popitem(last=False)
         self._models.move_to_end(key)
         return model
 
-    def _centres_of(self, position: tuple[float, float, float]) -> np.ndarray:
-        if position not in self._centres:
-            model = self._model(self.design, source_for({}, self.source_diameter_um))
-            x, y, z = position
-            m = first_order.chief_ray_magnification(self.design, first_order.object_z_to_height_mm(self.design, z))
-            cols = self.design.mla.cols
-            centres = np.empty((self.lenslets, 2))
-            for cell in lens_cells(self.design.mla, self.design.as_built):
-                if not cell.partial:
-                    sx, sy = cell.vertex_x - m * (x - cell.vertex_x), cell.vertex_y - m * (y - cell.vertex_y)
-                    centres[cell.row * cols + cell.col] = self.grid.row(sy), self.grid.col(sx)
-            for focus in simulate_position(model, np.array(position)):
-                lenslet = model.optics.lenslets[focus.lenslet]
-                if not lenslet.partial and focus.ray_power > 0:
-                    cx, cy = focus.ray_centroid_mm
-                    centres[lenslet.row * cols + lenslet.col] = self.grid.row(cy), self.grid.col(cx)
-            self._centres[position] = centres
-        return self._centres[position]
+    def _traced(self, model: EmissionModel, position: np.ndarray) -> list[_Traced]:
+        """The traced foci of ``position`` (nominal object space, mm) under ``model`` (cached)."""
+        key = (model.design, model.source, tuple(round(float(v), 9) for v in position))
+        foci = self._foci.get(key)
+        if foci is None:
+            traced = simulate_position(model, self._in_design(model, position))
+            foci = [_crop(f, self.oversample) for f in traced]
+            self.traced_positions += 1
+            self._foci[key] = foci
+            self._bytes += sum(f.epsf.nbytes for f in foci)
+            while self._bytes > self.cache_mib * 2**20 and len(self._foci) > 1:
+                _, dropped = self._foci.popitem(last=False)
+                self._bytes -= sum(f.epsf.nbytes for f in dropped)
+        self._foci.move_to_end(key)
+        return foci
+
+
+def _vertices_mm(design: SystemDesign) -> np.ndarray:
+    """(cells, 2) vertex (x, y) mm of every cell of the array as built, in the tracer's order."""
+    return np.array([(c.vertex_x, c.vertex_y) for c in lens_cells(design.mla, design.as_built)])
+
+
+def _transmissions(design: SystemDesign) -> np.ndarray:
+    """(cells,) as-built transmission of every cell (partial cells: 1), in the tracer's order."""
+    cols = design.mla.cols
+    return np.array(
+        [
+            1.0 if c.partial else design.as_built.transmission(c.row * cols + c.col)
+            for c in lens_cells(design.mla, design.as_built)
+        ]
+    )

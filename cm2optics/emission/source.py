@@ -29,6 +29,7 @@ uniform disc of diameter |m|·d (m the lateral magnification).
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass, field
 from enum import StrEnum
 
@@ -88,7 +89,10 @@ class AngularProfile:
                 raise ValueError(f"angles_deg = {tuple(a)}: must start at 0 and increase strictly up to ≤ 90°")
             if np.any(r < 0) or not r.max() > 0:
                 raise ValueError("relative must be ≥ 0 and not all zero")
-        norm, _ = quad(lambda t: float(self.relative_intensity(t)) * math.sin(t), 0.0, math.pi / 2, limit=200)
+        kinks = np.radians(self.angles_deg[1:-1]) if kind is ProfileKind.TABLE else None  # a table's corners
+        norm, _ = quad(
+            lambda t: float(self.relative_intensity(t)) * math.sin(t), 0.0, math.pi / 2, limit=200, points=kinks
+        )
         object.__setattr__(self, "_norm", 2 * math.pi * norm)
 
     def relative_intensity(self, theta_rad: float | np.ndarray) -> np.ndarray:
@@ -116,6 +120,25 @@ class AngularProfile:
     def intensity_sr(self, theta_rad: float | np.ndarray) -> np.ndarray:
         """Radiant intensity (fraction of the source's power per steradian) at ``theta_rad`` (rad)."""
         return self.relative_intensity(theta_rad) / self._norm
+
+    @classmethod
+    def parse(cls, text: str) -> AngularProfile:
+        """The profile :meth:`describe` wrote (as a scan's ``source_profile`` records it):
+        ``isotropic``, ``lambertian``, ``cos^M`` or ``gaussian, 1/e^2 half-angle A deg``. A table
+        cannot be told by its description; ValueError for it and for any other text."""
+        words = str(text).strip().lower()
+        if words in (ProfileKind.ISOTROPIC, ProfileKind.LAMBERTIAN):
+            return cls(ProfileKind(words))
+        cosine = re.fullmatch(r"cos\^\s*([0-9.eE+-]+)", words)
+        if cosine:
+            return cls(ProfileKind.COSINE, float(cosine.group(1)))
+        gaussian = re.fullmatch(r"gaussian,?\s*1/e\^?2 half-angle\s*([0-9.eE+-]+)\s*deg(rees)?", words)
+        if gaussian:
+            return cls(ProfileKind.GAUSSIAN, float(gaussian.group(1)))
+        raise ValueError(
+            f"source profile {text!r}: expected 'isotropic', 'lambertian', 'cos^M' or "
+            "'gaussian, 1/e^2 half-angle A deg'"
+        )
 
     def describe(self) -> str:
         if self.kind is ProfileKind.COSINE:

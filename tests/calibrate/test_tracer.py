@@ -11,7 +11,7 @@ import pytest
 from cm2optics.calibrate.effects import library
 from cm2optics.calibrate.tracer import TracerSimulator, design_with, source_for
 from cm2optics.design import SystemDesign
-from cm2optics.emission.source import ProfileKind
+from cm2optics.emission.source import AngularProfile, PointSource, ProfileKind, calibration_pinhole
 
 POSITIONS = np.array([[0.0, 0.0, 0.0], [0.5, -0.3, 0.2]])
 
@@ -58,8 +58,9 @@ def test_protocol_and_mapping(simulator: TracerSimulator, v2: SystemDesign):
     assert built.as_built.mla_rotation_deg == 0.4 and built.as_built.transmission(3) == 0.5
     assert built.as_built.lenslet_offset_mm(8) == (0.01, 0.0)
     assert (built.as_built.sensor_offset_x_um, built.as_built.sensor_offset_y_um) == (38.4, -19.2)
-    assert source_for({}, 5.0).profile.kind is ProfileKind.ISOTROPIC
-    profile = source_for({"source_profile": {"falloff_per_rad2": 4.0}}, 5.0).profile
+    point = PointSource(5.0, AngularProfile(ProfileKind.ISOTROPIC))
+    assert source_for({}, point) == point
+    profile = source_for({"source_profile": {"falloff_per_rad2": 4.0}}, point).profile
     assert profile.kind is ProfileKind.GAUSSIAN and math.isclose(profile.parameter, math.degrees(0.5))
 
 
@@ -83,3 +84,82 @@ def test_rotation_and_frame_offset_move_the_foci(simulator: TracerSimulator, nom
     assert np.hypot(*step[4]) < 0.2  # the central focus stays
     shifted = simulator.rates(POSITIONS[:1], {}, offset_px=(2.0, -1.0))
     np.testing.assert_allclose(shifted[0, 2:, :-1], nominal[0, :-2, 1:], atol=1e-3 * float(nominal.max()))
+
+
+def _nmse(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.sum((a - b) ** 2) / np.sum(b**2))
+
+
+def test_moved_foci_equal_a_trace_of_the_moved_design(v2: SystemDesign):
+    """Effects that move or dim a lenslet are applied to traced foci (their ePSFs sampled at the
+    moved pixel centres): the images equal a fresh trace of the design with the effect, to well
+    under 1 % of the effect's own change of the image."""
+    from cm2optics.emission.psf import EmissionModel, PSFSettings, add_focus
+    from cm2optics.optics import first_order
+
+    source = calibration_pinhole()
+    simulator = TracerSimulator(v2, binning=8, source=source)
+    positions = np.array([[0.0, 0.0, 0.0], [1.5, -1.0, 0.3], [-2.5, 2.0, -0.4]])
+    nominal = simulator.rates(positions, {})
+    cases = [
+        ({"mla_rotation": {"angle_deg": 0.5}}, (0.0, 0.0)),
+        ({"mla_decenter": {"dx_mm": 0.01, "dy_mm": -0.007}}, (0.3, -0.45)),
+        (
+            {
+                "lenslet_pitch": {"delta_mm": 0.004},
+                "lenslet_decenter[2]": {"dx_mm": 0.005, "dy_mm": 0.0},
+                "lenslet_transmission[4]": {"transmission": 0.6},
+            },
+            (0.0, 0.0),
+        ),
+    ]
+    for values, offset in cases:
+        design = design_with(v2, values, offset, simulator.pixel_um)
+        model = EmissionModel(design, source, settings=PSFSettings(binning=8))
+        dz = first_order.object_plane_z_mm(design) - first_order.object_plane_z_mm(v2)
+        traced = np.zeros_like(nominal)
+        for i, (x, y, z) in enumerate(positions):
+            for focus in model.foci(np.array([x, y, z + dz])):
+                add_focus(traced[i], focus, 1e6)
+        fast = simulator.rates(positions, values, offset)
+        effect = _nmse(nominal, traced)
+        assert effect > 0.1
+        assert _nmse(fast, traced) < 2e-3 * effect, values
+
+
+def test_the_traced_model_images_the_scans_own_source(v2: SystemDesign, tmp_path):
+    """A scan made by `cm2 psf simulate` with its default Gaussian pinhole: the simulator built
+    from the scan's scan.yaml reproduces its frames (counts per ms) to the rounding of the counts,
+    where an isotropic point (the old assumption) differs by far more."""
+    from cm2optics.calibrate.scan import scan_source
+    from cm2optics.emission.psf import PSFSettings
+    from cm2optics.emission.scan import ScanSettings, simulate_scan
+    from cm2optics.formats.scan import read_scan
+
+    positions = np.array([[x, 0.0, z] for z in (-0.2, 0.2) for x in (0.0, 2.0)])
+    settings = ScanSettings(psf=PSFSettings(binning=8), dark_level=0.0)
+    simulate_scan(v2, positions, tmp_path / "scan", settings, workers=1, processes=False, progress=False)
+    scan = read_scan(tmp_path / "scan", sensor_pixel_um=v2.sensor.pixel_um)
+    source, warnings = scan_source(scan.meta.extra)
+    assert warnings == [] and source == calibration_pinhole()
+    data = scan.normalised() / (settings.source_photons_per_ms * settings.counts_per_electron / 1e6)
+    model = TracerSimulator(v2, binning=8, source=source).rates(scan.positions_mm, {})
+    point = TracerSimulator(v2, binning=8).rates(scan.positions_mm, {})
+    rounding = _nmse(data, model)
+    assert rounding < 1e-4
+    assert _nmse(data, point) > 100 * rounding
+
+
+def test_the_source_profile_effect_multiplies_the_scans_profile():
+    pinhole = calibration_pinhole()  # Gaussian, 1/e² half-angle 26°
+    narrower = source_for({"source_profile": {"falloff_per_rad2": 2.0}}, pinhole).profile
+    expected = math.degrees((math.radians(26.0) ** -2 + 2.0) ** -0.5)
+    assert narrower.kind is ProfileKind.GAUSSIAN and math.isclose(narrower.parameter, expected)
+    wider = source_for({"source_profile": {"falloff_per_rad2": -2.0}}, pinhole).profile
+    assert wider.parameter > 26.0
+    lambertian = PointSource(5.0, AngularProfile(ProfileKind.LAMBERTIAN))
+    table = source_for({"source_profile": {"falloff_per_rad2": 3.0}}, lambertian).profile
+    theta = np.radians([0.0, 20.0, 45.0])
+    np.testing.assert_allclose(
+        table.relative_intensity(theta), np.cos(theta) * np.exp(-6.0 * theta**2), rtol=2e-3, atol=1e-4
+    )
