@@ -39,21 +39,23 @@ def _clear_aperture(design: SystemDesign) -> tuple[np.ndarray, tuple[float, floa
     return pose, half_sides, aperture_z
 
 
-def spectral_ceiling(design: SystemDesign, transmission: Any = None) -> float:
+def spectral_ceiling(design: SystemDesign, transmission: Any = None, spectrum: Any = None) -> float:
     """∫ S(λ) T(λ, 0) dλ / ∫ S dλ: the most of the LED's spectrum S the excitation filter passes
-    (every ray at normal incidence). transmission: T(λ nm, θ rad), default the design's filter."""
+    (every ray at normal incidence), from the run's inputs. transmission: T(λ nm, θ rad) (a
+    coating table's fit), default the model of the design's filter; spectrum: the LED's
+    :class:`~cm2optics.illumination.source.SourceSpectrum`, default the design's LED model."""
     from cm2optics.illumination.excitation import design_filter_transmission
     from cm2optics.illumination.source import led_source
 
-    source = led_source(design)
+    spectrum = spectrum if spectrum is not None else led_source(design).spectrum
     transmission = transmission or design_filter_transmission(design)
-    wl = source.spectrum.wavelength_nm
-    power = source.spectrum.relative_power
+    wl = spectrum.wavelength_nm
+    power = spectrum.relative_power
     return float(np.trapezoid(power * transmission(wl, np.zeros_like(wl)), wl) / np.trapezoid(power, wl))
 
 
 def etendue_bound(
-    design: SystemDesign, transmission: Any = None, samples: int = 400_000, seed: int = 0
+    design: SystemDesign, transmission: Any = None, samples: int = 400_000, seed: int = 0, spectrum: Any = None
 ) -> dict[str, float]:
     """Upper bounds on the delivered fraction set by étendue and by the filter.
 
@@ -63,7 +65,8 @@ def etendue_bound(
     puts more than G_target / G_source of a Lambertian emitter's power through the aperture
     onto the circle. The filter passes at most ``spectral_ceiling`` = ∫ S(λ) T(λ, 0) dλ / ∫ S
     of the LED's spectrum (every ray at normal incidence, S the LED spectrum), so
-    ``delivered_bound`` = min(1, G_target / G_source) × spectral_ceiling.
+    ``delivered_bound`` = min(1, G_target / G_source) × spectral_ceiling. transmission, spectrum:
+    the run's filter and LED spectrum (:func:`spectral_ceiling`).
     """
     rng = np.random.default_rng(seed)
     pose, (ax, ay), aperture_z = _clear_aperture(design)
@@ -87,7 +90,7 @@ def etendue_bound(
     g_target = float(area1 * area2 * kernel.mean())
     g_target_se = float(area1 * area2 * kernel.std() / math.sqrt(samples))
     g_source = math.pi * design.led.emitter_mm**2
-    spectral = spectral_ceiling(design, transmission)
+    spectral = spectral_ceiling(design, transmission, spectrum)
     geometric = min(1.0, g_target / g_source)
     return {
         "g_source_mm2sr": round(g_source, 4),
@@ -149,6 +152,7 @@ def uniform_beam_bound(
     bin_mm: float = 0.5,
     rays_per_ring: int = 20_000,
     seed: int = 0,
+    spectrum: Any = None,
 ) -> dict[str, Any]:
     """The most a rotationally symmetric beam can deliver uniformly (module docstring).
 
@@ -198,7 +202,7 @@ def uniform_beam_bound(
         else:
             high = mid
     output, cv, profile = best
-    ceiling = spectral_ceiling(design, transmission)
+    ceiling = spectral_ceiling(design, transmission, spectrum)
     return {
         "max_cv": max_cv,
         "output_bound": round(output, 4),

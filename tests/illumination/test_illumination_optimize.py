@@ -10,7 +10,7 @@ import pytest
 from typer.testing import CliRunner
 
 from cm2optics.design import DesignError, load_design
-from cm2optics.illumination.bounds import etendue_bound, uniform_beam_bound
+from cm2optics.illumination.bounds import etendue_bound, spectral_ceiling, uniform_beam_bound
 from cm2optics.illumination.revolve import revolve_profile
 from cm2optics.optics.collimator import collimator_profile
 from cm2optics.optics.collimator_shaping import shaped_profile
@@ -146,4 +146,33 @@ def test_optimize_writes_a_printable_design(tmp_path):
     assert (tmp_path / "collimator.stl").is_file() and (tmp_path / "sweep.json").is_file()
     assert design.collimator.lens_spread_deg == pytest.approx(
         data["parameters"]["collimator.lens_spread_deg"], rel=1e-4
+    )
+
+
+def test_spectral_ceiling_of_closed_cases(v2):
+    """A flat 50 % filter passes half of any spectrum; a box spectrum (1 on 460–480 nm, linear to
+    0 at 459 and 481 nm) behind an ideal edge at 470 nm: 11 of its 21 nm·power (linear between
+    the 1-nm samples, the filter's step taken on the same samples)."""
+    from cm2optics.illumination.source import SourceSpectrum
+
+    half = spectral_ceiling(v2, lambda wl, aoi: np.full(np.broadcast(wl, aoi).shape, 0.5))
+    assert half == pytest.approx(0.5, abs=1e-12)
+    box = SourceSpectrum(np.arange(455.0, 486.0), np.where(np.abs(np.arange(455.0, 486.0) - 470) <= 10, 1.0, 0.0))
+    edge = spectral_ceiling(v2, lambda wl, aoi: np.where(np.asarray(wl) >= 470.0, 1.0, 0.0) + 0 * aoi, box)
+    assert edge == pytest.approx(11.0 / 21.0, abs=1e-12)
+
+
+def test_spectral_ceiling_from_the_authors_filter_and_led(v2, reference_dir):
+    """Issue 16 item 6: with the authors' excitation coating table and LED spectrum the filter
+    passes ≈ 86 % of the LED's power at normal incidence; the models give ≈ 79 %."""
+    from cm2optics.illumination.excitation import filter_from_table
+    from cm2optics.illumination.source import read_source_spectrum
+
+    table = filter_from_table(str(reference_dir / "coating_real_ex.csv"))
+    spectrum = read_source_spectrum(reference_dir / "led_spectrum.csv")
+    authors = spectral_ceiling(v2, table, spectrum)
+    assert authors == pytest.approx(0.86, abs=0.015)
+    assert spectral_ceiling(v2) == pytest.approx(0.79, abs=0.015)
+    assert etendue_bound(v2, table, samples=1000, spectrum=spectrum)["spectral_ceiling"] == pytest.approx(
+        authors, abs=1e-4
     )
