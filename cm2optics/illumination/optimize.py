@@ -29,7 +29,8 @@ design; ``collimator.stl`` is the CAD part built from it (:mod:`cm2optics.cad.co
 checked for printing with :func:`cm2optics.cad.mesh_checks.check_mesh` (watertight,
 consistently wound, thinnest wall ≥ ``mechanics.min_wall_mm``).
 
-The étendue bound and the uniform-beam bound (:mod:`.bounds`) are reported beside the result.
+The étendue bound and the uniform-beam bound (:mod:`.bounds`) are reported beside the result,
+and with ``free_aim`` the bound of re-aimed units with the finite LED (:func:`.bounds.free_aim_bound`).
 """
 
 from __future__ import annotations
@@ -43,7 +44,7 @@ from typing import Any
 import numpy as np
 
 from cm2optics.design import DesignError, SystemDesign, design_from_dict
-from cm2optics.illumination.bounds import etendue_bound, uniform_beam_bound
+from cm2optics.illumination.bounds import etendue_bound, free_aim_bound, uniform_beam_bound
 
 __all__ = ["AIM_PARAMETERS", "PARAMETERS", "evaluate_candidate", "optimize_collimator", "search_box"]
 
@@ -281,6 +282,11 @@ def optimize_collimator(
         "assembly_interferences": assembly,
         "etendue_bound": bound,
         "uniform_beam_bound": {k: v for k, v in uniform.items() if k not in ("profile", "ring_edges_deg")},
+        "free_aim_bound": (
+            {k: v for k, v in free_aim_bound(improved, max_cv, table, spectrum=spectrum).items() if k != "placements"}
+            if free_aim
+            else None
+        ),
         "candidates_traced": len(candidates),
         "candidates_feasible": len(feasible),
         "candidates_meeting_uniformity": len(meeting),

@@ -176,3 +176,47 @@ def test_spectral_ceiling_from_the_authors_filter_and_led(v2, reference_dir):
     assert etendue_bound(v2, table, samples=1000, spectrum=spectrum)["spectral_ceiling"] == pytest.approx(
         authors, abs=1e-4
     )
+
+
+def test_etendue_blur_and_its_sampling(v2):
+    """sin α = √(A_emitter / A_aperture): 1 mm² through the 3.4 × 3.4-mm aperture gives
+    asin(1/3.4) = 17.1°. The blurred directions fill that cone with uniform radiance: the share
+    within β of the axis is sin²β / sin²α."""
+    from cm2optics.illumination.bounds import _blur, etendue_blur_rad
+
+    alpha = etendue_blur_rad(v2)
+    assert math.sin(alpha) == pytest.approx(1.0 / 3.4, rel=1e-12)
+    rng = np.random.default_rng(3)
+    out = _blur(np.tile([0.0, 0.0, 1.0], (200_000, 1)), alpha, rng)
+    assert np.linalg.norm(out, axis=1) == pytest.approx(1.0, abs=1e-12)
+    polar = np.arccos(np.clip(out[:, 2], -1, 1))
+    assert polar.max() <= alpha + 1e-12
+    beta = alpha / 2
+    assert np.mean(polar <= beta) == pytest.approx(math.sin(beta) ** 2 / math.sin(alpha) ** 2, abs=0.005)
+    assert np.abs(out[:, :2].mean(axis=0)).max() < 0.003  # symmetric about the axis
+    tilted = _blur(np.tile([0.0, math.sin(0.5), math.cos(0.5)], (50_000, 1)), alpha, rng)
+    angle = np.arccos(np.clip(tilted @ [0.0, math.sin(0.5), math.cos(0.5)], -1, 1))
+    assert angle.max() <= alpha + 1e-12
+
+
+def test_free_aim_bound_takes_the_best_clear_placement(v2):
+    """With a grid of placements the free-aim bound is the best of the fixed-aim bounds of the
+    placements that clear the tower (same rings, rays and seed: the same footprints), skips the
+    ones that clash, and the finite LED's blur costs output against the ideal point-like beam."""
+    from cm2optics.illumination.bounds import free_aim_bound
+
+    kw = {"rings": 24, "rays_per_ring": 3000, "max_angle_deg": 45.0}
+    grid = {"led_array.tilt_deg": (45.0,), "led_array.aim_mm": (-2.0, 0.0, 1.0)}
+    free = free_aim_bound(v2, grid=grid, finite_source=False, **kw)
+    fixed = {
+        aim: uniform_beam_bound(v2.with_changes({"led_array.aim_mm": aim}), finite_source=False, **kw)["output_bound"]
+        for aim in (0.0, 1.0)
+    }
+    assert free["output_bound"] == pytest.approx(max(fixed.values()), abs=1e-4)
+    assert free["placement"]["led_array.aim_mm"] == max(fixed, key=fixed.get)
+    skipped = [p for p in free["placements"] if "skipped" in p]
+    assert [p["placement"]["led_array.aim_mm"] for p in skipped] == [-2.0]
+    assert "imaging tower" in skipped[0]["skipped"]
+    blurred = free_aim_bound(v2, grid=grid, finite_source=True, **kw)
+    assert blurred["output_bound"] < free["output_bound"]
+    assert blurred["delivered_bound"] == pytest.approx(blurred["output_bound"] * blurred["spectral_ceiling"], abs=1e-3)
