@@ -199,6 +199,21 @@ def run(
     out.print(f"maps and illumination.json in {out_dir}")
 
 
+def _check_optimize_options(
+    max_cv: float, rays: int, samples: int, rounds: int, workers: int, files: tuple[Path | None, ...]
+) -> None:
+    """A UserError for an option of ``cm2 illum optimize`` out of range or an input file that is missing."""
+    if not 0 < max_cv < 1:
+        raise UserError(f"--max-cv = {max_cv}: must lie within 0–1")
+    if rays < 1000:
+        raise UserError(f"--rays = {rays}: must be ≥ 1000")
+    if samples < 2 or rounds < 0 or workers < 1:
+        raise UserError("--samples must be ≥ 2, --rounds ≥ 0, --workers ≥ 1")
+    for path in files:
+        if path is not None and not path.is_file():
+            raise UserError(f"{path}: no such file")
+
+
 @illum_app.command("optimize")
 @user_errors
 def optimize(
@@ -251,32 +266,22 @@ def optimize(
     from cm2optics.design import load_preset
     from cm2optics.illumination.optimize import optimize_collimator
 
-    if not 0 < max_cv < 1:
-        raise UserError(f"--max-cv = {max_cv}: must lie within 0–1")
-    if rays < 1000:
-        raise UserError(f"--rays = {rays}: must be ≥ 1000")
-    if samples < 2 or rounds < 0 or workers < 1:
-        raise UserError("--samples must be ≥ 2, --rounds ≥ 0, --workers ≥ 1")
+    files = (led_profile, led_spectrum, filter_table)
+    _check_optimize_options(max_cv, rays, samples, rounds, workers, files)
     design = load_preset(preset)
     check_dask_address(dask_address)
-    files = (led_profile, led_spectrum, filter_table)
-    for path in files:
-        if path is not None and not path.is_file():
-            raise UserError(f"{path}: no such file")
     output_folder(out_dir, "illum optimize", inputs=[preset, *[f for f in files if f]], overwrite=overwrite)
+    search = {"rays": rays, "max_cv": max_cv, "samples": samples, "rounds": rounds, "seed": seed}
+    inputs = tuple(str(f.resolve()) if f else None for f in files)
     result = optimize_collimator(
         design,
         out_dir,
-        rays=rays,
-        max_cv=max_cv,
-        samples=samples,
-        rounds=rounds,
+        **search,
         dask_address=dask_address,
         workers=workers,
-        seed=seed,
         show_progress=not as_json,
         free_aim=free_aim,
-        inputs=tuple(str(f.resolve()) if f else None for f in files),
+        inputs=inputs,
     )
     summary = {k: v for k, v in result.items() if k != "candidates"}  # every candidate is in sweep.json
     if as_json:

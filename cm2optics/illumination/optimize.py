@@ -261,32 +261,18 @@ def optimize_collimator(
     out_dir = Path(out_dir)
     stl_path, checks = _export(improved, out_dir)
     improved.save(out_dir / "design.yaml")
-    _, spectrum, table = _inputs(*inputs)
-    bound = etendue_bound(improved, table, spectrum=spectrum)
-    uniform = uniform_beam_bound(improved, max_cv, table, spectrum=spectrum)
     result = {
         "design": str(out_dir / "design.yaml"),
         "stl": str(stl_path),
         "parameters": best["parameters"],
         "meets_uniformity": bool(confirm.get("feasible") and confirm["uniformity_cv"] <= max_cv),
         "max_cv": max_cv,
-        "delivered_fraction": confirm.get("delivered_fraction"),
-        "delivered_fraction_stderr": confirm.get("delivered_fraction_stderr"),
-        "uniformity_cv": confirm.get("uniformity_cv"),
-        "uniformity_cv_stderr": confirm.get("uniformity_cv_stderr"),
-        "uniformity_cv_noise": confirm.get("uniformity_cv_noise"),
-        "throughput": confirm.get("throughput"),
+        **{key: confirm.get(key) for key in _CONFIRMED_FIGURES},
         "rays": 4 * rays,
         "printability": checks,
         "free_aim": free_aim,
         "assembly_interferences": assembly,
-        "etendue_bound": bound,
-        "uniform_beam_bound": {k: v for k, v in uniform.items() if k not in ("profile", "ring_edges_deg")},
-        "free_aim_bound": (
-            {k: v for k, v in free_aim_bound(improved, max_cv, table, spectrum=spectrum).items() if k != "placements"}
-            if free_aim
-            else None
-        ),
+        **_bounds(improved, max_cv, inputs, free_aim),
         "candidates_traced": len(candidates),
         "candidates_feasible": len(feasible),
         "candidates_meeting_uniformity": len(meeting),
@@ -296,6 +282,32 @@ def optimize_collimator(
     write_json_atomic(out_dir / "result.json", result)
     result["candidates"] = candidates
     return result
+
+
+#: The figures of the chosen candidate's confirmation run copied into the result.
+_CONFIRMED_FIGURES = (
+    "delivered_fraction",
+    "delivered_fraction_stderr",
+    "uniformity_cv",
+    "uniformity_cv_stderr",
+    "uniformity_cv_noise",
+    "throughput",
+)
+
+
+def _bounds(
+    design: SystemDesign, max_cv: float, inputs: tuple[str | None, str | None, str | None], free_aim: bool
+) -> dict[str, Any]:
+    """The result's bounds for ``design``, their spectral ceiling from the run's inputs: étendue,
+    the uniform beam along the units' axes, and with ``free_aim`` re-aimed units with the finite LED."""
+    _, spectrum, table = _inputs(*inputs)
+    uniform = uniform_beam_bound(design, max_cv, table, spectrum=spectrum)
+    free = free_aim_bound(design, max_cv, table, spectrum=spectrum) if free_aim else None
+    return {
+        "etendue_bound": etendue_bound(design, table, spectrum=spectrum),
+        "uniform_beam_bound": {k: v for k, v in uniform.items() if k not in ("profile", "ring_edges_deg")},
+        "free_aim_bound": None if free is None else {k: v for k, v in free.items() if k != "placements"},
+    }
 
 
 def _sweep(
