@@ -220,3 +220,17 @@ def test_free_aim_bound_takes_the_best_clear_placement(v2):
     blurred = free_aim_bound(v2, grid=grid, finite_source=True, **kw)
     assert blurred["output_bound"] < free["output_bound"]
     assert blurred["delivered_bound"] == pytest.approx(blurred["output_bound"] * blurred["spectral_ceiling"], abs=1e-3)
+
+
+def test_free_aim_sweeps_the_placement_and_rejects_units_in_the_tower(v2):
+    from cm2optics.illumination.optimize import AIM_PARAMETERS, PARAMETERS, _sobol, evaluate_candidate, search_box
+
+    assert search_box(False) == PARAMETERS
+    box = search_box(True)
+    assert set(box) == set(PARAMETERS) | set(AIM_PARAMETERS)
+    assert _sobol(box, 8, seed=5) == _sobol(box, 8, seed=5) != _sobol(box, 8, seed=6)  # seeded, reproducible
+    for point in _sobol(box, 8, seed=5):
+        assert all(box[k][0] <= v <= box[k][1] for k, v in point.items())
+    values = {k: getattr(v2.collimator, k.split(".")[1]) for k in PARAMETERS} | {"led_array.aim_mm": -2.0}
+    entry = evaluate_candidate(v2.to_dict(), values, 1000, 0, 0.1, threads=1)
+    assert entry["feasible"] is False and "imaging tower" in entry["reason"]
