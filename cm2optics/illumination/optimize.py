@@ -65,9 +65,9 @@ PARAMETERS: dict[str, tuple[float, float]] = {
 #: imaging tower (mm, degrees). A candidate whose units enter the tower, reach below its flange
 #: or overlap (:func:`cm2optics.optics.layout.unit_clashes`) is infeasible.
 AIM_PARAMETERS: dict[str, tuple[float, float]] = {
-    "led_array.tilt_deg": (35.0, 60.0),
-    "led_array.offset_mm": (5.5, 9.0),
-    "led_array.aim_mm": (-3.0, 3.0),
+    "led_array.tilt_deg": (40.0, 60.0),
+    "led_array.offset_mm": (6.0, 10.5),
+    "led_array.aim_mm": (-2.0, 3.5),
     "led_array.azimuth_deg": (0.0, 45.0),
 }
 #: Best candidates traced again with 4× the rays before one is chosen.
