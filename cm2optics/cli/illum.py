@@ -260,8 +260,13 @@ def optimize(
     (`collimator.stl`, checked for printing: watertight, walls ≥ mechanics.min_wall_mm) and every
     candidate (`sweep.json`). Swept: lens angle, cavity radius, LED gap, entry wall, height,
     and the two sub-beams' output spreads and mapping exponents (collimator.lens_spread_deg …;
-    zero spreads = the collimating cm2-v2 architecture). Reports beside it the étendue bound and the most
-    any rotationally symmetric beam can deliver at that CV (`uniform_beam_bound`).
+    zero spreads = the collimating cm2-v2 architecture); with --free-aim also the units' tilt,
+    offset, aim point and azimuth (led_array.*), units that would enter the imaging tower being
+    infeasible and the chosen design passing the CAD assembly's interference check
+    (`assembly_interferences`). Reports beside it the étendue bound, the most any rotationally
+    symmetric beam can deliver at that CV (`uniform_beam_bound`) and, with --free-aim, the same
+    for re-aimed units and the finite LED (`free_aim_bound`); the bounds' spectral ceiling comes
+    from --filter-table and --led-spectrum when given.
     """
     from cm2optics.design import load_preset
     from cm2optics.illumination.optimize import optimize_collimator
