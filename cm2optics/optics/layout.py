@@ -111,6 +111,23 @@ def led_unit_block(design: SystemDesign) -> UnitBlock:
     return UnitBlock(design.led_housing.outer_mm / 2, back, front)
 
 
+def dome_rim_z_mm(design: SystemDesign) -> tuple[float, float]:
+    """Where the base plate's dome (:mod:`cm2optics.cad.base_plate`) meets the tower, mm: the
+    height at which the inner face of the dome's face under each unit (parallel to the unit's
+    inner side, ``base_plate.thickness_mm`` thick, beyond the socket's clearance) reaches the
+    tower's side plus the clearance, and the top of the rim's vertical land above it. The dome
+    can be built only when both lie between the flange's top and the tower's top."""
+    arr, t, c = design.led_array, design.base_plate.thickness_mm, design.mechanics.clearance_mm
+    cos_t, sin_t = math.cos(math.radians(arr.tilt_deg)), math.sin(math.radians(arr.tilt_deg))
+    pose = led_poses(design)[0]
+    # Plane y_local = k of unit 0's LED frame: radial · cos + z · sin = reach − k (all units alike).
+    reach = float(-pose.origin_mm @ pose.matrix[:3, 1])
+    k_inner = led_unit_block(design).half_mm + c + 3 * t / 2
+    hole = mla_housing_envelope(design).tower_side_mm / 2 + c
+    meets_tower = (reach - k_inner - hole * cos_t) / sin_t if sin_t > 1e-9 else -math.inf
+    return meets_tower, meets_tower + t / (cos_t + sin_t)
+
+
 def _box_corners(pose: Pose, half_mm: float, z0_mm: float, z1_mm: float) -> np.ndarray:
     """(8, 3) corners in the device frame of the LED-frame box ``|x|, |y| ≤ half_mm``, ``z0 ≤ z ≤ z1`` (mm)."""
     s = np.array([-1.0, 1.0])
@@ -145,7 +162,8 @@ def unit_clashes(design: SystemDesign) -> list[str]:
     """A quick test that the placed LED units clear the MLA housing (mm, no CAD kernel): each
     unit's housing block and the base plate's socket around its back (``mechanics.clearance_mm``
     and ``mechanics.wall_mm`` wider, ``base_plate.socket_depth_mm`` deep, taken as a box) against
-    the chamfered tower, the flange's top plane and the other units. Returns one line per clash
+    the chamfered tower, the flange's top plane and the other units, and the base plate's dome
+    meeting the tower below its top (:func:`dome_rim_z_mm`). Returns one line per clash
     (empty: clear). The assembly's interference check (:mod:`cm2optics.cad.assembly`) is the
     exact one; this one is for design searches."""
     block, c, wall = led_unit_block(design), design.mechanics.clearance_mm, design.mechanics.wall_mm
@@ -158,6 +176,12 @@ def unit_clashes(design: SystemDesign) -> list[str]:
         socket = _box_corners(pose, block.half_mm + c + wall, *socket_z)
         units.append((housing, socket, pose.matrix[:3, :3].T))
     clashes = []
+    meets, top = dome_rim_z_mm(design)
+    if not env.flange_top_z_mm < meets < top < env.tower_top_z_mm:
+        clashes.append(
+            f"the base plate's dome would meet the tower at {meets:.3f}–{top:.3f} mm, not between the flange "
+            f"({env.flange_top_z_mm:g} mm) and the tower's top ({env.tower_top_z_mm:g} mm)"
+        )
     for i, (housing, socket, axes) in enumerate(units, start=1):
         for name, corners in (("housing", housing), ("base-plate socket", socket)):
             if _convex_overlap(corners, axes, tower, tower_dirs):
