@@ -67,3 +67,22 @@ def test_unit_clashes_pass_the_preset_and_catch_units_in_the_tower(v2):
     assert any("enters the imaging tower" in line for line in unit_clashes(low))
     crowded = v2.with_changes({"led_array.offset_mm": 5.5, "led_array.tilt_deg": 55.0})
     assert any("overlap" in line for line in unit_clashes(crowded))
+
+
+def test_dome_rim_lies_on_the_inner_face_under_each_unit(v2):
+    """The height where the dome meets the tower: the point on the tower's side (plus clearance)
+    at that height lies on the plane of the dome's inner face, parallel to the unit's inner side
+    and half the socket's width + clearance + 1.5 × the plate's thickness from the LED's axis."""
+    from cm2optics.optics.layout import dome_rim_z_mm, mla_housing_envelope, unit_clashes
+
+    meets, top = dome_rim_z_mm(v2)
+    c, t = v2.mechanics.clearance_mm, v2.base_plate.thickness_mm
+    pose = led_poses(v2)[0]
+    radial = pose.origin_mm[:2] / np.linalg.norm(pose.origin_mm[:2])
+    hole = mla_housing_envelope(v2).tower_side_mm / 2 + c
+    point = np.array([*(hole * radial), meets])
+    assert (point - pose.origin_mm) @ pose.matrix[:3, 1] == pytest.approx(v2.led_housing.outer_mm / 2 + c + 1.5 * t)
+    tilt = math.radians(v2.led_array.tilt_deg)
+    assert top - meets == pytest.approx(t / (math.cos(tilt) + math.sin(tilt)))
+    far = v2.with_changes({"led_array.offset_mm": 10.3, "led_array.aim_mm": 2.3, "led_array.tilt_deg": 50.8})
+    assert any("dome" in line for line in unit_clashes(far))
