@@ -179,3 +179,22 @@ def fits(design: SystemDesign) -> list[Fit]:
     return (
         mla_housing.mla_housing_fits(design) + led_housing.led_housing_fits(design) + base_plate.base_plate_fits(design)
     )
+
+
+#: The parts whose placement follows the LED units' aim, and what they may collide with.
+AIM_CHECK_PARTS = ("mla_housing", "base_plate", "led_housing", "led", "excitation_filter", "collimator")
+
+
+def aim_interferences(design: SystemDesign) -> list[dict[str, object]]:
+    """The assembly's interference check (:func:`interferences`) over the parts that the LED
+    units' placement moves and the MLA housing they must clear. A base plate that cannot be
+    built around the units (its dome would not meet the tower) is reported as a clash of its own
+    (``volume_mm3`` None, with the reason)."""
+    specs = {spec.name: spec for spec in part_specs(design) if spec.name in AIM_CHECK_PARTS}
+    built = {}
+    for name, spec in specs.items():
+        try:
+            built[name] = spec.build(design)
+        except (ValueError, RuntimeError) as error:  # DesignError is a ValueError
+            return [{"a": name, "b": "design", "volume_mm3": None, "reason": str(error).splitlines()[0]}]
+    return interferences(place_parts(design, built))

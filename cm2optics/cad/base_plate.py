@@ -36,7 +36,7 @@ from cm2optics.cad.fits import Fit
 from cm2optics.cad.led_housing import THROUGH_MM, Box, LEDHousingLayout, bore_solid, led_housing_layout
 from cm2optics.cad.placement import place
 from cm2optics.design import DesignError, SystemDesign
-from cm2optics.optics.layout import led_poses, mla_housing_envelope
+from cm2optics.optics.layout import dome_rim_z_mm, led_poses, mla_housing_envelope
 
 #: How far the space swept by a housing sliding into its socket is cut out in front of it, mm.
 SWEEP_MM = 30.0
@@ -83,8 +83,7 @@ def _dome(design: SystemDesign, layout: LEDHousingLayout) -> cq.Workplane:
     land = t / (cos_t + sin_t)
     hole = env.tower_side_mm / 2 + c
     bottom = env.flange_top_z_mm
-    meets_tower = (reach - k_inner - hole * cos_t) / sin_t if sin_t > 1e-9 else -math.inf
-    top = meets_tower + land
+    meets_tower, top = dome_rim_z_mm(design)
     if not (bottom < meets_tower and top < env.tower_top_z_mm):
         raise DesignError(
             "led_array.tilt_deg",

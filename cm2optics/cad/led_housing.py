@@ -48,6 +48,7 @@ import cadquery as cq
 
 from cm2optics.cad.fits import Fit
 from cm2optics.design import SystemDesign
+from cm2optics.optics.layout import led_unit_block
 
 #: How far a cutter reaches past the faces it opens, mm (no coplanar faces in the booleans).
 THROUGH_MM = 1.0
@@ -124,13 +125,12 @@ def led_housing_layout(design: SystemDesign) -> LEDHousingLayout:
     """The LED housing's dimensions from the design (see the module docstring)."""
     c, w = design.mechanics.clearance_mm, design.mechanics.min_wall_mm
     led, filt, col = design.led, design.excitation_filter, design.collimator
-    half = design.led_housing.outer_mm / 2
+    block = led_unit_block(design)
+    half, back, front = block.half_mm, block.back_z_mm, block.front_z_mm
     out = half + THROUGH_MM
     lip = design.led_housing.lip_mm
-    back = -led.package_height_mm - c - design.led_housing.back_mm
     gap = design.led_array.excitation_gap_mm
     filter_top = gap + filt.thickness_mm
-    front = filter_top + c + w
 
     led_pocket = Box(
         -(led.package_width_mm / 2 + c),

@@ -150,8 +150,9 @@ def run(
     --json prints, for the last design (the STL if given, else the design's collimator):
     throughput, delivered_fraction, power_mw, uniformity_cv, uniformity_min_max,
     fraction_within_30deg, beam_half_angle_50_deg, beam_half_angle_90_deg (each with
-    *_stderr), uniformity_cv_noise, ledger, rays, per_led, and `designs` with every design's
-    figures. Definitions: see `cm2 illum --help`. The authors' part, for example:
+    *_stderr), uniformity_cv_noise, ledger, rays, per_led, `designs` with every design's
+    figures, and spectral_ceiling (the most of the LED's power the run's filter passes at normal
+    incidence, from --filter-table and --led-spectrum when given, the models otherwise). Definitions: see `cm2 illum --help`. The authors' part, for example:
     --collimator CM2_V2_freeform_illuminator.stl --led-position 0,0,1 --led-axis 0,0,-1.
     """
     from cm2optics.design import load_preset
@@ -189,7 +190,28 @@ def run(
         print(json.dumps(document, indent=2, ensure_ascii=False))
         return
     out.print(figures_table(results, f"{design.name}: illumination, {rays:,} rays per design ({variant().variant})"))
+    if document["spectral_ceiling"] is not None:
+        out.print(
+            f"spectral ceiling: the excitation filter passes at most {document['spectral_ceiling']:.1%} of the LED's "
+            f"power (normal incidence; filter: {document['setup']['excitation_filter'].split(':')[0]}; "
+            f"spectrum: {document['setup']['led_spectrum']})"
+        )
     out.print(f"maps and illumination.json in {out_dir}")
+
+
+def _check_optimize_options(
+    max_cv: float, rays: int, samples: int, rounds: int, workers: int, files: tuple[Path | None, ...]
+) -> None:
+    """A UserError for an option of ``cm2 illum optimize`` out of range or an input file that is missing."""
+    if not 0 < max_cv < 1:
+        raise UserError(f"--max-cv = {max_cv}: must lie within 0–1")
+    if rays < 1000:
+        raise UserError(f"--rays = {rays}: must be ≥ 1000")
+    if samples < 2 or rounds < 0 or workers < 1:
+        raise UserError("--samples must be ≥ 2, --rounds ≥ 0, --workers ≥ 1")
+    for path in files:
+        if path is not None and not path.is_file():
+            raise UserError(f"{path}: no such file")
 
 
 @illum_app.command("optimize")
@@ -208,6 +230,24 @@ def optimize(
     ] = None,
     workers: Annotated[int, typer.Option("--workers", help="Workers of the local Dask cluster.")] = 2,
     seed: Annotated[int, typer.Option("--seed", help="Random seed of the sweep and of the traces.")] = 0,
+    free_aim: Annotated[
+        bool,
+        typer.Option(
+            "--free-aim",
+            help="Sweep the LED units' tilt, offset, aim point (led_array.aim_mm) and azimuth too; units that "
+            "enter the imaging tower are infeasible, and the chosen design passes the CAD interference check.",
+        ),
+    ] = False,
+    led_profile: Annotated[
+        Path | None, typer.Option("--led-profile", help="LED angular profile CSV; default Lambertian.")
+    ] = None,
+    led_spectrum: Annotated[
+        Path | None, typer.Option("--led-spectrum", help="LED spectrum CSV; default: the spectra library's model.")
+    ] = None,
+    filter_table: Annotated[
+        Path | None,
+        typer.Option("--filter-table", help="Excitation filter angle table; default: the model of excitation_filter."),
+    ] = None,
     out_dir: Annotated[
         Path, typer.Option("--out", "-o", help="Folder for the improved design YAML, its STL and the sweep table.")
     ] = Path("out/illum-opt"),
@@ -220,32 +260,33 @@ def optimize(
     (`collimator.stl`, checked for printing: watertight, walls ≥ mechanics.min_wall_mm) and every
     candidate (`sweep.json`). Swept: lens angle, cavity radius, LED gap, entry wall, height,
     and the two sub-beams' output spreads and mapping exponents (collimator.lens_spread_deg …;
-    zero spreads = the collimating cm2-v2 architecture). Reports beside it the étendue bound and the most
-    any rotationally symmetric beam can deliver at that CV (`uniform_beam_bound`).
+    zero spreads = the collimating cm2-v2 architecture); with --free-aim also the units' tilt,
+    offset, aim point and azimuth (led_array.*), units that would enter the imaging tower being
+    infeasible and the chosen design passing the CAD assembly's interference check
+    (`assembly_interferences`). Reports beside it the étendue bound, the most any rotationally
+    symmetric beam can deliver at that CV (`uniform_beam_bound`) and, with --free-aim, the same
+    for re-aimed units and the finite LED (`free_aim_bound`); the bounds' spectral ceiling comes
+    from --filter-table and --led-spectrum when given.
     """
     from cm2optics.design import load_preset
     from cm2optics.illumination.optimize import optimize_collimator
 
-    if not 0 < max_cv < 1:
-        raise UserError(f"--max-cv = {max_cv}: must lie within 0–1")
-    if rays < 1000:
-        raise UserError(f"--rays = {rays}: must be ≥ 1000")
-    if samples < 2 or rounds < 0 or workers < 1:
-        raise UserError("--samples must be ≥ 2, --rounds ≥ 0, --workers ≥ 1")
+    files = (led_profile, led_spectrum, filter_table)
+    _check_optimize_options(max_cv, rays, samples, rounds, workers, files)
     design = load_preset(preset)
     check_dask_address(dask_address)
-    output_folder(out_dir, "illum optimize", inputs=[preset], overwrite=overwrite)
+    output_folder(out_dir, "illum optimize", inputs=[preset, *[f for f in files if f]], overwrite=overwrite)
+    search = {"rays": rays, "max_cv": max_cv, "samples": samples, "rounds": rounds, "seed": seed}
+    inputs = tuple(str(f.resolve()) if f else None for f in files)
     result = optimize_collimator(
         design,
         out_dir,
-        rays=rays,
-        max_cv=max_cv,
-        samples=samples,
-        rounds=rounds,
+        **search,
         dask_address=dask_address,
         workers=workers,
-        seed=seed,
         show_progress=not as_json,
+        free_aim=free_aim,
+        inputs=inputs,
     )
     summary = {k: v for k, v in result.items() if k != "candidates"}  # every candidate is in sweep.json
     if as_json:

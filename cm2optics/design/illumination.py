@@ -109,9 +109,14 @@ class LEDArray:
     offset_mm: radial distance from the optical axis of each unit's aperture (the centre of
         the excitation filter's lower face, where light leaves the unit), mm.
     tilt_deg: angle between each unit's axis and the optical axis, degrees; the axis is aimed
-        at the centre of the nominal focal plane, which fixes the unit's height.
+        at its aim point on the nominal focal plane, which fixes the unit's height.
     azimuth_deg: azimuth of the first unit from +x, degrees.
     excitation_gap_mm: LED emitting surface to the excitation filter's lower face, mm.
+    aim_mm: where each unit's axis meets the nominal focal plane, as a signed distance from the
+        optical axis along the unit's own radial direction, mm: 0 aims at the centre of the
+        field (the default, left out of the YAML), < 0 past it, > 0 short of it. Must stay
+        below ``offset_mm`` (the axis descends towards the field) when the unit is tilted, and
+        be 0 for an untilted unit (its axis meets the plane under its aperture).
     """
 
     count: int
@@ -119,12 +124,23 @@ class LEDArray:
     tilt_deg: float
     azimuth_deg: float
     excitation_gap_mm: float
+    aim_mm: float = 0.0
 
     def __post_init__(self) -> None:
         check("count", self.count, 1 <= self.count <= 12, "must lie within 1–12")
         positive(self, "offset_mm", "excitation_gap_mm")
         in_range(self, "tilt_deg", 0.0, 80.0, "°")
         in_range(self, "azimuth_deg", -360.0, 360.0, "°")
+        if self.tilt_deg > 0.0:
+            check(
+                "aim_mm",
+                self.aim_mm,
+                -self.offset_mm < self.aim_mm < self.offset_mm,
+                f"a tilted unit's axis must meet the focal plane within ±offset_mm = ±{self.offset_mm} "
+                "of the optical axis (it descends from the aperture towards and at most past the centre)",
+            )
+        else:
+            check("aim_mm", self.aim_mm, self.aim_mm == 0.0, "must be 0 for an untilted unit (tilt_deg = 0)")
 
 
 # ----------------------------------------------------------------------------- mechanics

@@ -245,6 +245,8 @@ class SystemDesign:
         """Plain data of the design; ``as_built`` holds only its non-default fields and is left
         out when the device is built as designed (so the parameter hash is the design's)."""
         data = to_plain(self)
+        if data["led_array"]["aim_mm"] == 0.0:  # the default aim (the field's centre) keeps old files and hashes
+            del data["led_array"]["aim_mm"]
         changed = self.as_built.changed()
         if changed:
             data["as_built"] = changed

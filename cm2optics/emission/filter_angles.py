@@ -35,6 +35,7 @@ from cm2optics.emission.optics import EmissionOptics, emission_optics
 from cm2optics.emission.trace import RayBatch
 from cm2optics.emission.trace import trace_rays as trace_emission_rays
 from cm2optics.optics import first_order
+from cm2optics.optics.layout import led_poses
 from cm2optics.spectra.absorption import fresnel_transmittance
 from cm2optics.spectra.chain import excitation_half_angle_rad
 
@@ -50,8 +51,6 @@ __all__ = [
     "trace_from_sources",
     "trace_rays",
 ]
-
-_UP = np.array([0.0, 0.0, 1.0])
 
 
 class Emitter(StrEnum):
@@ -131,8 +130,8 @@ def field_sources(design: SystemDesign, step_mm: float = 0.4) -> Sources:
 def excitation_beams(design: SystemDesign, samples: int = 8) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Rays leaving the LED units and the power share of each: (origins_mm, directions, power).
 
-    Each unit (``led_array``: ``count`` units ``offset_mm`` off the axis, tilted ``tilt_deg``, aimed
-    at the field's centre) emits from its exit face — the collimator's square exit
+    Each unit (at its :func:`cm2optics.optics.layout.led_poses` pose: ``offset_mm`` off the axis,
+    tilted ``tilt_deg``, aimed at its aim point) emits from its exit face — the collimator's square exit
     (``collimator.footprint_mm``) or, bare, the excitation filter — into a cone of half-angle
     :func:`excitation_half_angle_rad` with uniform radiance: ``samples``² points on the face times
     ``samples`` × 2·``samples`` directions of equal projected solid angle. Origins are in the
@@ -140,13 +139,8 @@ def excitation_beams(design: SystemDesign, samples: int = 8) -> tuple[np.ndarray
     """
     if not (isinstance(samples, int) and 2 <= samples <= 64):
         raise ValueError(f"samples = {samples!r}: must be an integer within 2–64")
-    arr = design.led_array
-    tilt = math.radians(arr.tilt_deg)
     half_angle = excitation_half_angle_rad(design)
     width = design.collimator.footprint_mm if design.collimator is not None else design.excitation_filter.width_mm
-    height = first_order.object_plane_z_mm(design) - (
-        arr.offset_mm / math.tan(tilt) if tilt > 1e-9 else first_order.working_distance_mm(design)
-    )
 
     u = (np.arange(samples) + 0.5) / samples - 0.5
     face_a, face_b = (g.ravel() * width for g in np.meshgrid(u, u))
@@ -155,13 +149,10 @@ def excitation_beams(design: SystemDesign, samples: int = 8) -> tuple[np.ndarray
     polar, azimuth = (g.ravel() for g in np.meshgrid(ring, spin))
 
     origins, directions = [], []
-    for k in range(arr.count):
-        phi = math.radians(arr.azimuth_deg) + 2 * math.pi * k / arr.count
-        radial = np.array([math.cos(phi), math.sin(phi), 0.0])
-        axis = -math.sin(tilt) * radial + math.cos(tilt) * _UP  # towards the field's centre
-        across = np.array([-math.sin(phi), math.cos(phi), 0.0])
-        other = np.cross(axis, across)
-        start = arr.offset_mm * radial + height * _UP + face_a[:, None] * across + face_b[:, None] * other
+    for pose in led_poses(design):
+        axis, across, other = pose.matrix[:3, 2], pose.matrix[:3, 0], pose.matrix[:3, 1]
+        aperture = pose.apply(np.array([0.0, 0.0, design.led_array.excitation_gap_mm]))
+        start = aperture + face_a[:, None] * across + face_b[:, None] * other
         direction = (
             np.cos(polar)[:, None] * axis
             + (np.sin(polar) * np.cos(azimuth))[:, None] * across

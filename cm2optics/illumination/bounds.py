@@ -10,7 +10,15 @@
   written as a non-negative sum of thin rings of direction (radial intensity profile), each
   ring's irradiance footprint on the sample plane is computed for the four units, and the
   best profile is a linear programme (``scipy.optimize.linprog``). An ideal point-like beam is
-  assumed (no source blur), so real collimators fall below it.
+  assumed (no source blur), so real collimators fall below it; with ``finite_source`` the beam
+  leaves the whole clear aperture and every ring is blurred by the étendue-limited cone of the
+  finite LED (:func:`etendue_blur_rad`: sin α = √(A_emitter / A_aperture), 17.1° for cm2-v2), an
+  estimate of what a revolved collimator fed by the real 1 × 1-mm die can reach.
+* :func:`free_aim_bound` — the same for re-aimed units: the best over a grid of placements
+  (tilt, aim point on the focal plane, aperture offset) whose housings clear the imaging tower,
+  point-like or finite source. With the finite source it is an estimate, not a strict bound:
+  the blur is the étendue minimum spread evenly over the aperture, and a freeform optic may
+  distribute it differently.
 """
 
 from __future__ import annotations
@@ -24,7 +32,14 @@ from scipy.optimize import linprog
 from cm2optics.design import SystemDesign
 from cm2optics.optics import first_order
 
-__all__ = ["etendue_bound", "spectral_ceiling", "uniform_beam_bound"]
+__all__ = [
+    "FREE_AIM_GRID",
+    "etendue_blur_rad",
+    "etendue_bound",
+    "free_aim_bound",
+    "spectral_ceiling",
+    "uniform_beam_bound",
+]
 
 
 def _clear_aperture(design: SystemDesign) -> tuple[np.ndarray, tuple[float, float], float]:
@@ -39,21 +54,23 @@ def _clear_aperture(design: SystemDesign) -> tuple[np.ndarray, tuple[float, floa
     return pose, half_sides, aperture_z
 
 
-def spectral_ceiling(design: SystemDesign, transmission: Any = None) -> float:
+def spectral_ceiling(design: SystemDesign, transmission: Any = None, spectrum: Any = None) -> float:
     """∫ S(λ) T(λ, 0) dλ / ∫ S dλ: the most of the LED's spectrum S the excitation filter passes
-    (every ray at normal incidence). transmission: T(λ nm, θ rad), default the design's filter."""
+    (every ray at normal incidence), from the run's inputs. transmission: T(λ nm, θ rad) (a
+    coating table's fit), default the model of the design's filter; spectrum: the LED's
+    :class:`~cm2optics.illumination.source.SourceSpectrum`, default the design's LED model."""
     from cm2optics.illumination.excitation import design_filter_transmission
     from cm2optics.illumination.source import led_source
 
-    source = led_source(design)
+    spectrum = spectrum if spectrum is not None else led_source(design).spectrum
     transmission = transmission or design_filter_transmission(design)
-    wl = source.spectrum.wavelength_nm
-    power = source.spectrum.relative_power
+    wl = spectrum.wavelength_nm
+    power = spectrum.relative_power
     return float(np.trapezoid(power * transmission(wl, np.zeros_like(wl)), wl) / np.trapezoid(power, wl))
 
 
 def etendue_bound(
-    design: SystemDesign, transmission: Any = None, samples: int = 400_000, seed: int = 0
+    design: SystemDesign, transmission: Any = None, samples: int = 400_000, seed: int = 0, spectrum: Any = None
 ) -> dict[str, float]:
     """Upper bounds on the delivered fraction set by étendue and by the filter.
 
@@ -63,7 +80,8 @@ def etendue_bound(
     puts more than G_target / G_source of a Lambertian emitter's power through the aperture
     onto the circle. The filter passes at most ``spectral_ceiling`` = ∫ S(λ) T(λ, 0) dλ / ∫ S
     of the LED's spectrum (every ray at normal incidence, S the LED spectrum), so
-    ``delivered_bound`` = min(1, G_target / G_source) × spectral_ceiling.
+    ``delivered_bound`` = min(1, G_target / G_source) × spectral_ceiling. transmission, spectrum:
+    the run's filter and LED spectrum (:func:`spectral_ceiling`).
     """
     rng = np.random.default_rng(seed)
     pose, (ax, ay), aperture_z = _clear_aperture(design)
@@ -87,7 +105,7 @@ def etendue_bound(
     g_target = float(area1 * area2 * kernel.mean())
     g_target_se = float(area1 * area2 * kernel.std() / math.sqrt(samples))
     g_source = math.pi * design.led.emitter_mm**2
-    spectral = spectral_ceiling(design, transmission)
+    spectral = spectral_ceiling(design, transmission, spectrum)
     geometric = min(1.0, g_target / g_source)
     return {
         "g_source_mm2sr": round(g_source, 4),
@@ -99,20 +117,51 @@ def etendue_bound(
     }
 
 
+def etendue_blur_rad(design: SystemDesign) -> float:
+    """The smallest angular blur of a unit's beam, rad: the half-angle α of a cone of uniform
+    radiance that carries the LED's étendue through the unit's clear aperture. A Lambertian
+    emitter of area A_e has G = π A_e; a uniform cone of half-angle α over the aperture's area
+    A_a has G = π A_a sin²α, so sin α = √(A_e / A_a) (in air)."""
+    _, (ax, ay), _ = _clear_aperture(design)
+    return math.asin(min(1.0, math.sqrt(design.led.emitter_mm**2 / (4 * ax * ay))))
+
+
+def _blur(directions: np.ndarray, half_angle_rad: float, rng: np.random.Generator) -> np.ndarray:
+    """Each unit vector of ``directions`` (…, 3) turned to a random direction within the cone of
+    ``half_angle_rad`` (rad) around it, uniform in projected solid angle (uniform radiance)."""
+    if half_angle_rad <= 0.0:
+        return directions
+    sin_t = math.sin(half_angle_rad) * np.sqrt(rng.random(directions.shape[:-1]))
+    cos_t, psi = np.sqrt(1.0 - sin_t**2), rng.uniform(0.0, 2.0 * math.pi, directions.shape[:-1])
+    helper = np.where(np.abs(directions[..., :1]) < 0.9, [1.0, 0.0, 0.0], [0.0, 1.0, 0.0])
+    u = np.cross(directions, helper)
+    u /= np.linalg.norm(u, axis=-1, keepdims=True)
+    v = np.cross(directions, u)
+    return cos_t[..., None] * directions + (sin_t * np.cos(psi))[..., None] * u + (sin_t * np.sin(psi))[..., None] * v
+
+
 def _ring_footprints(
-    design: SystemDesign, rings: int, max_angle_deg: float, bin_mm: float, rays_per_ring: int, seed: int
+    design: SystemDesign,
+    rings: int,
+    max_angle_deg: float,
+    bin_mm: float,
+    rays_per_ring: int,
+    seed: int,
+    finite_source: bool = False,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Irradiance footprints of unit-power direction rings, summed over the array's units.
 
     Returns (fractions (bins inside the circle × rings): the share of one unit's ring power
     landing in each bin, averaged over the units; ring edges in tan(angle) from the axis).
-    Rays leave the centre of each unit's clear aperture, uniform in the tangent plane of
-    directions within each ring (a ring of the radial intensity profile).
+    Rays are uniform in the tangent plane of directions within each ring (a ring of the radial
+    intensity profile) and leave the centre of each unit's clear aperture (an ideal point-like
+    beam) or, with ``finite_source``, points spread uniformly over the aperture, each direction
+    blurred by the étendue-limited cone of :func:`etendue_blur_rad` (the finite LED).
     """
     from cm2optics.optics.layout import led_poses
 
     rng = np.random.default_rng(seed)
-    _, _, aperture_z = _clear_aperture(design)
+    _, (ax, ay), aperture_z = _clear_aperture(design)
     radius = design.volume.field_mm / 2
     edges_xy = np.arange(-radius, radius + bin_mm / 2, bin_mm)
     centres = (edges_xy[:-1] + edges_xy[1:]) / 2
@@ -122,15 +171,21 @@ def _ring_footprints(
     rho = np.sqrt(rng.uniform(tan_edges[:-1, None] ** 2, tan_edges[1:, None] ** 2, (rings, rays_per_ring)))
     phi = rng.uniform(0.0, 2.0 * math.pi, (rings, rays_per_ring))
     local = np.stack([rho * np.cos(phi), rho * np.sin(phi), np.ones_like(rho)], axis=-1)
+    local_start = np.zeros((rings, rays_per_ring, 3))
+    local_start[..., 2] = aperture_z
+    if finite_source:
+        local = _blur(local / np.linalg.norm(local, axis=-1, keepdims=True), etendue_blur_rad(design), rng)
+        local_start[..., 0] = rng.uniform(-ax, ax, (rings, rays_per_ring))
+        local_start[..., 1] = rng.uniform(-ay, ay, (rings, rays_per_ring))
     poses = led_poses(design)
     counts = np.zeros((rings, inside.size))
     for pose in poses:  # a handful of units; the rays are vectorised
         matrix = pose.matrix
-        start = matrix[:3, :3] @ np.array([0.0, 0.0, aperture_z]) + matrix[:3, 3]
+        start = local_start @ matrix[:3, :3].T + matrix[:3, 3]
         direction = local @ matrix[:3, :3].T
         with np.errstate(divide="ignore", invalid="ignore"):
-            s = (first_order.object_plane_z_mm(design) - start[2]) / direction[..., 2]
-        hit = start[:2] + s[..., None] * direction[..., :2]
+            s = (first_order.object_plane_z_mm(design) - start[..., 2]) / direction[..., 2]
+        hit = start[..., :2] + s[..., None] * direction[..., :2]
         ix = np.floor((hit[..., 0] + radius) / bin_mm).astype(int)
         iy = np.floor((hit[..., 1] + radius) / bin_mm).astype(int)
         ok = (s > 0) & (ix >= 0) & (ix < centres.size) & (iy >= 0) & (iy < centres.size)
@@ -140,35 +195,14 @@ def _ring_footprints(
     return fractions[:, inside.ravel()].T, tan_edges
 
 
-def uniform_beam_bound(
-    design: SystemDesign,
-    max_cv: float = 0.10,
-    transmission: Any = None,
-    rings: int = 60,
-    max_angle_deg: float = 50.0,
-    bin_mm: float = 0.5,
-    rays_per_ring: int = 20_000,
-    seed: int = 0,
-) -> dict[str, Any]:
-    """The most a rotationally symmetric beam can deliver uniformly (module docstring).
-
-    max_cv: the array's coefficient of variation allowed inside the circle (0–1), over bins of
-    ``bin_mm`` (mm) as in the figures of merit. rings: rings of the radial profile, equal steps
-    in tan(angle) up to ``max_angle_deg`` (deg). rays_per_ring, seed: Monte Carlo footprints.
-    Returns ``output_bound`` (fraction of the light leaving a unit that lands in the circle),
-    ``delivered_bound`` (× the filter's spectral ceiling: a fraction of the LED's power), the
-    CV reached, and the best profile (relative power per ring, ring edges in degrees).
-    The CV of the LP's optimum rises with the allowed band δ (irradiance within (1 ± δ) × mean);
-    δ is bisected to the largest with CV ≤ ``max_cv``.
-    """
-    if not 0.0 < max_cv < 1.0:
-        raise ValueError(f"max_cv must lie in (0, 1), got {max_cv}")
-    footprints, tan_edges = _ring_footprints(design, rings, max_angle_deg, bin_mm, rays_per_ring, seed)
+def _best_profile(footprints: np.ndarray, max_cv: float) -> tuple[float, float, np.ndarray]:
+    """(output delivered into the circle, its CV, ring powers) of the best radial profile: the
+    linear programme over the ring powers x (sum 1) and the mean irradiance m with
+    (1 − δ) m ≤ A x ≤ (1 + δ) m, δ bisected to the largest whose optimum keeps CV ≤ ``max_cv``."""
     delivered = footprints.sum(axis=0)
-    bins = footprints.shape[0]
+    bins, rings = footprints.shape
 
     def solve(band: float) -> tuple[float, float, np.ndarray]:
-        # variables: ring powers x (sum 1) and the mean irradiance m; (1 − δ) m ≤ A x ≤ (1 + δ) m.
         upper = np.hstack([footprints, -(1 + band) * np.ones((bins, 1))])
         lower = np.hstack([-footprints, (1 - band) * np.ones((bins, 1))])
         result = linprog(
@@ -197,14 +231,128 @@ def uniform_beam_bound(
             low, best = mid, trial
         else:
             high = mid
-    output, cv, profile = best
-    ceiling = spectral_ceiling(design, transmission)
+    return best
+
+
+def uniform_beam_bound(
+    design: SystemDesign,
+    max_cv: float = 0.10,
+    transmission: Any = None,
+    rings: int = 60,
+    max_angle_deg: float = 50.0,
+    bin_mm: float = 0.5,
+    rays_per_ring: int = 20_000,
+    seed: int = 0,
+    spectrum: Any = None,
+    finite_source: bool = False,
+) -> dict[str, Any]:
+    """The most a rotationally symmetric beam can deliver uniformly (module docstring).
+
+    max_cv: the array's coefficient of variation allowed inside the circle (0–1), over bins of
+    ``bin_mm`` (mm) as in the figures of merit. rings: rings of the radial profile, equal steps
+    in tan(angle) up to ``max_angle_deg`` (deg). rays_per_ring, seed: Monte Carlo footprints.
+    finite_source: the beam leaves the whole clear aperture with the étendue-limited blur of
+    the finite LED (:func:`etendue_blur_rad`) rather than as an ideal point-like beam.
+    Returns ``output_bound`` (fraction of the light leaving a unit that lands in the circle),
+    ``delivered_bound`` (× the filter's spectral ceiling: a fraction of the LED's power), the
+    CV reached, and the best profile (relative power per ring, ring edges in degrees).
+    The CV of the LP's optimum rises with the allowed band δ (irradiance within (1 ± δ) × mean);
+    δ is bisected to the largest with CV ≤ ``max_cv``. transmission, spectrum: the run's filter
+    and LED spectrum (:func:`spectral_ceiling`).
+    """
+    if not 0.0 < max_cv < 1.0:
+        raise ValueError(f"max_cv must lie in (0, 1), got {max_cv}")
+    footprints, tan_edges = _ring_footprints(
+        design, rings, max_angle_deg, bin_mm, rays_per_ring, seed, finite_source=finite_source
+    )
+    output, cv, profile = _best_profile(footprints, max_cv)
+    ceiling = spectral_ceiling(design, transmission, spectrum)
     return {
         "max_cv": max_cv,
+        "finite_source": finite_source,
         "output_bound": round(output, 4),
         "cv": round(cv, 4),
         "spectral_ceiling": round(ceiling, 4),
         "delivered_bound": round(output * ceiling, 4),
         "profile": [round(float(v), 5) for v in profile],
         "ring_edges_deg": [round(math.degrees(math.atan(t)), 3) for t in tan_edges],
+    }
+
+
+#: The placements :func:`free_aim_bound` tries by default: tilt (deg) × aim point (mm) × offset (mm).
+FREE_AIM_GRID: dict[str, tuple[float, ...]] = {
+    "led_array.tilt_deg": (40.0, 45.0, 50.0, 55.0),
+    "led_array.aim_mm": (-2.0, -1.0, 0.0, 1.0, 2.0),
+    "led_array.offset_mm": (6.7, 8.0),
+}
+
+
+def free_aim_bound(
+    design: SystemDesign,
+    max_cv: float = 0.10,
+    transmission: Any = None,
+    grid: dict[str, tuple[float, ...]] | None = None,
+    finite_source: bool = True,
+    rings: int = 40,
+    max_angle_deg: float = 50.0,
+    bin_mm: float = 0.5,
+    rays_per_ring: int = 5_000,
+    seed: int = 0,
+    spectrum: Any = None,
+) -> dict[str, Any]:
+    """The most a rotationally symmetric beam can deliver uniformly when the units may be
+    re-aimed: :func:`uniform_beam_bound`'s linear programme for every placement of the grid
+    (dotted ``led_array`` fields → values, every combination; default :data:`FREE_AIM_GRID`)
+    whose units clear the imaging tower and each other (:func:`cm2optics.optics.layout.unit_clashes`),
+    and the best of them. finite_source: the étendue-limited beam of the finite LED (default)
+    or an ideal point-like beam. Returns the best placement, its ``output_bound``,
+    ``delivered_bound`` and CV, the spectral ceiling, and every placement tried (``placements``:
+    the values, and the output bound or the reason it was skipped).
+    """
+    import itertools
+
+    from cm2optics.design import DesignError
+    from cm2optics.optics.layout import unit_clashes
+
+    if not 0.0 < max_cv < 1.0:
+        raise ValueError(f"max_cv must lie in (0, 1), got {max_cv}")
+    grid = FREE_AIM_GRID if grid is None else grid
+    names = list(grid)
+    tried: list[dict[str, Any]] = []
+    best: tuple[float, float, dict[str, float]] | None = None
+    for values in itertools.product(*(grid[n] for n in names)):
+        changes = dict(zip(names, values, strict=True))
+        entry: dict[str, Any] = {"placement": changes}
+        try:
+            placed = design.with_changes(changes)
+        except DesignError as error:
+            tried.append({**entry, "skipped": str(error).splitlines()[0]})
+            continue
+        clashes = unit_clashes(placed)
+        if clashes:
+            tried.append({**entry, "skipped": clashes[0]})
+            continue
+        footprints, _ = _ring_footprints(
+            placed, rings, max_angle_deg, bin_mm, rays_per_ring, seed, finite_source=finite_source
+        )
+        output, cv, _ = _best_profile(footprints, max_cv)
+        if not math.isfinite(cv):  # no profile of this placement lights the circle within max_cv
+            tried.append({**entry, "skipped": f"no beam profile reaches CV ≤ {max_cv}"})
+            continue
+        tried.append({**entry, "output_bound": round(output, 4), "cv": round(cv, 4)})
+        if best is None or output > best[0]:
+            best = (output, cv, changes)
+    if best is None:
+        raise ValueError("free_aim_bound: no placement of the grid clears the imaging tower")
+    ceiling = spectral_ceiling(design, transmission, spectrum)
+    output, cv, placement = best
+    return {
+        "max_cv": max_cv,
+        "finite_source": finite_source,
+        "placement": placement,
+        "output_bound": round(output, 4),
+        "cv": round(cv, 4),
+        "spectral_ceiling": round(ceiling, 4),
+        "delivered_bound": round(output * ceiling, 4),
+        "placements": tried,
     }

@@ -29,11 +29,13 @@ design; ``collimator.stl`` is the CAD part built from it (:mod:`cm2optics.cad.co
 checked for printing with :func:`cm2optics.cad.mesh_checks.check_mesh` (watertight,
 consistently wound, thinnest wall ≥ ``mechanics.min_wall_mm``).
 
-The étendue bound and the uniform-beam bound (:mod:`.bounds`) are reported beside the result.
+The étendue bound and the uniform-beam bound (:mod:`.bounds`) are reported beside the result,
+and with ``free_aim`` the bound of re-aimed units with the finite LED (:func:`.bounds.free_aim_bound`).
 """
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 from pathlib import Path
@@ -42,9 +44,9 @@ from typing import Any
 import numpy as np
 
 from cm2optics.design import DesignError, SystemDesign, design_from_dict
-from cm2optics.illumination.bounds import etendue_bound, uniform_beam_bound
+from cm2optics.illumination.bounds import etendue_bound, free_aim_bound, uniform_beam_bound
 
-__all__ = ["PARAMETERS", "evaluate_candidate", "optimize_collimator"]
+__all__ = ["AIM_PARAMETERS", "PARAMETERS", "evaluate_candidate", "optimize_collimator", "search_box"]
 
 #: The swept parameters and their ranges (mm, degrees).
 PARAMETERS: dict[str, tuple[float, float]] = {
@@ -58,10 +60,25 @@ PARAMETERS: dict[str, tuple[float, float]] = {
     "collimator.lens_exponent": (0.2, 0.6),
     "collimator.tir_exponent": (0.2, 0.6),
 }
+#: The units' placement, swept with ``free_aim``: tilt, aperture offset, aim point on the focal
+#: plane (:attr:`cm2optics.design.LEDArray.aim_mm`) and the array's azimuth against the square
+#: imaging tower (mm, degrees). A candidate whose units enter the tower, reach below its flange
+#: or overlap (:func:`cm2optics.optics.layout.unit_clashes`) is infeasible.
+AIM_PARAMETERS: dict[str, tuple[float, float]] = {
+    "led_array.tilt_deg": (40.0, 60.0),
+    "led_array.offset_mm": (6.0, 10.5),
+    "led_array.aim_mm": (-2.0, 3.5),
+    "led_array.azimuth_deg": (0.0, 45.0),
+}
 #: Best candidates traced again with 4× the rays before one is chosen.
 CONFIRMED = 4
 #: Segments per turn of the revolved mesh in the sweep (the written STL uses 256).
 SWEEP_SEGMENTS = 128
+
+
+def search_box(free_aim: bool) -> dict[str, tuple[float, float]]:
+    """The swept parameters and their ranges: the collimator's, and the units' placement with ``free_aim``."""
+    return {**PARAMETERS, **(AIM_PARAMETERS if free_aim else {})}
 
 
 def _changes(values: dict[str, float]) -> dict[str, Any]:
@@ -90,6 +107,20 @@ def candidate_collimator(design: SystemDesign, values: dict[str, float], segment
     return candidate, mesh, profile
 
 
+@functools.lru_cache(maxsize=4)
+def _inputs(led_profile: str | None, led_spectrum: str | None, filter_table: str | None) -> tuple[Any, Any, Any]:
+    """(angular profile, spectrum, filter transmission) read from the files given (None: the
+    design's models), once per worker process: fitting a coating table takes seconds."""
+    from cm2optics.illumination.excitation import filter_from_table
+    from cm2optics.illumination.source import read_angular_profile, read_source_spectrum
+
+    return (
+        read_angular_profile(led_profile) if led_profile else None,
+        read_source_spectrum(led_spectrum) if led_spectrum else None,
+        filter_from_table(filter_table) if filter_table else None,
+    )
+
+
 def evaluate_candidate(
     design_data: dict[str, Any],
     values: dict[str, float],
@@ -97,9 +128,12 @@ def evaluate_candidate(
     seed: int,
     max_cv: float,
     threads: int | None = None,
+    inputs: tuple[str | None, str | None, str | None] = (None, None, None),
 ) -> dict[str, Any]:
     """Trace one candidate (runs on a Dask worker). Returns its parameters and figures, or
-    ``feasible: False`` and the reason. ``design_data``: the base design as plain data."""
+    ``feasible: False`` and the reason. ``design_data``: the base design as plain data.
+    inputs: paths of the LED's angular profile, its spectrum and the excitation filter's
+    coating table (each None: the design's model)."""
     from cm2optics.optics.backend import mitsuba
 
     mi = mitsuba()
@@ -112,6 +146,7 @@ def evaluate_candidate(
     from cm2optics.illumination.metrics import figures_of_merit
     from cm2optics.illumination.source import led_source
     from cm2optics.illumination.tracer import trace
+    from cm2optics.optics.layout import unit_clashes
 
     entry: dict[str, Any] = {"parameters": {k: round(float(v), 5) for k, v in values.items()}}
     start = time.perf_counter()
@@ -121,8 +156,16 @@ def evaluate_candidate(
     except (DesignError, ValueError, RuntimeError) as error:
         entry.update(feasible=False, reason=str(error).splitlines()[0][:300])
         return entry
+    clashes = unit_clashes(design)
+    if clashes:
+        entry.update(
+            feasible=False, reason=f"housing: {clashes[0]}" + (f" (+{len(clashes) - 1} more)" if clashes[1:] else "")
+        )
+        return entry
+    profile, spectrum, table = _inputs(*inputs)
+    transmission = table if table is not None else design_filter_transmission(design)
     figures = figures_of_merit(
-        trace(scene, led_source(design), rays, transmission=design_filter_transmission(design), seed=seed), scene
+        trace(scene, led_source(design, profile, spectrum), rays, transmission=transmission, seed=seed), scene
     )
     delivered, cv = figures.delivered_fraction.value, figures.uniformity_cv.value
     # Monte Carlo noise adds in quadrature to the true spread: rank on the noise-free estimate.
@@ -178,6 +221,8 @@ def optimize_collimator(
     workers: int = 2,
     seed: int = 0,
     show_progress: bool = True,
+    free_aim: bool = False,
+    inputs: tuple[str | None, str | None, str | None] = (None, None, None),
 ) -> dict[str, Any]:
     """Run the sweep (see the module docstring) and write ``design.yaml``, ``collimator.stl``
     and ``sweep.json`` into ``out_dir``; returns the summary (also ``result.json``).
@@ -185,6 +230,10 @@ def optimize_collimator(
     rays: rays per candidate (all LEDs). max_cv: uniformity constraint (0–1). samples:
     candidates of the first sweep. rounds: refinement sweeps. dask_address: an existing
     scheduler, or None for a local cluster of ``workers`` processes. seed: sweep and trace seed.
+    free_aim: sweep the units' tilt, offset, aim point and azimuth too (:data:`AIM_PARAMETERS`);
+    the chosen design is then checked with the CAD assembly's interference check.
+    inputs: paths of the LED's angular profile, spectrum and the excitation filter's coating
+    table (each None: the design's model), used by every trace and by the bounds.
     """
     from cm2optics.formats.atomic import write_json_atomic
 
@@ -196,10 +245,13 @@ def optimize_collimator(
     candidates: list[dict[str, Any]] = []
     start = time.perf_counter()
     try:
-        _sweep(client, base, candidates, rays, max_cv, samples, rounds, seed, threads, show_progress)
+        box = search_box(free_aim)
+        _sweep(client, base, box, candidates, rays, max_cv, samples, rounds, seed, threads, show_progress, inputs)
         feasible = [c for c in candidates if c["feasible"]]
         meeting = [c for c in feasible if c["meets_uniformity"]]
-        best, confirm = _confirm_finalists(client, base, feasible, meeting, rays, max_cv, seed, threads)
+        best, confirm, assembly = _confirm_finalists(
+            client, base, feasible, meeting, rays, max_cv, seed, threads, inputs, check_assembly=free_aim
+        )
     finally:
         client.close()
         if cluster is not None:
@@ -209,24 +261,18 @@ def optimize_collimator(
     out_dir = Path(out_dir)
     stl_path, checks = _export(improved, out_dir)
     improved.save(out_dir / "design.yaml")
-    bound = etendue_bound(improved)
-    uniform = uniform_beam_bound(improved, max_cv)
     result = {
         "design": str(out_dir / "design.yaml"),
         "stl": str(stl_path),
         "parameters": best["parameters"],
         "meets_uniformity": bool(confirm.get("feasible") and confirm["uniformity_cv"] <= max_cv),
         "max_cv": max_cv,
-        "delivered_fraction": confirm.get("delivered_fraction"),
-        "delivered_fraction_stderr": confirm.get("delivered_fraction_stderr"),
-        "uniformity_cv": confirm.get("uniformity_cv"),
-        "uniformity_cv_stderr": confirm.get("uniformity_cv_stderr"),
-        "uniformity_cv_noise": confirm.get("uniformity_cv_noise"),
-        "throughput": confirm.get("throughput"),
+        **{key: confirm.get(key) for key in _CONFIRMED_FIGURES},
         "rays": 4 * rays,
         "printability": checks,
-        "etendue_bound": bound,
-        "uniform_beam_bound": {k: v for k, v in uniform.items() if k not in ("profile", "ring_edges_deg")},
+        "free_aim": free_aim,
+        "assembly_interferences": assembly,
+        **_bounds(improved, max_cv, inputs, free_aim),
         "candidates_traced": len(candidates),
         "candidates_feasible": len(feasible),
         "candidates_meeting_uniformity": len(meeting),
@@ -238,9 +284,36 @@ def optimize_collimator(
     return result
 
 
+#: The figures of the chosen candidate's confirmation run copied into the result.
+_CONFIRMED_FIGURES = (
+    "delivered_fraction",
+    "delivered_fraction_stderr",
+    "uniformity_cv",
+    "uniformity_cv_stderr",
+    "uniformity_cv_noise",
+    "throughput",
+)
+
+
+def _bounds(
+    design: SystemDesign, max_cv: float, inputs: tuple[str | None, str | None, str | None], free_aim: bool
+) -> dict[str, Any]:
+    """The result's bounds for ``design``, their spectral ceiling from the run's inputs: étendue,
+    the uniform beam along the units' axes, and with ``free_aim`` re-aimed units with the finite LED."""
+    _, spectrum, table = _inputs(*inputs)
+    uniform = uniform_beam_bound(design, max_cv, table, spectrum=spectrum)
+    free = free_aim_bound(design, max_cv, table, spectrum=spectrum) if free_aim else None
+    return {
+        "etendue_bound": etendue_bound(design, table, spectrum=spectrum),
+        "uniform_beam_bound": {k: v for k, v in uniform.items() if k not in ("profile", "ring_edges_deg")},
+        "free_aim_bound": None if free is None else {k: v for k, v in free.items() if k != "placements"},
+    }
+
+
 def _sweep(
     client: Any,
     base: dict[str, Any],
+    parameters: dict[str, tuple[float, float]],
     candidates: list[dict[str, Any]],
     rays: int,
     max_cv: float,
@@ -249,20 +322,22 @@ def _sweep(
     seed: int,
     threads: int | None,
     show_progress: bool,
+    inputs: tuple[str | None, str | None, str | None],
 ) -> None:
-    """A Sobol sweep of the parameter box, then ``rounds`` sweeps of a box halved each round
-    around the best feasible candidate so far; every evaluated candidate is appended to
-    ``candidates`` (as it comes, so that a failure keeps those done)."""
+    """A Sobol sweep of the box ``parameters`` (name → range), then ``rounds`` sweeps of a box
+    halved each round around the best feasible candidate so far; every evaluated candidate is
+    appended to ``candidates`` (as it comes, so that a failure keeps those done)."""
     from rich.progress import Progress
 
-    box = dict(PARAMETERS)
+    box = dict(parameters)
     batches = [_sobol(box, samples, seed)]
     with Progress(disable=not show_progress, transient=True) as progress:
         task = progress.add_task("collimator sweep", total=samples + rounds * max(samples // 2, 1))
         for round_index in range(rounds + 1):
             points = batches[-1]
             futures = [
-                client.submit(evaluate_candidate, base, p, rays, seed + 1, max_cv, threads, pure=False) for p in points
+                client.submit(evaluate_candidate, base, p, rays, seed + 1, max_cv, threads, inputs, pure=False)
+                for p in points
             ]
             for future in futures:
                 candidates.append(future.result())
@@ -275,7 +350,7 @@ def _sweep(
             best = max(ranked, key=lambda c: c["score"])
             span = 0.5 ** (round_index + 1)
             box = {}
-            for name, (low, high) in PARAMETERS.items():
+            for name, (low, high) in parameters.items():
                 centre, half = best["parameters"][name], span * (high - low) / 2
                 box[name] = (max(low, centre - half), min(high, centre + half))
             batches.append(_sobol(box, max(samples // 2, 1), seed + round_index + 1))
@@ -290,9 +365,15 @@ def _confirm_finalists(
     max_cv: float,
     seed: int,
     threads: int | None,
-) -> tuple[dict[str, Any], dict[str, Any]]:
+    inputs: tuple[str | None, str | None, str | None],
+    check_assembly: bool = False,
+) -> tuple[dict[str, Any], dict[str, Any], list[dict[str, Any]] | None]:
     """Re-trace the best ``CONFIRMED`` candidates with 4 × ``rays``; returns the chosen candidate
-    (the most light among those confirmed uniform, else the first) and its confirmation."""
+    (the most light among those confirmed uniform, else the first), its confirmation and, with
+    ``check_assembly``, the CAD assembly's interferences of the chosen design (the first of the
+    confirmed ones, in order of light, that has none; else the last one checked) — None without."""
+    from cm2optics.cad.assembly import aim_interferences
+
     pool = meeting or feasible
     if not pool:
         raise ValueError("no candidate could be built: every parameter set was rejected by the profile construction")
@@ -301,13 +382,22 @@ def _confirm_finalists(
     confirmations = [
         f.result()
         for f in [
-            client.submit(evaluate_candidate, base, c["parameters"], 4 * rays, seed + 2, max_cv, threads, pure=False)
+            client.submit(
+                evaluate_candidate, base, c["parameters"], 4 * rays, seed + 2, max_cv, threads, inputs, pure=False
+            )
             for c in finalists
         ]
     ]
     passing = [i for i, c in enumerate(confirmations) if c.get("feasible") and c["uniformity_cv"] <= max_cv]
-    chosen = max(passing, key=lambda i: confirmations[i]["delivered_fraction"]) if passing else 0
-    return finalists[chosen], confirmations[chosen]
+    order = sorted(passing, key=lambda i: confirmations[i]["delivered_fraction"], reverse=True) or [0]
+    if not check_assembly:
+        return finalists[order[0]], confirmations[order[0]], None
+    base_design = design_from_dict(base)
+    for i in order:
+        clashes = aim_interferences(base_design.with_changes(_changes(finalists[i]["parameters"])))
+        if not clashes:
+            break
+    return finalists[i], confirmations[i], clashes
 
 
 def _export(design: SystemDesign, out_dir: Path) -> tuple[Path, dict[str, Any]]:

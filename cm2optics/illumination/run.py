@@ -16,7 +16,7 @@ from cm2optics.design import SystemDesign
 from cm2optics.errors import UserError
 from cm2optics.optics import first_order
 
-__all__ = ["run_illumination"]
+__all__ = ["run_illumination", "run_spectral_ceiling"]
 
 
 def _slug(label: str) -> str:
@@ -63,6 +63,17 @@ def _setup_record(design: SystemDesign, setup: Any, seed: int, start: float) -> 
         "backend": variant().variant,
         "elapsed_s": round(time.perf_counter() - start, 2),
     }
+
+
+def run_spectral_ceiling(design: SystemDesign, setup: Any) -> float | None:
+    """The most of the LED's power the run's excitation filter can pass (every ray at normal
+    incidence, :func:`cm2optics.illumination.bounds.spectral_ceiling`), from the run's own
+    filter (a coating table's fit or the design's model) and LED spectrum; None without a filter."""
+    from cm2optics.illumination.bounds import spectral_ceiling
+
+    if setup.transmission is None:
+        return None
+    return round(spectral_ceiling(design, setup.transmission, setup.source.spectrum), 4)
 
 
 def run_illumination(
@@ -133,6 +144,7 @@ def run_illumination(
     document = primary.to_json()
     document["designs"] = {r.label: r.summary() for r in results}
     document["setup"] = _setup_record(design, setup, seed, start)
+    document["spectral_ceiling"] = run_spectral_ceiling(design, setup)
     document["definitions"] = DEFINITIONS
     maps = {}
     for result in results:

@@ -44,18 +44,20 @@ def _figure_rows(design: SystemDesign, results: list) -> list[list[str]]:
     return rows
 
 
-def _add_bounds(report: Report, design: SystemDesign) -> tuple[dict, dict]:
-    """Add the étendue and uniform-beam bounds to ``report``; returns both bounds."""
+def _add_bounds(report: Report, design: SystemDesign, setup) -> tuple[dict, dict]:
+    """Add the étendue and uniform-beam bounds to ``report``, their spectral ceiling from the
+    trace's own filter and LED spectrum (``setup``); returns both bounds."""
     from cm2optics.illumination.bounds import etendue_bound, uniform_beam_bound
 
-    bound = etendue_bound(design)
+    spectrum = setup.source.spectrum
+    bound = etendue_bound(design, setup.transmission, spectrum=spectrum)
     report.paragraph(
         f"Étendue: a 1-mm² Lambertian emitter has G = {bound['g_source_mm2sr']:.2f} mm²·sr; one unit's clear aperture and the "
         f"field circle span G = {bound['g_target_mm2sr']:.2f} mm²·sr, so étendue allows {100 * bound['geometric_bound']:.0f} % "
         f"onto the circle; the filter passes at most {100 * bound['spectral_ceiling']:.1f} % of the LED's spectrum (all rays at "
         f"normal incidence): the delivered fraction cannot exceed {100 * bound['delivered_bound']:.1f} %."
     )
-    uniform = uniform_beam_bound(design)
+    uniform = uniform_beam_bound(design, transmission=setup.transmission, spectrum=spectrum)
     report.paragraph(
         f"Uniformity: the best rotationally symmetric beam aimed along each unit's axis (any revolved collimator, ideal "
         f"point-like source) puts at most {100 * uniform['output_bound']:.1f} % of a unit's output inside the circle with "
@@ -107,7 +109,7 @@ def add_illumination_section(
         ["entry", *[r.label for r in results]],
         [[k, *[f"{r.ledger[k].value:.4f}" for r in results]] for k in ledger_keys],
     )
-    bound, uniform = _add_bounds(report, design)
+    bound, uniform = _add_bounds(report, design, setup)
     report.paragraph("Definitions: " + " ".join(f"{k}: {v}." for k, v in DEFINITIONS.items()))
     data = {
         "rays": rays,

@@ -15,9 +15,12 @@ from cm2optics.design.coerce import to_plain
 
 
 def _hash_without_as_built(design: SystemDesign) -> str:
-    """The parameter hash as it was before the section existed: every part but as_built."""
+    """The parameter hash as it was before the section (and ``led_array.aim_mm``) existed: every
+    part but as_built, and the aim only where it is not the field's centre."""
     data = to_plain(design)
     del data["as_built"]
+    if data["led_array"]["aim_mm"] == 0.0:
+        del data["led_array"]["aim_mm"]
     return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()[:16]
 
 

@@ -137,6 +137,16 @@ def test_yaml_round_trip_and_hash(v2: SystemDesign, tmp_path):
     assert changed.mla.radius_mm == 1.7 and changed.parameter_hash() != v2.parameter_hash()
 
 
+def test_default_aim_stays_out_of_the_yaml_and_a_new_aim_round_trips(v2: SystemDesign, tmp_path):
+    assert v2.led_array.aim_mm == 0.0 and "aim_mm" not in v2.to_dict()["led_array"]
+    aimed = v2.with_changes({"led_array.aim_mm": -1.5})
+    assert aimed.to_dict()["led_array"]["aim_mm"] == -1.5 and aimed.parameter_hash() != v2.parameter_hash()
+    aimed.save(tmp_path / "aimed.yaml")
+    assert load_design(tmp_path / "aimed.yaml") == aimed
+    with pytest.raises(DesignError, match="untilted"):
+        v2.with_changes({"led_array.tilt_deg": 0.0, "led_array.aim_mm": 1.0})
+
+
 def _data(v2: SystemDesign) -> dict:
     return yaml.safe_load(v2.to_yaml())
 
@@ -168,6 +178,8 @@ def test_misspelled_field_suggests_the_right_one(v2):
         ("sensor.bit_depth", 11, "one of 8, 10, 12"),
         ("mechanics.clearance_mm", 0.5, "0.05–0.2"),
         ("imaging.film_to_sensor_mm", 3.2, "must lie below the MLA"),
+        ("led_array.aim_mm", 6.7, "within ±offset_mm"),
+        ("led_array.aim_mm", -7.0, "within ±offset_mm"),
     ],
 )
 def test_bad_values_name_field_value_and_range(v2, path, value, message):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
 import textwrap
@@ -153,3 +154,18 @@ def test_scalar_fallback_runs_and_says_so_once(tmp_path):
         build_scene(design, None), led_source(design), 200, transmission=design_filter_transmission(design), seed=4
     )
     assert np.mean(ours.status == np.array(data["status"])) > 0.95
+
+
+def test_run_reports_the_spectral_ceiling_of_its_own_inputs(tmp_path, reference_dir):
+    """`cm2 illum run` with the authors' coating table and LED spectrum: its spectral ceiling is
+    theirs (≈ 86 %), not the model filter's (≈ 79 %)."""
+    args = ["run", "--preset", "cm2-v2", "--rays", "4000", "--out", str(tmp_path)]
+    inputs = ["--filter-table", str(reference_dir / "coating_real_ex.csv")]
+    inputs += ["--led-spectrum", str(reference_dir / "led_spectrum.csv")]
+    result = runner.invoke(illum_app, [*args, *inputs])
+    assert result.exit_code == 0, result.output
+    printed = re.search(r"passes at most\s+(\d+\.\d)%", result.stdout)
+    assert printed is not None, result.stdout
+    data = json.loads((tmp_path / "illumination.json").read_text())
+    assert data["spectral_ceiling"] == pytest.approx(0.86, abs=0.015)
+    assert float(printed.group(1)) == pytest.approx(100 * data["spectral_ceiling"], abs=0.05)

@@ -10,7 +10,7 @@ import pytest
 from typer.testing import CliRunner
 
 from cm2optics.design import DesignError, load_design
-from cm2optics.illumination.bounds import etendue_bound, uniform_beam_bound
+from cm2optics.illumination.bounds import etendue_bound, spectral_ceiling, uniform_beam_bound
 from cm2optics.illumination.revolve import revolve_profile
 from cm2optics.optics.collimator import collimator_profile
 from cm2optics.optics.collimator_shaping import shaped_profile
@@ -147,3 +147,90 @@ def test_optimize_writes_a_printable_design(tmp_path):
     assert design.collimator.lens_spread_deg == pytest.approx(
         data["parameters"]["collimator.lens_spread_deg"], rel=1e-4
     )
+
+
+def test_spectral_ceiling_of_closed_cases(v2):
+    """A flat 50 % filter passes half of any spectrum; a box spectrum (1 on 460–480 nm, linear to
+    0 at 459 and 481 nm) behind an ideal edge at 470 nm: 11 of its 21 nm·power (linear between
+    the 1-nm samples, the filter's step taken on the same samples)."""
+    from cm2optics.illumination.source import SourceSpectrum
+
+    half = spectral_ceiling(v2, lambda wl, aoi: np.full(np.broadcast(wl, aoi).shape, 0.5))
+    assert half == pytest.approx(0.5, abs=1e-12)
+    box = SourceSpectrum(np.arange(455.0, 486.0), np.where(np.abs(np.arange(455.0, 486.0) - 470) <= 10, 1.0, 0.0))
+    edge = spectral_ceiling(v2, lambda wl, aoi: np.where(np.asarray(wl) >= 470.0, 1.0, 0.0) + 0 * aoi, box)
+    assert edge == pytest.approx(11.0 / 21.0, abs=1e-12)
+
+
+def test_spectral_ceiling_from_the_authors_filter_and_led(v2, reference_dir):
+    """Issue 16 item 6: with the authors' excitation coating table and LED spectrum the filter
+    passes ≈ 86 % of the LED's power at normal incidence; the models give ≈ 79 %."""
+    from cm2optics.illumination.excitation import filter_from_table
+    from cm2optics.illumination.source import read_source_spectrum
+
+    table = filter_from_table(str(reference_dir / "coating_real_ex.csv"))
+    spectrum = read_source_spectrum(reference_dir / "led_spectrum.csv")
+    authors = spectral_ceiling(v2, table, spectrum)
+    assert authors == pytest.approx(0.86, abs=0.015)
+    assert spectral_ceiling(v2) == pytest.approx(0.79, abs=0.015)
+    assert etendue_bound(v2, table, samples=1000, spectrum=spectrum)["spectral_ceiling"] == pytest.approx(
+        authors, abs=1e-4
+    )
+
+
+def test_etendue_blur_and_its_sampling(v2):
+    """sin α = √(A_emitter / A_aperture): 1 mm² through the 3.4 × 3.4-mm aperture gives
+    asin(1/3.4) = 17.1°. The blurred directions fill that cone with uniform radiance: the share
+    within β of the axis is sin²β / sin²α."""
+    from cm2optics.illumination.bounds import _blur, etendue_blur_rad
+
+    alpha = etendue_blur_rad(v2)
+    assert math.sin(alpha) == pytest.approx(1.0 / 3.4, rel=1e-12)
+    rng = np.random.default_rng(3)
+    out = _blur(np.tile([0.0, 0.0, 1.0], (200_000, 1)), alpha, rng)
+    assert np.linalg.norm(out, axis=1) == pytest.approx(1.0, abs=1e-12)
+    polar = np.arccos(np.clip(out[:, 2], -1, 1))
+    assert polar.max() <= alpha + 1e-12
+    beta = alpha / 2
+    assert np.mean(polar <= beta) == pytest.approx(math.sin(beta) ** 2 / math.sin(alpha) ** 2, abs=0.005)
+    assert np.abs(out[:, :2].mean(axis=0)).max() < 0.003  # symmetric about the axis
+    tilted = _blur(np.tile([0.0, math.sin(0.5), math.cos(0.5)], (50_000, 1)), alpha, rng)
+    angle = np.arccos(np.clip(tilted @ [0.0, math.sin(0.5), math.cos(0.5)], -1, 1))
+    assert angle.max() <= alpha + 1e-12
+
+
+def test_free_aim_bound_takes_the_best_clear_placement(v2):
+    """With a grid of placements the free-aim bound is the best of the fixed-aim bounds of the
+    placements that clear the tower (same rings, rays and seed: the same footprints), skips the
+    ones that clash, and the finite LED's blur costs output against the ideal point-like beam."""
+    from cm2optics.illumination.bounds import free_aim_bound
+
+    kw = {"rings": 24, "rays_per_ring": 3000, "max_angle_deg": 45.0}
+    grid = {"led_array.tilt_deg": (45.0,), "led_array.aim_mm": (-2.0, 0.0, 1.0)}
+    free = free_aim_bound(v2, grid=grid, finite_source=False, **kw)
+    fixed = {
+        aim: uniform_beam_bound(v2.with_changes({"led_array.aim_mm": aim}), finite_source=False, **kw)["output_bound"]
+        for aim in (0.0, 1.0)
+    }
+    assert free["output_bound"] == pytest.approx(max(fixed.values()), abs=1e-4)
+    assert free["placement"]["led_array.aim_mm"] == max(fixed, key=fixed.get)
+    skipped = [p for p in free["placements"] if "skipped" in p]
+    assert [p["placement"]["led_array.aim_mm"] for p in skipped] == [-2.0]
+    assert "imaging tower" in skipped[0]["skipped"]
+    blurred = free_aim_bound(v2, grid=grid, finite_source=True, **kw)
+    assert blurred["output_bound"] < free["output_bound"]
+    assert blurred["delivered_bound"] == pytest.approx(blurred["output_bound"] * blurred["spectral_ceiling"], abs=1e-3)
+
+
+def test_free_aim_sweeps_the_placement_and_rejects_units_in_the_tower(v2):
+    from cm2optics.illumination.optimize import AIM_PARAMETERS, PARAMETERS, _sobol, evaluate_candidate, search_box
+
+    assert search_box(False) == PARAMETERS
+    box = search_box(True)
+    assert set(box) == set(PARAMETERS) | set(AIM_PARAMETERS)
+    assert _sobol(box, 8, seed=5) == _sobol(box, 8, seed=5) != _sobol(box, 8, seed=6)  # seeded, reproducible
+    for point in _sobol(box, 8, seed=5):
+        assert all(box[k][0] <= v <= box[k][1] for k, v in point.items())
+    values = {k: getattr(v2.collimator, k.split(".")[1]) for k in PARAMETERS} | {"led_array.aim_mm": -2.0}
+    entry = evaluate_candidate(v2.to_dict(), values, 1000, 0, 0.1, threads=1)
+    assert entry["feasible"] is False and "imaging tower" in entry["reason"]
