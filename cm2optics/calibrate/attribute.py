@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from cm2optics.calibrate.effects import Effect, apply_image_effects, leakage_counts
-from cm2optics.calibrate.features import away_from_foci, circular_windows, focus_features, focus_windows
+from cm2optics.calibrate.features import away_from_foci, circular_windows, focus_windows, window_features
 from cm2optics.calibrate.noise import SensorNoise, estimate_noise, quantisation_step
 from cm2optics.calibrate.register import Registration, register
 from cm2optics.calibrate.simulate import Simulator, Values
@@ -50,10 +50,41 @@ class FeatureSpace:
     sigma: np.ndarray
     exposure_ms: np.ndarray
 
+    def __post_init__(self) -> None:
+        n, h, w = self.block_of.shape
+        self._windows = circular_windows((h, w), self.centres, self.radii)
+        blocks = BLOCKS * BLOCKS  # one bincount over the whole stack; pixels near a focus go to a last bin
+        labels = np.where(self.block_of >= 0, self.block_of + blocks * np.arange(n)[:, None, None], n * blocks)
+        self._labels = labels.ravel()
+        self._block_pixels = np.bincount(self._labels, minlength=n * blocks + 1)[:-1].reshape(n, blocks)
+
     def features(self, counts: np.ndarray, dark: float) -> np.ndarray:
-        signal = counts - np.float32(dark)
-        f = focus_features(signal, self.centres, self.radii)
-        blocks = _block_means(signal, self.block_of)
+        """The features of raw frames (N, y, x) counts, less a dark level (counts)."""
+        n = len(counts)
+        return self.features_of_rate(counts, np.ones(n), 1.0, 0.0, np.zeros(n), dark)
+
+    def features_of_rate(
+        self,
+        rate: np.ndarray,
+        exposure_ms: np.ndarray,
+        scale: float,
+        dark: float,
+        leak_counts: np.ndarray,
+        dark_measured: float,
+    ) -> np.ndarray:
+        """The features of the frames ``dark + exposure·scale·rate + leak`` (rate (N, y, x) per ms,
+        exposure (N,) ms, leak (N,) counts) measured less ``dark_measured`` (counts): read at the
+        windows' pixels and summed over the background blocks, no full frame of counts formed."""
+        rows, cols, inside, complete = self._windows
+        gain = np.asarray(exposure_ms, np.float64) * scale
+        offset = dark - dark_measured + np.asarray(leak_counts, np.float64)
+        index = np.arange(len(rate))[:, None, None, None]
+        values = offset[:, None, None, None] + gain[:, None, None, None] * rate[index, rows, cols]
+        f = window_features(np.where(inside, values, 0.0), rows, cols, complete)
+        sums = np.bincount(self._labels, weights=rate.ravel(), minlength=self._labels.max() + 1)[:-1]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            means = sums.reshape(self._block_pixels.shape) / self._block_pixels
+        blocks = np.where(self._block_pixels > 20, offset[:, None] + gain[:, None] * means, np.nan)
         return np.concatenate(
             [
                 f.energy.ravel(),
@@ -75,13 +106,6 @@ def _block_sums(values: np.ndarray, block_of: np.ndarray) -> tuple[np.ndarray, n
         sums[i] = np.bincount(labels[keep], weights=values[i].ravel()[keep], minlength=blocks)
         counts[i] = np.bincount(labels[keep], minlength=blocks)
     return sums, counts
-
-
-def _block_means(signal: np.ndarray, block_of: np.ndarray) -> np.ndarray:
-    """(N, B²) mean signal of each background block (NaN where it holds 20 pixels or fewer)."""
-    sums, counts = _block_sums(signal, block_of)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(counts > 20, sums / counts, np.nan)
 
 
 def _blocks(shape: tuple[int, int], centres: np.ndarray, radii: np.ndarray) -> np.ndarray:
@@ -220,10 +244,13 @@ class Problem:
         return (dark + self.exposure[:, None, None] * (scale * rate) + leak).astype(np.float32)
 
     def exact_features(self, state: State) -> np.ndarray:
-        """The model's features under ``state``, the simulator run with every value as it is,
-        measured like the data's (the same windows, the same dark level subtracted, so that a
-        change of the fitted dark shows)."""
-        return self.space.features(self.model_counts(state), self.registration.dark_level)
+        """The model's features under ``state`` (its counts as :meth:`model_counts`), the simulator
+        run with every value as it is, measured like the data's (the same windows, the same dark
+        level subtracted, so that a change of the fitted dark shows)."""
+        rate = apply_image_effects(self._shifted_rate(state), state.values, self.simulator.pixel_um)
+        leak = leakage_counts(state.values, self.exposure)
+        scale, dark = float(state.nuisance[2]), float(state.nuisance[3])
+        return self.space.features_of_rate(rate, self.exposure, scale, dark, leak, self.registration.dark_level)
 
     def features(self, state: State) -> np.ndarray:
         """The model's features under ``state``: exact, except that the simulator's expensive

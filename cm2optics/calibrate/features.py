@@ -71,6 +71,13 @@ def focus_features(signal: np.ndarray, centres: np.ndarray, radius_px: np.ndarra
     rows, cols, weight, complete = circular_windows(signal.shape[-2:], centres, radius_px)
     image_index = np.arange(len(centres))[:, None, None, None]
     values = np.where(weight, signal[image_index, rows, cols].astype(np.float64), 0.0)
+    return window_features(values, rows, cols, complete)
+
+
+def window_features(values: np.ndarray, rows: np.ndarray, cols: np.ndarray, complete: np.ndarray) -> FocusFeatures:
+    """The features of :func:`focus_features` from the window pixels themselves: ``values``
+    (N, J, w, w) signal above dark, 0 outside each circle; ``rows``, ``cols`` their pixel indices
+    and ``complete`` (N, J) whether each circle lies on the frame (:func:`circular_windows`)."""
     energy = values.sum(axis=(-2, -1))
     # moments of the signal as it is (noise below zero included), so that noise averages out
     # and data and model are measured alike

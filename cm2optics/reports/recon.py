@@ -172,10 +172,11 @@ def add_net_section(
     at the weights' own geometry (:func:`cm2optics.recon.compare.demo_net`): depth-coloured
     maximum projections (net | FISTA | ground truth) as ``out_dir/net/mips.png`` and a metrics
     table. fov_mm: the simulated field (mm); view_px: the side of the views (px). Without the
-    weights folder the section says so in one line. Returns the comparison (None without weights)."""
+    weights folder, or with one that fails its checks, the section says so in one line. Returns
+    the comparison (None without usable weights)."""
     from cm2optics.metrics.plots import plot_depth_mips
     from cm2optics.recon.compare import demo_net
-    from cm2optics.recon.net.weights import shipped_weights
+    from cm2optics.recon.net.weights import WeightsError, shipped_weights
     from cm2optics.synth.raster import rasterize_balls
 
     folder = Path(weights) if weights is not None else shipped_weights()
@@ -186,7 +187,11 @@ def add_net_section(
             "them in `reconstruction/cm2net-cpu`; `cm2 train CONFIG --export DIR` writes them from a run)."
         )
         return None
-    demo = demo_net(folder, fov_mm=fov_mm, view_px=view_px)
+    try:
+        demo = demo_net(folder, fov_mm=fov_mm, view_px=view_px)
+    except WeightsError as error:  # e.g. a clone without the Git LFS objects: the rest of the demo still stands
+        report.paragraph(f"The CM²Net weights at `{folder}` cannot be used: {error}")
+        return None
     config, grid, truth, runs, seconds = demo["config"], demo["grid"], demo["truth"], demo["runs"], demo["seconds"]
     loaded = demo["weights"]
     net, fista = runs["net"], runs["fista"]

@@ -95,7 +95,7 @@ def test_the_demo_section_reconstructs_with_the_net_and_fista_and_scores_both(ls
     assert demo["runs"]["fista"]["evaluation"].metrics["recall"] >= 0.5
 
 
-def test_the_demo_section_says_in_one_line_when_the_weights_are_absent(tmp_path, monkeypatch):
+def test_the_demo_section_says_in_one_line_when_the_weights_are_absent_or_broken(tmp_path, monkeypatch):
     from typer.testing import CliRunner
 
     from cm2optics.cli import app
@@ -107,6 +107,12 @@ def test_the_demo_section_says_in_one_line_when_the_weights_are_absent(tmp_path,
     assert add_net_section(report, tmp_path, weights=tmp_path / "none", title="8. CM²Net") is None
     assert [kind for kind, _ in report.blocks] == ["h2", "p"] and "No trained CM²Net weights" in report.blocks[1][1]
     assert not (tmp_path / "net").exists()
+    broken = tmp_path / "broken"
+    broken.mkdir()
+    (broken / "model.safetensors").write_text("version https://git-lfs.github.com/spec/v1\n")  # an LFS pointer
+    report = Report("t")
+    assert add_net_section(report, tmp_path, weights=broken, title="8. CM²Net") is None
+    assert [kind for kind, _ in report.blocks] == ["h2", "p"] and "cannot be used" in report.blocks[1][1]
     monkeypatch.chdir(tmp_path)  # found from the package, not from the current directory
     assert shipped_weights() == Path(__file__).resolve().parents[2] / "reconstruction" / "cm2net-cpu"
     refused = CliRunner().invoke(app, ["demo", "--out", str(tmp_path / "d"), "--weights", str(tmp_path / "none")])
