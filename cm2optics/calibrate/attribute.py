@@ -333,6 +333,16 @@ class Problem:
             moved = True
         return moved
 
+    def reweight(self, state: State) -> None:
+        """The features' σ propagated from the model under ``state`` (the fit so far) instead of
+        the nominal one: a focus that the nominal model makes bright but the data show dim (a
+        narrow source, a dusty lenslet) gets the centroid and width σ of its real energy. The
+        features that take part stay the same, so criteria stay comparable."""
+        signal = self.model_counts(state) - np.float32(self.registration.dark_level)
+        sigma = _feature_sigma(self.space, signal, self.noise)
+        keep = np.isfinite(sigma) & (sigma > 0)
+        self.space.sigma = np.where(keep, sigma, self.space.sigma)
+
     def chi2(self, f: np.ndarray) -> float:
         r = (self.space.data[self.use] - f[self.use]) / self.space.sigma[self.use]
         return float(np.sum(r[np.isfinite(r)] ** 2))
@@ -503,6 +513,8 @@ def attribute(problem: Problem, *, max_effects: int = 6, progress: Progress | No
             if not problem.reanchor(state):
                 break
             state, chi2, cov = _refine(problem, state, kept)
+        problem.reweight(state)  # the noise of the features as the fitted model predicts it
+        state, chi2, cov = _refine(problem, state, kept, iterations=2)
         steps.append(Step(best[1], chi2, bic(chi2, len(_parameters(problem, kept)))))
         say(f"added {best[1]}: χ²/n = {chi2 / n:.3f}")
     params = _parameters(problem, kept)
