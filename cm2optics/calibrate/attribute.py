@@ -216,6 +216,7 @@ class Problem:
         self.space = space
         self.use = np.isfinite(space.data) & np.isfinite(space.sigma) & (space.sigma > 0)
         self._rates: dict[tuple, np.ndarray] = {}
+        self._image_rates: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
         self.expensive = frozenset(getattr(simulator, "retraced", ()))
         self.anchor: Values = {}
         self._anchor_state = self.start()
@@ -247,10 +248,24 @@ class Problem:
         """The model's features under ``state`` (its counts as :meth:`model_counts`), the simulator
         run with every value as it is, measured like the data's (the same windows, the same dark
         level subtracted, so that a change of the fitted dark shows)."""
-        rate = apply_image_effects(self._shifted_rate(state), state.values, self.simulator.pixel_um)
+        rate = self._image_rate(state)
         leak = leakage_counts(state.values, self.exposure)
         scale, dark = float(state.nuisance[2]), float(state.nuisance[3])
         return self.space.features_of_rate(rate, self.exposure, scale, dark, leak, self.registration.dark_level)
+
+    def _image_rate(self, state: State) -> np.ndarray:
+        """The simulator's images with the sensor-side effects applied (cached: the flux, dark
+        and leakage columns of a Jacobian reuse the same blurred images)."""
+        rate = self._shifted_rate(state)
+        image_side = {k: v for k, v in state.values.items() if k in ("stray_light", "pixel_crosstalk")}
+        if not image_side:
+            return rate
+        key = (id(rate), repr(sorted((k, sorted(v.items())) for k, v in image_side.items())))
+        if key not in self._image_rates:
+            if len(self._image_rates) > 8:
+                self._image_rates.clear()
+            self._image_rates[key] = (rate, apply_image_effects(rate, image_side, self.simulator.pixel_um))
+        return self._image_rates[key][1]
 
     def features(self, state: State) -> np.ndarray:
         """The model's features under ``state``: exact, except that the simulator's expensive
@@ -317,6 +332,16 @@ class Problem:
             self._derivatives = {}
             moved = True
         return moved
+
+    def reweight(self, state: State) -> None:
+        """The features' σ propagated from the model under ``state`` (the fit so far) instead of
+        the nominal one: a focus that the nominal model makes bright but the data show dim (a
+        narrow source, a dusty lenslet) gets the centroid and width σ of its real energy. The
+        features that take part stay the same, so criteria stay comparable."""
+        signal = self.model_counts(state) - np.float32(self.registration.dark_level)
+        sigma = _feature_sigma(self.space, signal, self.noise)
+        keep = np.isfinite(sigma) & (sigma > 0)
+        self.space.sigma = np.where(keep, sigma, self.space.sigma)
 
     def chi2(self, f: np.ndarray) -> float:
         r = (self.space.data[self.use] - f[self.use]) / self.space.sigma[self.use]
@@ -471,7 +496,10 @@ def attribute(problem: Problem, *, max_effects: int = 6, progress: Progress | No
                     jac = _columns(problem, trial, params + extra, trial_base)
                 step, predicted, _ = _solve(problem, jac, problem.space.data - trial_base)
                 candidate = _apply(problem, trial, params + extra, step)
-                c = problem.chi2(problem.features(candidate))
+                if start == effect.defaults():
+                    c = problem.chi2(problem.features(candidate))
+                else:  # a probe starts far from the answer (a halo's width): a few steps, not one
+                    candidate, c, _ = _refine(problem, candidate, kept + [effect.key], iterations=3)
                 score = bic(c, k_now + len(extra))
                 if best is None or score < best[0]:
                     best = (score, effect.key, candidate)
@@ -485,6 +513,8 @@ def attribute(problem: Problem, *, max_effects: int = 6, progress: Progress | No
             if not problem.reanchor(state):
                 break
             state, chi2, cov = _refine(problem, state, kept)
+        problem.reweight(state)  # the noise of the features as the fitted model predicts it
+        state, chi2, cov = _refine(problem, state, kept, iterations=2)
         steps.append(Step(best[1], chi2, bic(chi2, len(_parameters(problem, kept)))))
         say(f"added {best[1]}: χ²/n = {chi2 / n:.3f}")
     params = _parameters(problem, kept)

@@ -38,3 +38,12 @@ def test_the_report_may_not_overwrite_the_scan(tmp_path: Path):
     scan = _scan(tmp_path / "scan", (259, 386))
     result = runner.invoke(app, ["calibrate", "scan", str(scan), "--out", str(scan / "report")])
     assert result.exit_code == 2 and "inside the input folder" in result.output
+
+
+def test_a_source_profile_that_cannot_be_read_is_refused(tmp_path: Path):
+    scan = _scan(tmp_path / "scan", (259, 386))
+    out = tmp_path / "report"
+    result = runner.invoke(app, ["calibrate", "scan", str(scan), "--out", str(out), "--source-profile", "conical"])
+    assert result.exit_code == 2, result.output
+    assert "calibration source" in result.output and "'conical'" in result.output
+    assert "Traceback" not in result.output and not out.exists()
