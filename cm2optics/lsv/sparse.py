@@ -147,14 +147,14 @@ def render_emitters(
     slot_of = {b: i for i, b in enumerate(bins)}
     canvases = torch.zeros((len(bins), n_out, H + 2 * margin, W + 2 * margin), dtype=torch.float32)
     focus = model.geometry.focus(x, y, z)  # (N, J, 2)
-    coefficients = model.coefficients
     for j in range(J):
         corner = focus[:, j, :] - np.array([h // 2, w // 2])
         visible = (corner[:, 0] > -h - 3) & (corner[:, 0] < H + 3) & (corner[:, 1] > -w - 3) & (corner[:, 1] < W + 3)
         index = np.nonzero(visible)[0]
         if len(index) == 0:
             continue
-        nodes, weights = chief_ray_nodes(model.geometry, model.axes, j, x[index], y[index], z[index])
+        nodes, weights = chief_ray_nodes(model.geometry, model.interpolation_axes, j, x[index], y[index], z[index])
+        coefficients = model.lenslet_coefficients(j)
         c = np.einsum("kne,ne->nk", coefficients[:, nodes[..., 0], nodes[..., 1], nodes[..., 2]], weights)
         c = torch.as_tensor(c * intensity[index, None], dtype=torch.float32)
         n, phases, phase_values = _phases(corner[index], subpixel_steps)
