@@ -11,9 +11,10 @@ lenslet the effective area ``(Σp)² / Σp²`` of the registered crop (far less 
 sub-pixel phase than the peak; for a blur that grows linearly with defocus it is a parabola in
 depth), the depth of its minimum along each axial stack by a parabola through the three nodes
 around the smallest (a stack whose smallest node is its first or last has no estimate, nor has
-a vignetted one, whose brightest node holds < ``VIGNETTED_BELOW`` of its lenslet's brightest),
+one whose focus hardly changes there (< ``MIN_CONTRAST``), nor a vignetted one, whose brightest node holds < ``VIGNETTED_BELOW`` of its lenslet's brightest),
 then per lenslet a robust fit (least median of squares, then least squares on its inliers
-weighted by the stack's brightness squared) of
+weighted by the stack's brightness squared; a flat surface where the curved one does not
+explain the inliers better by the Bayesian information criterion) of
 ``z_best,j = c0 + c1·x + c2·y + c3·(x² + y²)``: a paraboloid of revolution about a free axis
 ``(−c1, −c2)/(2·c3)`` (the lenslet's axis in object space). Units: x, y, z in mm.
 """
@@ -28,6 +29,9 @@ import numpy as np
 
 __all__ = ["FocalSurface", "effective_area", "estimate_focal_surface", "stack_best_focus"]
 
+#: A stack whose focus grows by less than this share (both neighbours of its smallest node
+#: together) has no measurable best focus: the depth of field is longer than the depth steps.
+MIN_CONTRAST = 0.05
 #: Robust fit: minimal subsets tried by the least median of squares (all of them if fewer).
 LMEDS_SUBSETS = 5000
 #: Robust fit: stacks within this many robust standard deviations of the LMedS fit are inliers.
@@ -96,10 +100,12 @@ def effective_area(crops: np.ndarray) -> np.ndarray:
         return np.where(energy > 0, total**2 / np.maximum(energy, 1e-300), np.inf)
 
 
-def stack_best_focus(area: np.ndarray, z_mm: np.ndarray) -> np.ndarray:
+def stack_best_focus(area: np.ndarray, z_mm: np.ndarray, min_contrast: float = 0.0) -> np.ndarray:
     """Depth (mm) of the minimum of ``area`` (…, nz) along depths ``z_mm`` (nz,, increasing), by
     the parabola through the smallest node and its two neighbours; NaN where the smallest is
-    the first or last node (the best focus lies outside the scanned depth) or is not finite."""
+    the first or last node (the best focus lies outside the scanned depth) or is not finite, or
+    where the two neighbours together exceed it by less than ``min_contrast`` of it (a depth of
+    field longer than the depth steps: no measurable best focus)."""
     a = np.asarray(area, dtype=np.float64)
     z = np.asarray(z_mm, dtype=np.float64)
     nz = len(z)
@@ -112,7 +118,9 @@ def stack_best_focus(area: np.ndarray, z_mm: np.ndarray) -> np.ndarray:
         d01, d12 = (a1 - a0) / (z1 - z0), (a2 - a1) / (z2 - z1)
         curvature = (d12 - d01) / (z2 - z0)
         vertex = np.clip((z0 + z1) / 2.0 - d01 / (2.0 * curvature), z0, z2)
-    ok = (best > 0) & (best < nz - 1) & np.isfinite(a0 + a1 + a2) & (curvature > 0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        contrast = (a0 + a2 - 2.0 * a1) / a1  # how much the focus grows one step either side
+    ok = (best > 0) & (best < nz - 1) & np.isfinite(a0 + a1 + a2) & (curvature > 0) & (contrast >= min_contrast)
     return np.where(ok, vertex, np.nan)
 
 
@@ -147,6 +155,14 @@ def _robust_fit(
     inliers = np.abs(v - T @ best) <= INLIER_SIGMA * max(sigma, resolution_mm)
     root = np.sqrt(w[inliers])
     c, *_ = np.linalg.lstsq(T[inliers] * root[:, None], v[inliers] * root, rcond=None)
+    # a flat surface unless the paraboloid explains the inliers better by the Bayesian information
+    # criterion (its 3 more parameters): noise in the stacks must not curve a flat field
+    n = int(inliers.sum())
+    flat = np.zeros_like(c)
+    flat[0] = float(np.sum(w[inliers] * v[inliers]) / np.sum(w[inliers]))
+    rss = [float(np.sum(w[inliers] * (v[inliers] - T[inliers] @ k) ** 2)) + 1e-30 for k in (flat, c)]
+    if n * math.log(rss[0] / rss[1]) <= (p - 1) * math.log(n):
+        c = flat
     rms = float(np.sqrt(np.mean((v[inliers] - T[inliers] @ c) ** 2)))
     return c, rms
 
@@ -166,7 +182,7 @@ def estimate_focal_surface(
     flux = np.zeros((len(ys), len(xs), J, len(zs)))
     flux[gi[:, 1], gi[:, 0], :, gi[:, 2]] = np.clip(crops, 0.0, None).sum(axis=(-2, -1), dtype=np.float64)
     brightest = flux.max(axis=-1) / np.maximum(flux.max(axis=(0, 1, 3)), 1e-300)  # (ny, nx, J), of the lenslet's
-    z_best = stack_best_focus(area, zs)  # (ny, nx, J)
+    z_best = stack_best_focus(area, zs, MIN_CONTRAST)  # (ny, nx, J)
     z_best[brightest < VIGNETTED_BELOW] = np.nan
     resolution = RESOLUTION_OF_STEP * float(np.median(np.diff(zs)))
     y, x = np.meshgrid(ys, xs, indexing="ij")

@@ -225,3 +225,20 @@ def test_bad_focal_surfaces_are_refused():
         FocalSurface(np.full((4, 4), np.nan), np.zeros(4))
     with pytest.raises(ValueError, match="need ≥ 5"):
         estimate_focal_surface(np.zeros((3, 4, 5, 5), np.float32), np.array([[0, 0, 0], [0, 0, 1], [0, 0, 2]]), AXES)
+
+
+def test_build_and_validate_follow_the_focal_surface_of_a_curved_scan(toy, v2, tmp_path):
+    """`cm2 lsv build` finds the toy's curved field from its frames, and `cm2 lsv validate`'s
+    leave-one-out (which interpolates as the model does) is better along it than at fixed depth."""
+    from cm2optics.lsv.build import build_model
+    from cm2optics.lsv.toy import write_analytic_scan
+    from cm2optics.lsv.validate import validate_model
+
+    xs, ys, zs = AXES
+    scan = write_analytic_scan(tmp_path / "scan", toy, xs, ys, zs[::2], binning=8)
+    curved = build_model(scan, rank=64, patch_px=20, design=v2).model
+    plain = build_model(scan, rank=64, patch_px=20, design=v2, focal_surface=False).model
+    assert plain.focal_surface is None and curved.provenance["focal_surface"]["refine"] == 4
+    np.testing.assert_allclose(curved.focal_surface.coefficients[:, 3], KAPPA, rtol=0.1)
+    errors = [validate_model(m, scan, ranks=(64,), n_heldout=12)["nmse_heldout"] for m in (plain, curved)]
+    assert errors[1] < 0.7 * errors[0]
