@@ -144,7 +144,7 @@ def build(
             help="With --focal-surface: lateral steps of the calibration grid cut this many times, where each "
             "lenslet's coefficients are precomputed along its surface (1–64).",
         ),
-    ] = 4,
+    ] = 2,
     preset: PresetOption = "cm2-v2",
     overwrite: OverwriteOption = False,
     as_json: JsonOption = False,

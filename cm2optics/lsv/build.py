@@ -306,7 +306,7 @@ def build_model(
     oversample: int = 1,
     estimate_options: dict[str, Any] | None = None,
     focal_surface: bool = True,
-    refine: int = 4,
+    refine: int = 2,
 ) -> BuildResult:
     """Build an LSV model from the scan folder ``scan_dir`` (see the module docstring).
 

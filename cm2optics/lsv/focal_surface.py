@@ -137,8 +137,8 @@ def _robust_fit(
     p = terms.shape[1]
     if len(usable) < p + 1:
         raise ValueError(
-            f"only {len(usable)} axial stacks with a best focus inside the scanned depth: "
-            f"need ≥ {p + 1} to fit a focal surface"
+            f"only {len(usable)} axial stacks with a measurable best focus inside the scanned depth, "
+            f"not vignetted: need ≥ {p + 1} per lenslet to fit a focal surface"
         )
     T, v, w = terms[usable], values[usable], weights[usable]
     if math.comb(len(usable), p) <= LMEDS_SUBSETS:

@@ -228,7 +228,7 @@ def analytic_lsv_model(
     axial_um: float | None = None,
     trim: float | None = 1e-6,
     focal_surface: bool = False,
-    refine: int = 4,
+    refine: int = 2,
 ):
     """An :class:`~cm2optics.lsv.model.LSVModel` of the analytic system built straight from
     noise-free crops on the grid x × y × z (mm): no scan files, the paraxial geometry known.

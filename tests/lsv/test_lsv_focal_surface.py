@@ -238,7 +238,7 @@ def test_build_and_validate_follow_the_focal_surface_of_a_curved_scan(toy, v2, t
     scan = write_analytic_scan(tmp_path / "scan", toy, xs, ys, zs[::2], binning=8)
     curved = build_model(scan, rank=64, patch_px=20, design=v2).model
     plain = build_model(scan, rank=64, patch_px=20, design=v2, focal_surface=False).model
-    assert plain.focal_surface is None and curved.provenance["focal_surface"]["refine"] == 4
+    assert plain.focal_surface is None and curved.provenance["focal_surface"]["refine"] == 2
     np.testing.assert_allclose(curved.focal_surface.coefficients[:, 3], KAPPA, rtol=0.1)
     errors = [validate_model(m, scan, ranks=(64,), n_heldout=12)["nmse_heldout"] for m in (plain, curved)]
     assert errors[1] < 0.7 * errors[0]
