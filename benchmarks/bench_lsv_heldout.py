@@ -8,7 +8,8 @@ depth-wise LSI baseline; on axis and at r = 1, 2, 3 mm, per binning.
 1. **Scan**: ``cm2 psf simulate --grid G --binning B --oversample 4 --profile isotropic
    --pinhole-um D`` (a D-µm bead, the emitters' own kind of source), reused when present.
 2. **Models**: ``cm2 lsv build`` with ``--oversample 1`` and ``--oversample 4`` on the scan, and
-   ``--oversample 4`` on a copy of the scan without ``epsf.h5`` (the estimate).
+   ``--oversample 4`` on a copy of the scan without ``epsf.h5`` (the estimate), each interpolating
+   along the focal surface (the default), and ``--oversample 4 --fixed-depth`` beside them.
 3. **Emitters** (``--per-radius`` per radius, seed ``--seed``): on axis = within ±20 µm of the
    axis (random sub-pixel phase), off axis at radius r along a random angle; z uniform over the
    inner 80 % of the scanned depth. *Traced*: the library call behind ``cm2 psf image``
@@ -112,25 +113,26 @@ def bench_binning(args: argparse.Namespace, binning: int, design) -> dict:
         for item in scan.iterdir():
             if item.name != "epsf.h5":
                 (frames / item.name).symlink_to(item.resolve())
-    builds = {
-        "oversample 1": (scan, 1),
-        "oversample 4 (synthetic ePSF)": (scan, 4),
-        "oversample 4 (estimated from frames)": (frames, 4),
+    builds = {  # name: scan folder, oversample, interpolation (build option)
+        "oversample 1": (scan, 1, "--focal-surface"),
+        "oversample 4 (synthetic ePSF), fixed depth": (scan, 4, "--fixed-depth"),
+        "oversample 4 (synthetic ePSF)": (scan, 4, "--focal-surface"),
+        "oversample 4 (estimated from frames)": (frames, 4, "--focal-surface"),
     }
     if args.skip_estimate:
         del builds["oversample 4 (estimated from frames)"]
     models, build_info = {}, {}
-    for name, (folder, S) in builds.items():
-        path = root / f"model_S{S}_{folder.name}.h5"
+    for name, (folder, S, interpolation) in builds.items():
+        path = root / f"model_S{S}_{folder.name}_{interpolation.strip('-')}.h5"
         if not path.is_file():
             start = time.perf_counter()
             command = ["lsv", "build", str(folder), "--rank", str(args.rank), "--oversample", str(S), "--no-report"]
-            command += ["--out", str(path)]
+            command += ["--out", str(path), interpolation]
             if args.patch_px:
                 command += ["--patch-px", str(args.patch_px)]
             summary = run(command)
             seconds[f"build {name}"] = time.perf_counter() - start
-            build_info[name] = {k: summary.get(k) for k in ("nmse_calibration", "patch_px", "epsf")}
+            build_info[name] = {k: summary.get(k) for k in ("nmse_calibration", "patch_px", "epsf", "focal_surface")}
         models[name] = load_model(path)
     models["LSI"] = lsi_model(models["oversample 1"])
     zs = models["oversample 1"].grid_z_mm

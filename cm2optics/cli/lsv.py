@@ -129,6 +129,22 @@ def build(
             "sub-pixel position (from the scan's epsf.h5, else estimated from the whole-pixel frames); 1: whole pixels.",
         ),
     ] = 1,
+    focal_surface: Annotated[
+        bool,
+        typer.Option(
+            "--focal-surface/--fixed-depth",
+            help="Interpolate between lateral nodes at equal defocus from each lenslet's best-focus surface (field "
+            "curvature, estimated from the scan) or at fixed depth.",
+        ),
+    ] = True,
+    refine: Annotated[
+        int,
+        typer.Option(
+            "--refine",
+            help="With --focal-surface: lateral steps of the calibration grid cut this many times, where each "
+            "lenslet's coefficients are precomputed along its surface (1–64).",
+        ),
+    ] = 2,
     preset: PresetOption = "cm2-v2",
     overwrite: OverwriteOption = False,
     as_json: JsonOption = False,
@@ -137,7 +153,9 @@ def build(
 
     Removes dark level, background and exposure; fits the imaging geometry (foci, magnification
     against depth, the axial shear from the on-axis stack); crops the foci around their chief rays
-    with the shear undone; truncated SVD into K basis PSFs and coefficients on the calibration grid.
+    with the shear undone; truncated SVD into K basis PSFs and coefficients on the calibration grid;
+    each lenslet's best-focus surface, along which the coefficients are interpolated between
+    lateral nodes (--fixed-depth: at fixed depth, as models without a surface).
     Writes one HDF5 model with its provenance, and a report with the error against K, the first
     basis PSFs and coefficient maps. JSON keys include rank, nmse_calibration, nmse_vs_rank.
     """
@@ -148,6 +166,8 @@ def build(
         raise UserError(f"--rank = {rank}: must be ≥ 1")
     if trim < 0 or trim >= 1:
         raise UserError(f"--trim = {trim}: must lie within 0 ≤ trim < 1")
+    if not 1 <= refine <= 64:
+        raise UserError(f"--refine = {refine}: must lie within 1–64")
     design = load_preset(preset)
     _check_sizes(scan_dir, patch_px, lateral_um, axial_um or design.volume.axial_step_um)
     model_path, folder = _build_paths(scan_dir, out, report_dir, no_report, preset, overwrite)
@@ -162,6 +182,8 @@ def build(
             trim=trim or None,
             progress=progress,
             oversample=oversample,
+            focal_surface=focal_surface,
+            refine=refine,
         )
     summary = _save_build(result, model_path, None if no_report else folder, oversample)
     if as_json:
@@ -195,6 +217,7 @@ def _save_build(result: Any, model_path: Path, report_folder: Path | None, overs
     summary = {"model": str(model_path), **result.summary()}
     if oversample > 1:
         summary["epsf"] = result.model.provenance.get("epsf", {})
+    summary["focal_surface"] = result.model.provenance.get("focal_surface")
     if report_folder is not None:
         summary["report"] = str(write_build_report(result, report_folder))
         claim_folder(report_folder, "lsv build")

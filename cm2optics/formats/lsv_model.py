@@ -3,8 +3,11 @@
 Layout (``format = "cm2optics-lsv"``, ``version = 1``): ``basis`` (K, J, h, w),
 ``coefficients`` (K, nz, ny, nx), ``grid/x_mm|y_mm|z_mm``, ``geometry/r0_poly|A_poly|o_poly|layout``,
 ``svd/singular_values|nmse|nmse_per_psf``, attributes ``sensor_shape``, ``pixel_um``, ``scale``,
-``default_grid`` (JSON) and ``provenance`` (JSON: scan, its fingerprint, build options,
-geometry fit, package version, time). An NPZ file holds the same arrays under the same names
+``oversample``, ``default_grid`` (JSON) and ``provenance`` (JSON: scan, its fingerprint, build
+options, geometry fit, package version, time). Version 2 adds each lenslet's best-focus surface,
+``focal_surface/coefficients`` (J, 4) and ``focal_surface/rms_mm`` (J,), and the attribute
+``refine`` (:mod:`cm2optics.lsv.focal_surface`); a model without a surface is written as
+version 1, and a version-1 file reads without one (plain interpolation), as before. An NPZ file holds the same arrays under the same names
 (``grid/x_mm`` …) and the attributes as one JSON string ``attrs``.
 
 This module reads and writes the fields as plain arrays (:func:`read_lsv_model`,
@@ -28,7 +31,9 @@ from cm2optics.formats.volume import VolumeGrid
 __all__ = ["FORMAT", "VERSION", "ModelError", "read_lsv_model", "write_lsv_model"]
 
 FORMAT = "cm2optics-lsv"
-VERSION = 1
+VERSION = 2
+#: The focal surface's arrays and their paths in the file (version 2).
+_SURFACE = {"coefficients": "focal_surface/coefficients", "rms_mm": "focal_surface/rms_mm"}
 #: Array fields and their paths in the file.
 _ARRAYS = {
     "basis": "basis",
@@ -58,9 +63,11 @@ def json_default(value: Any) -> Any:
 
 
 def _attrs(fields: dict[str, Any]) -> dict[str, Any]:
+    surface = fields.get("focal_surface") is not None
     return {
         "format": FORMAT,
-        "version": VERSION,
+        "version": VERSION if surface else 1,
+        "refine": int(fields.get("refine", 1)),
         "sensor_shape": [int(v) for v in fields["sensor_shape"]],
         "pixel_um": float(fields["pixel_um"]),
         "scale": float(fields.get("scale", 1.0)),
@@ -77,6 +84,8 @@ def write_lsv_model(path: str | Path, fields: dict[str, Any]) -> Path:
     attrs = _attrs(fields)
     arrays = {where: np.asarray(fields.get(name, np.zeros(0))) for name, where in _ARRAYS.items()}
     arrays |= {f"geometry/{k}": np.asarray(v) for k, v in fields["geometry"].items()}
+    if fields.get("focal_surface") is not None:
+        arrays |= {where: np.asarray(fields["focal_surface"][name]) for name, where in _SURFACE.items()}
 
     def write_h5(tmp: Path) -> None:
         with h5py.File(tmp, "w") as f:
@@ -127,6 +136,11 @@ def read_lsv_model(path: str | Path) -> dict[str, Any]:
         fields["pixel_um"] = float(attrs["pixel_um"])
         fields["scale"] = float(attrs.get("scale", 1.0))
         fields["oversample"] = int(attrs.get("oversample", 1))
+        fields["refine"] = int(attrs.get("refine", 1))
+        have = [where in arrays for where in _SURFACE.values()]
+        if any(have) and not all(have):
+            raise ModelError(f"{path}: an incomplete focal surface ({', '.join(_SURFACE.values())})")
+        fields["focal_surface"] = {name: arrays[where] for name, where in _SURFACE.items()} if all(have) else None
         fields["default_grid"] = VolumeGrid.from_dict(json.loads(attrs["default_grid"]))
         fields["provenance"] = json.loads(attrs.get("provenance", "{}"))
         return fields

@@ -29,6 +29,7 @@ from cm2optics.design import SystemDesign, default_design
 from cm2optics.formats.scan import ScanError, ScanIndex, open_scan
 from cm2optics.formats.volume import VolumeGrid
 from cm2optics.lsv.decompose import Decomposition, decompose, numerical_rank, trim_window
+from cm2optics.lsv.focal_surface import FocalSurface, estimate_focal_surface
 from cm2optics.lsv.model import LSVModel
 from cm2optics.lsv.preprocess import Geometry, GeometryFit, estimate_geometry, extract_crops
 
@@ -145,11 +146,18 @@ def _snap_alignment(geometry: Geometry, xs: np.ndarray, ys: np.ndarray, zs: np.n
 
 
 def _check_build_options(
-    oversample: int, rank: int, lateral_um: float | None, axial_um: float | None, design: SystemDesign | None
+    oversample: int,
+    rank: int,
+    lateral_um: float | None,
+    axial_um: float | None,
+    design: SystemDesign | None,
+    refine: int = 1,
 ) -> float:
     """Check build_model's options; returns the axial voxel pitch (µm), defaulted from the design."""
     if not (isinstance(oversample, int) and 1 <= oversample <= 16):
         raise ValueError(f"oversample = {oversample!r}: must be an integer within 1–16")
+    if not (isinstance(refine, int) and 1 <= refine <= 64):
+        raise ValueError(f"refine = {refine!r}: must be an integer within 1–64")
     if rank < 1:
         raise ValueError(f"rank = {rank}: must be ≥ 1")
     if axial_um is None:
@@ -255,6 +263,26 @@ def _fit_geometry(
     return fit, geometry, alignment
 
 
+def _focal_surface(
+    crops: np.ndarray, grid_index: np.ndarray, axes: tuple[np.ndarray, np.ndarray, np.ndarray], refine: int
+) -> tuple[FocalSurface | None, dict[str, Any]]:
+    """Each lenslet's best-focus surface estimated from the registered crops, and its record; a
+    scan that cannot fix one (fewer than 3 depths, or too few stacks whose best focus lies inside
+    the scanned depth) gets a warning and plain interpolation, said so in the record."""
+    try:
+        surface = estimate_focal_surface(crops, grid_index, axes)
+    except ValueError as error:
+        message = f"no focal surface ({error}): the coefficients are interpolated at fixed depth"
+        warnings.warn(message, stacklevel=3)  # at build_model's caller
+        return None, {"fallback": message}
+    return surface, {
+        "refine": refine,
+        "coefficients": surface.coefficients.round(6).tolist(),
+        "rms_residual_mm": surface.rms_mm.round(5).tolist(),
+        "lenslet_axes_mm": surface.axes_mm().round(4).tolist(),
+    }
+
+
 def _warn_rank(rank: int, n_positions: int, model_rank: int) -> None:
     """Warn (at build_model's caller) that the scan's positions allow fewer basis PSFs than asked."""
     warnings.warn(
@@ -277,6 +305,8 @@ def build_model(
     progress: Progress | None = None,
     oversample: int = 1,
     estimate_options: dict[str, Any] | None = None,
+    focal_surface: bool = True,
+    refine: int = 2,
 ) -> BuildResult:
     """Build an LSV model from the scan folder ``scan_dir`` (see the module docstring).
 
@@ -294,8 +324,10 @@ def build_model(
         (:mod:`cm2optics.lsv.epsf`): from the scan's ``epsf.h5`` if it has one (synthetic scans),
         else estimated from the whole-pixel frames (:mod:`cm2optics.lsv.epsf_estimate`); a scan
         whose foci all share one sub-pixel phase falls back to whole pixels, with a warning.
-    """
-    axial_um = _check_build_options(oversample, rank, lateral_um, axial_um, design)
+    focal_surface: interpolate between lateral nodes at equal defocus from each lenslet's
+        best-focus surface, estimated from the scan (:mod:`cm2optics.lsv.focal_surface`), on the
+        grid refined ``refine`` times laterally; False: at fixed depth."""
+    axial_um = _check_build_options(oversample, rank, lateral_um, axial_um, design, refine)
     seconds: dict[str, float] = {}
     start = time.perf_counter()
     index, rows, cols, patch = _open_for_build(scan_dir, design, patch_px)
@@ -312,17 +344,11 @@ def build_model(
 
     start = time.perf_counter()
     gi = index.grid_index()
-    options = {
-        "rank": rank,
-        "patch_px": patch,
-        "trim": trim,
-        "lateral_um": lateral_um,
-        "axial_um": axial_um,
-        "degree": degree,
-        "design": design.name if design is not None else None,
-        "oversample": oversample,
-    }
-    provenance = _build_provenance(index, fit, alignment, options, epsf_info)
+    surface, surface_info = _focal_surface(crops, gi, index.grid_axes_mm(), refine) if focal_surface else (None, None)
+    options = dict(rank=rank, patch_px=patch, trim=trim, lateral_um=lateral_um, axial_um=axial_um, degree=degree)
+    options |= {"design": design.name if design is not None else None, "oversample": oversample}
+    options |= {"focal_surface": surface is not None, "refine": refine if surface is not None else 1}
+    provenance = _build_provenance(index, fit, alignment, options, epsf_info) | {"focal_surface": surface_info}
     synthetic = epsf_info.get("source", "").startswith("synthetic")
     model, decomposition = model_from_crops(
         crops,
@@ -338,6 +364,8 @@ def build_model(
         provenance=provenance,
         oversample=oversample,
         frames=None if oversample == 1 or synthetic else (index, estimate_options),
+        focal_surface=surface,
+        refine=refine,
     )
     seconds["svd"] = time.perf_counter() - start
     if model.rank < rank:
@@ -417,12 +445,13 @@ def model_from_crops(
     provenance: dict[str, Any] | None = None,
     oversample: int = 1,
     frames: tuple[Any, dict[str, Any] | None] | None = None,
+    focal_surface: FocalSurface | None = None,
+    refine: int = 1,
 ) -> tuple[LSVModel, Decomposition]:
-    """Truncated SVD of registered ``crops`` (N, J, h, w) at grid positions ``grid_index`` (N, 3)
-    as (ix, iy, iz) of ``axes`` (x, y, z mm), scaled so that the in-focus on-axis image of a unit
-    source sums to 1, with a default grid spanning the axes (``axial_um`` None: the cm2-v2 preset's
-    ``volume.axial_step_um``). ``trim``: drop the crops' dark
-    margins holding less than this share of the PSF energy (None: keep the full crops)."""
+    """Truncated SVD of registered ``crops`` (N, J, h, w) at grid positions ``grid_index`` (N, 3) as
+    (ix, iy, iz) of ``axes`` (x, y, z mm), scaled so that the in-focus on-axis image of a unit source
+    sums to 1, with a default grid spanning the axes (``axial_um`` None: the cm2-v2 preset's). ``trim``:
+    drop dark margins holding less than this share of the energy (None: keep the full crops)."""
     xs, ys, zs = axes
     S = int(oversample)
     decomposition = decompose(crops, rank)
@@ -452,6 +481,8 @@ def model_from_crops(
         pixel_um=pixel_um,
         default_grid=_default_grid(axes, native_um, lateral_um, axial_um),
         oversample=S if decomposition.basis.shape[-1] % S == 0 else 1,
+        focal_surface=focal_surface,
+        refine=refine if focal_surface is not None else 1,
     )
     on_axis = model.focus_patches(0.0, 0.0, 0.0).sum(dtype=np.float64) / model.oversample**2
     if not on_axis > 0:

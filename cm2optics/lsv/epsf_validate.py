@@ -27,6 +27,8 @@ from typing import Any
 import numpy as np
 
 from cm2optics.lsv.decompose import decompose
+from cm2optics.lsv.focal_surface import FocalSurface
+from cm2optics.lsv.interpolate import axis_coordinate, tent_pairs
 
 __all__ = ["heldout_nodes", "leave_one_out_pixels"]
 
@@ -51,6 +53,60 @@ def _place(patch: np.ndarray, eps: np.ndarray, S: int) -> np.ndarray:
     return place_epsf(patch, (eps[0], eps[1]), S) if S > 1 else _shift_patch(patch, (eps[0], eps[1]))
 
 
+class _Stacks:
+    """The kept node PSFs by grid index: a node's own crop, or its axial stack at other depths."""
+
+    def __init__(self, crops: np.ndarray, row_of: dict, keep: np.ndarray, z_mm: np.ndarray) -> None:
+        self.crops, self.row_of, self.keep, self.zs = crops, row_of, keep, z_mm
+
+    def at(self, index: np.ndarray, z_mm: np.ndarray | None) -> np.ndarray | None:
+        """(J, h·S, w·S) float64 PSFs of node ``index`` (ix, iy, iz), or with ``z_mm`` (J,) those of
+        its lateral position at those depths per lenslet (its axial stack interpolated linearly);
+        None where a node needed is missing or held out."""
+        if z_mm is None:
+            row = self.row_of.get(tuple(index))
+            return None if row is None or not self.keep[row] else self.crops[row].astype(np.float64)
+        lo, hi, t = tent_pairs(axis_coordinate(z_mm, self.zs), len(self.zs))
+        out = np.zeros(self.crops.shape[1:])
+        for j in range(len(out)):
+            for iz, weight in ((lo[j], 1 - t[j]), (hi[j], t[j])):
+                row = self.row_of.get((int(index[0]), int(index[1]), int(iz)))
+                if weight == 0:
+                    continue
+                if row is None or not self.keep[row]:
+                    return None
+                out[j] += weight * self.crops[row, j]
+        return out
+
+
+def _neighbour_predictions(
+    stacks: _Stacks, node: np.ndarray, axes: tuple[np.ndarray, ...], surface: FocalSurface | None
+) -> dict[str, np.ndarray]:
+    """Node ``node`` (ix, iy, iz) predicted by linear interpolation between its two neighbours
+    along x, y and z (those that exist and are kept); with ``surface`` the lateral neighbours'
+    PSFs are taken at the node's defocus from their own best focus."""
+    x_n, y_n, z_n = (axes[k][node[k]] for k in range(3))
+    predictions = {}
+    for axis, name in enumerate("xyz"):
+        lower, upper = node.copy(), node.copy()
+        lower[axis] -= 1
+        upper[axis] += 1
+        if lower[axis] < 0 or upper[axis] >= len(axes[axis]):
+            continue
+        ends = []
+        for index in (lower, upper):
+            depth = None
+            if surface is not None and axis < 2:  # the same defocus from the local best focus
+                depth = z_n - surface.z_best(x_n, y_n) + surface.z_best(axes[0][index[0]], axes[1][index[1]])
+            ends.append(stacks.at(index, depth))
+        if ends[0] is None or ends[1] is None:
+            continue
+        xa, xb, xn = axes[axis][lower[axis]], axes[axis][upper[axis]], axes[axis][node[axis]]
+        t = (xn - xa) / (xb - xa)
+        predictions[name] = (1 - t) * ends[0] + t * ends[1]
+    return predictions
+
+
 def leave_one_out_pixels(
     crops: np.ndarray,
     grid_index: np.ndarray,
@@ -62,12 +118,16 @@ def leave_one_out_pixels(
     rank: int = 64,
     held: np.ndarray,
     basis: np.ndarray | None = None,
+    surface: FocalSurface | None = None,
 ) -> dict[str, Any]:
     """Held-out NMSE (module docstring) of the node PSFs ``crops`` (N, J, h·S, w·S) registered on
     the chief rays, against ``targets`` (N, J, h+3, w+3): each node's frame whose pixel (1 +
     h//2, 1 + w//2) holds the chief ray's integer part, ``eps`` (N, J, 2) its fraction.
     ``held``: the held-out nodes. ``basis``: a rank-K basis (K, J, h·S, w·S) to project on
-    (default: the SVD of the nodes not held out)."""
+    (default: the SVD of the nodes not held out). ``surface``: each lenslet's best-focus surface;
+    with it a lateral neighbour's PSF is taken at the same defocus from the local best focus
+    (``z − z_best(x_n, y_n) + z_best(x_a, y_a)``, its axial stack interpolated linearly), as
+    :func:`cm2optics.lsv.interpolate.defocus_nodes` does."""
     S = int(oversample)
     N, J = crops.shape[:2]
     keep = np.ones(N, bool)
@@ -91,18 +151,9 @@ def leave_one_out_pixels(
         y = targets[n].astype(np.float64)
         return float(((placed - y) ** 2).sum() / max((y**2).sum(), 1e-300))
 
+    stacks = _Stacks(crops, row_of, keep, np.asarray(axes[2], float))
     for n in held:
-        predictions = {}
-        for axis, name in enumerate("xyz"):
-            lower, upper = grid_index[n].copy(), grid_index[n].copy()
-            lower[axis] -= 1
-            upper[axis] += 1
-            a, b = row_of.get(tuple(lower)), row_of.get(tuple(upper))
-            if a is None or b is None or not (keep[a] and keep[b]):
-                continue
-            xa, xb, xn = axes[axis][lower[axis]], axes[axis][upper[axis]], axes[axis][grid_index[n, axis]]
-            t = (xn - xa) / (xb - xa)
-            predictions[name] = (1 - t) * crops[a].astype(np.float64) + t * crops[b].astype(np.float64)
+        predictions = _neighbour_predictions(stacks, np.asarray(grid_index[n]), axes, surface)
         if not predictions:
             continue
         full = np.mean(list(predictions.values()), axis=0)

@@ -17,9 +17,19 @@ from __future__ import annotations
 
 import numpy as np
 
+from cm2optics.lsv.focal_surface import FocalSurface
 from cm2optics.lsv.preprocess import Geometry
 
-__all__ = ["axis_coordinate", "chief_ray_nodes", "coefficient_volume", "tent_pairs", "trilinear_coefficients"]
+__all__ = [
+    "axis_coordinate",
+    "chief_ray_nodes",
+    "coefficient_volume",
+    "defocus_nodes",
+    "refine_axis",
+    "refined_lenslet_coefficients",
+    "tent_pairs",
+    "trilinear_coefficients",
+]
 
 
 def axis_coordinate(values: np.ndarray, axis: np.ndarray) -> np.ndarray:
@@ -89,6 +99,36 @@ def chief_ray_nodes(
     return np.stack(nodes, axis=-2), np.stack(weights, axis=-1)
 
 
+def defocus_nodes(
+    surface: FocalSurface,
+    axes: tuple[np.ndarray, np.ndarray, np.ndarray],
+    lenslet: int,
+    x_mm,
+    y_mm,
+    z_mm,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Eight nodes and weights of lenslet ``lenslet`` at sources (x, y, z) mm that follow the
+    field curvature: the lateral tents at (x, y), and lateral node n's axial stack taken at the
+    same defocus from the local best focus, ``z − z_best(x, y) + z_best(x_n, y_n)`` (mm).
+
+    Returns ``nodes`` (…, 8, 3) as (iz, iy, ix) and ``weights`` (…, 8), summing to 1.
+    """
+    xs, ys, zs = axes
+    x, y, z = np.broadcast_arrays(np.asarray(x_mm, float), np.asarray(y_mm, float), np.asarray(z_mm, float))
+    defocus = z - surface.z_best(x, y, lenslet)
+    xl, xh, tx = tent_pairs(axis_coordinate(x, xs), len(xs))
+    yl, yh, ty = tent_pairs(axis_coordinate(y, ys), len(ys))
+    nodes, weights = [], []
+    for yi, wy in ((yl, 1 - ty), (yh, ty)):
+        for xi, wx in ((xl, 1 - tx), (xh, tx)):
+            depth = defocus + surface.z_best(xs[xi], ys[yi], lenslet)
+            zl, zh, tz = tent_pairs(axis_coordinate(depth, zs), len(zs))
+            for zi, wz in ((zl, 1 - tz), (zh, tz)):
+                nodes.append(np.stack([zi, yi, xi], axis=-1))
+                weights.append(wz * wy * wx)
+    return np.stack(nodes, axis=-2), np.stack(weights, axis=-1)
+
+
 def coefficient_volume(
     coefficients: np.ndarray,
     axes: tuple[np.ndarray, np.ndarray, np.ndarray],
@@ -99,3 +139,34 @@ def coefficient_volume(
     """Trilinear coefficient volumes (K, nz, ny, nx) on the grid x × y × z (1-D axes, mm)."""
     z, y, x = np.meshgrid(z_mm, y_mm, x_mm, indexing="ij")
     return np.moveaxis(trilinear_coefficients(coefficients, axes, x, y, z), -1, 0)
+
+
+def refine_axis(axis: np.ndarray, refine: int) -> np.ndarray:
+    """The grid ``axis`` (mm) with every interval cut into ``refine`` equal steps."""
+    axis = np.asarray(axis, float)
+    if refine == 1 or len(axis) < 2:
+        return axis
+    steps = np.arange(refine) / refine
+    inner = (axis[:-1, None] + np.diff(axis)[:, None] * steps[None, :]).ravel()
+    return np.append(inner, axis[-1])
+
+
+def refined_lenslet_coefficients(
+    coefficients: np.ndarray,
+    axes: tuple[np.ndarray, np.ndarray, np.ndarray],
+    surface: FocalSurface,
+    refine: int,
+) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray], np.ndarray]:
+    """Each lenslet's coefficients (K, nz, ny, nx) interpolated along its focal surface
+    (:func:`defocus_nodes`) onto the calibration grid with its lateral steps cut ``refine``
+    times: returns the refined axes (x, y, z mm; z unchanged) and (J, K, nz, ny', nx') float32.
+    At the calibration nodes the coefficients are the nodes' own."""
+    xs, ys, zs = axes
+    fine = (refine_axis(xs, refine), refine_axis(ys, refine), np.asarray(zs, float))
+    z, y, x = np.meshgrid(fine[2], fine[1], fine[0], indexing="ij")
+    out = np.empty((surface.n_lenslets, coefficients.shape[0]) + z.shape, np.float32)
+    for j in range(surface.n_lenslets):
+        nodes, weights = defocus_nodes(surface, axes, j, x, y, z)
+        values = coefficients[:, nodes[..., 0], nodes[..., 1], nodes[..., 2]]  # (K, nz, ny', nx', 8)
+        out[j] = np.einsum("k...e,...e->k...", values, weights)
+    return fine, out

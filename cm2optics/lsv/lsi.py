@@ -354,4 +354,6 @@ def lsi_model(model: LSVModel) -> LSVModel:
         grid_y_mm=np.array([float(y0)]),
         geometry=lsi_geometry,
         provenance=provenance,
+        focal_surface=None,
+        refine=1,
     )

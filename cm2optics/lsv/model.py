@@ -26,7 +26,8 @@ import numpy as np
 from cm2optics.formats.emitters import Emitters
 from cm2optics.formats.lsv_model import ModelError, read_lsv_model, write_lsv_model
 from cm2optics.formats.volume import VolumeGrid
-from cm2optics.lsv.interpolate import chief_ray_nodes, trilinear_coefficients
+from cm2optics.lsv.focal_surface import FocalSurface
+from cm2optics.lsv.interpolate import chief_ray_nodes, refined_lenslet_coefficients, trilinear_coefficients
 from cm2optics.lsv.preprocess import Geometry
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -57,6 +58,13 @@ class LSVModel:
     provenance: dict[str, Any] = field(default_factory=dict)
     #: S > 1: the basis is an effective PSF on a grid S times finer than the pixels (:mod:`.epsf`).
     oversample: int = 1
+    #: Each lenslet's best-focus surface (:mod:`.focal_surface`); with it the coefficients are
+    #: interpolated between lateral nodes at equal defocus from the local best focus.
+    focal_surface: FocalSurface | None = None
+    #: With a focal surface: lateral steps of the calibration grid are cut ``refine`` times, and
+    #: each lenslet's coefficients precomputed there along its surface (every path then
+    #: interpolates them trilinearly along the chief rays); 1 without a surface.
+    refine: int = 1
 
     def __post_init__(self) -> None:
         if not (isinstance(self.oversample, int | np.integer) and self.oversample >= 1):
@@ -90,6 +98,24 @@ class LSVModel:
         object.__setattr__(self, "grid_z_mm", axes[2])
         object.__setattr__(self, "sensor_shape", tuple(int(s) for s in self.sensor_shape))
         object.__setattr__(self, "_operators", {})
+        self._set_interpolation_grid()
+
+    def _set_interpolation_grid(self) -> None:
+        """Check the focal surface and refinement; precompute each lenslet's refined coefficients."""
+        surface, refine = self.focal_surface, self.refine
+        if not (isinstance(refine, int | np.integer) and 1 <= refine <= 64):
+            raise ModelError(f"refine = {refine!r}: must be an integer within 1–64")
+        if surface is None:
+            if refine != 1:
+                raise ModelError(f"refine = {refine}: needs a focal surface (refine 1 without one)")
+            object.__setattr__(self, "_interpolation", (self.axes, None))
+            return
+        if not isinstance(surface, FocalSurface):
+            raise ModelError(f"focal_surface must be a FocalSurface, got {type(surface).__name__}")
+        if surface.n_lenslets != self.n_lenslets:
+            raise ModelError(f"focal surface has {surface.n_lenslets} lenslets, the basis {self.n_lenslets}")
+        axes, coefficients = refined_lenslet_coefficients(self.coefficients, self.axes, surface, int(refine))
+        object.__setattr__(self, "_interpolation", (axes, coefficients))
 
     # -- shape ------------------------------------------------------------------------------
     @property
@@ -109,6 +135,19 @@ class LSVModel:
     def axes(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Calibration grid (x, y, z), mm."""
         return self.grid_x_mm, self.grid_y_mm, self.grid_z_mm
+
+    @property
+    def interpolation_axes(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Grid (x, y, z mm) of :meth:`lenslet_coefficients`: the calibration grid, its lateral
+        steps cut ``refine`` times with a focal surface."""
+        return self._interpolation[0]  # type: ignore[attr-defined]
+
+    def lenslet_coefficients(self, lenslet: int) -> np.ndarray:
+        """(K, nz, ny, nx) float32 coefficients of ``lenslet`` on :attr:`interpolation_axes`,
+        interpolated trilinearly along its chief rays by every path: the calibration grid's own,
+        or, with a focal surface, precomputed along it on the refined grid."""
+        refined = self._interpolation[1]  # type: ignore[attr-defined]
+        return self.coefficients if refined is None else refined[lenslet]
 
     def outside_calibration(self, positions_mm: np.ndarray, slack: float = 0.05) -> np.ndarray:
         """(N,) True for sources (N, 3) as (x, y, z) mm outside the calibration grid's x/y/z range
@@ -147,12 +186,14 @@ class LSVModel:
 
     # -- point responses (numpy, for checks and figures) ----------------------------------
     def coefficients_at(self, x_mm, y_mm, z_mm, lenslet: int | None = None) -> np.ndarray:
-        """Interpolated coefficients (…, K) at sources (x, y, z) mm: plain trilinear, or along
-        ``lenslet``'s chief rays (what the operators use)."""
+        """Interpolated coefficients (…, K) at sources (x, y, z) mm: plain trilinear on the
+        calibration grid, or ``lenslet``'s along its chief rays (what every path uses; along the
+        focal surface if the model has one: :meth:`lenslet_coefficients`)."""
         if lenslet is None:
             return trilinear_coefficients(self.coefficients, self.axes, x_mm, y_mm, z_mm)
-        nodes, weights = chief_ray_nodes(self.geometry, self.axes, lenslet, x_mm, y_mm, z_mm)
-        values = self.coefficients[:, nodes[..., 0], nodes[..., 1], nodes[..., 2]]  # (K, …, 8)
+        nodes, weights = chief_ray_nodes(self.geometry, self.interpolation_axes, lenslet, x_mm, y_mm, z_mm)
+        coefficients = self.lenslet_coefficients(lenslet)
+        values = coefficients[:, nodes[..., 0], nodes[..., 1], nodes[..., 2]]  # (K, …, 8)
         return np.moveaxis((values * weights).sum(-1), 0, -1)
 
     def focus_patches(self, x_mm: float, y_mm: float, z_mm: float) -> np.ndarray:
@@ -211,6 +252,7 @@ class LSVModel:
         """Write the model as one HDF5 (or ``.npz``) file, atomically (:mod:`cm2optics.formats.lsv_model`)."""
         fields = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
         fields["geometry"] = self.geometry.to_arrays()
+        fields["focal_surface"] = None if self.focal_surface is None else self.focal_surface.to_arrays()
         return write_lsv_model(path, fields)
 
 
@@ -219,6 +261,8 @@ def load_model(path: str | Path) -> LSVModel:
     fields = read_lsv_model(path)
     try:
         fields["geometry"] = Geometry.from_arrays(fields["geometry"])
+        if fields.get("focal_surface") is not None:
+            fields["focal_surface"] = FocalSurface(**fields["focal_surface"])
         return LSVModel(**fields)
     except ModelError as error:
         raise ModelError(f"{path}: {error}") from None

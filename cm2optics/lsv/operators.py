@@ -9,7 +9,9 @@ written lenslet by lenslet: ``g = Σ_j Σ_z Σ_k [M_jk(·, z)·R_z O_z] ⊛ T_{s
 - ``T_s`` is the sub-pixel Keys-cubic shift by ``s_j(z)``, which places lenslet j's foci at
   ``r0(z) + o_j(z)`` (the axial shear);
 - ``P_jk`` is basis PSF k's patch for lenslet j and ``M_jk`` its coefficient map, interpolated
-  trilinearly along lenslet j's chief rays (:mod:`cm2optics.lsv.interpolate`).
+  trilinearly along lenslet j's chief rays (:mod:`cm2optics.lsv.interpolate`) on the model's
+  interpolation grid (the calibration grid, or with a focal surface its refinement, where each
+  lenslet's coefficients were precomputed along the surface: :meth:`LSVModel.lenslet_coefficients`).
 
 A naive evaluation does one full-size FFT convolution per (k, z, j) (``benchmarks/bench_lsv.py``
 does exactly that as the reference). Because the chief-ray interpolation makes the lateral
@@ -302,7 +304,15 @@ class LSVOperator:
         self._slot = {g: i for i, g in enumerate(self.depth_nodes)}
         # node stage
         self._basis = torch.as_tensor(model.basis, device=self.device)  # (K, J, h, w)
-        self._coefficients = torch.as_tensor(model.coefficients, device=self.device)  # (K, nz, ny, nx)
+        # per lenslet (K, nz, ny, nx) on the interpolation grid (one shared tensor without a focal surface)
+        shared = model.focal_surface is None
+        self._coefficients = [
+            torch.as_tensor(model.lenslet_coefficients(0 if shared else j), device=self.device)
+            for j in range(self.n_lenslets)
+        ]
+        if shared:
+            self._coefficients = [self._coefficients[0]] * self.n_lenslets
+        self._axes = model.interpolation_axes
         self._content = (
             int(np.floor(self.shifts[..., 0].min())) - 1,
             int(np.ceil(self.shifts[..., 0].max())) + self.plane_shape[0] + 3,
@@ -310,8 +320,8 @@ class LSVOperator:
             int(np.ceil(self.shifts[..., 1].max())) + self.plane_shape[1] + 3,
         )
         self._grid_xy = (
-            torch.as_tensor(model.grid_x_mm, dtype=torch.float64, device=self.device),
-            torch.as_tensor(model.grid_y_mm, dtype=torch.float64, device=self.device),
+            torch.as_tensor(self._axes[0], dtype=torch.float64, device=self.device),
+            torch.as_tensor(self._axes[1], dtype=torch.float64, device=self.device),
         )
         self.tiles = [self._make_tiles(j) for j in range(self.n_lenslets)]
 
@@ -377,7 +387,7 @@ class LSVOperator:
         Hc, Wc = self.canvas_shape
         rows = np.arange(Hc) + base[0]
         cols = np.arange(Wc) + base[1]
-        xs, ys = model.grid_x_mm, model.grid_y_mm
+        xs, ys = self._axes[:2]
         if abs(A[0, 0]) < 1e-12 and abs(A[1, 1]) < 1e-12:  # row ← y, col ← x
             return "diag", axis_coordinate(rows / A[0, 1], ys), axis_coordinate(cols / A[1, 0], xs)
         if abs(A[0, 1]) < 1e-12 and abs(A[1, 0]) < 1e-12:  # row ← x, col ← y
@@ -386,7 +396,7 @@ class LSVOperator:
 
     def _make_tiles(self, j: int) -> list[_Tile]:
         model = self.model
-        nyc, nxc = len(model.grid_y_mm), len(model.grid_x_mm)
+        nyc, nxc = len(self._axes[1]), len(self._axes[0])
         h, w = model.patch_shape
         H, W = self.sensor_shape
         r_lo, r_hi, c_lo, c_hi = self._content
@@ -489,7 +499,7 @@ class LSVOperator:
         """rfft2 of the node PSFs Q_{(gz, gy, gx), j} of ``tiles`` (one FFT shape, same depth
         nodes) at their FFT shape: (tiles, depth nodes, Fh, Fw//2+1)."""
         nodes = tiles[0].depth_nodes
-        c = torch.stack([self._coefficients[:, nodes, tile.gy, tile.gx].T for tile in tiles])  # (t, d, K)
+        c = torch.stack([self._coefficients[j][:, nodes, tile.gy, tile.gx].T for tile in tiles])  # (t, d, K)
         K, _, h, w = self._basis.shape
         q = (c.reshape(-1, K) @ self._basis[:, j].reshape(K, h * w)).reshape(len(tiles), len(nodes), h, w)
         return torch.fft.rfft2(q, s=tiles[0].fft)
@@ -528,7 +538,8 @@ class LSVOperator:
             return t.numel() * t.element_size()
 
         kernels = (self._ky, self._kx, self._ky_conj, self._kx_conj)
-        total = sum(size(t) for t in (*kernels, self._basis, self._coefficients))
+        coefficients = {id(t): t for t in self._coefficients}.values()
+        total = sum(size(t) for t in (*kernels, self._basis, *coefficients))
         for splat in self._splats:
             for axis in (splat.rows, splat.cols):
                 if axis is not None:

@@ -34,13 +34,13 @@ def coefficient_map(
     operator: LSVOperator, z: int, j: int, region: tuple[int, int, int, int], k: int | None = None
 ) -> np.ndarray:
     """Coefficients of lenslet j for depth plane z on the canvas pixels ``region`` =
-    (r0, r1, c0, c1): trilinear along the chief rays, from the calibration grid. All K maps
+    (r0, r1, c0, c1): trilinear along the chief rays, from the model's interpolation grid. All K maps
     (K, rows, cols), or basis PSF ``k``'s alone (rows, cols)."""
     model = operator.model
     ks = slice(None) if k is None else slice(k, k + 1)
     out = None
     for a, weights in _map_weights(operator, z, j, region):
-        coefficients = model.coefficients[ks, weights[0]].astype(np.float64)  # (k, ny, nx)
+        coefficients = model.lenslet_coefficients(j)[ks, weights[0]].astype(np.float64)  # (k, ny, nx)
         if weights[1] == "separable" and len(weights) == 5:
             term = np.einsum("rx,kyx,cy->krc", weights[2], coefficients, weights[3], optimize=True)
         elif weights[1] == "separable":
@@ -57,7 +57,7 @@ def _map_weights(operator: LSVOperator, z: int, j: int, region: tuple[int, int, 
     tent matrices; otherwise: four nodes and weights per pixel)."""
     model = operator.model
     geometry = model.geometry
-    xs, ys, zs = model.axes
+    xs, ys, zs = model.interpolation_axes
     r0, r1, c0, c1 = region
     z_mm = float(operator.z_mm[z])
     lo, hi, t = tent_pairs(axis_coordinate(np.array(z_mm), zs), len(zs))
@@ -136,7 +136,7 @@ def reference_forward(
             region = (r, r + data.shape[0], c, c + data.shape[1])
             if (z, j) not in maps:
                 maps[(z, j)] = _map_weights(operator, z, j, region)
-            weighted = _apply_map(model, maps[(z, j)], k) * data
+            weighted = _apply_map(model, maps[(z, j)], k, j) * data
             out = fftconvolve(weighted, model.basis[k, j].astype(np.float64))
             top = r + int(operator.canvas_origin[j, 0]) - h // 2
             left = c + int(operator.canvas_origin[j, 1]) - w // 2
@@ -147,11 +147,11 @@ def reference_forward(
     return image
 
 
-def _apply_map(model: LSVModel, weights: list, k: int) -> np.ndarray:
-    """Basis PSF k's coefficient map from cached :func:`_map_weights`."""
+def _apply_map(model: LSVModel, weights: list, k: int, j: int) -> np.ndarray:
+    """Basis PSF k's coefficient map of lenslet j from cached :func:`_map_weights`."""
     out = None
     for a, w in weights:
-        coefficients = model.coefficients[k, w[0]].astype(np.float64)  # (ny, nx)
+        coefficients = model.lenslet_coefficients(j)[k, w[0]].astype(np.float64)  # (ny, nx)
         if w[1] == "separable" and len(w) == 5:
             term = w[2] @ coefficients.T @ w[3].T
         elif w[1] == "separable":

@@ -136,14 +136,14 @@ def render_emitters(
     size_bin = np.where(diameter_px < POINT_BELOW_PX, 0, np.round(diameter_px / SIZE_STEP_PX).astype(np.int64))
     balls = _BallSpectra()
     focus = model.geometry.focus(x, y, z)  # (N, J, 2)
-    coefficients = model.coefficients
     for j in range(J):
         corner = focus[:, j, :] - np.array([h // 2, w // 2])
         visible = (corner[:, 0] > -h - 3) & (corner[:, 0] < H + 3) & (corner[:, 1] > -w - 3) & (corner[:, 1] < W + 3)
         index = np.nonzero(visible)[0]
         if len(index) == 0:
             continue
-        nodes, weights = chief_ray_nodes(model.geometry, model.axes, j, x[index], y[index], z[index])
+        nodes, weights = chief_ray_nodes(model.geometry, model.interpolation_axes, j, x[index], y[index], z[index])
+        coefficients = model.lenslet_coefficients(j)
         c = np.einsum("kne,ne->nk", coefficients[:, nodes[..., 0], nodes[..., 1], nodes[..., 2]], weights)
         c = torch.as_tensor(c * intensity[index, None], dtype=torch.float32)
         n, phases, phase_values = _phases(corner[index], subpixel_steps)

@@ -19,8 +19,9 @@ image through each lenslet is inverted. ``m(z) = m₀·D/(D − z)`` with ``m₀
 magnification and ``D`` the reduced distance from the focal plane to the lenslet vertices
 (working distance less the emission filter's ``t·(1 − 1/n)``), so that the off-axis foci shear
 laterally with depth as in the paper. Each focus is a Gaussian whose width grows with defocus
-(``σ_def = ½·NA·|z|·m``) and, along the direction away from its lenslet's axis, with the
-off-axis distance ``ρ`` (``×(1 + a·ρ²)``); it is pushed outwards by a radial distortion
+from its lenslet's best focus (``σ_def = ½·NA·|z − κ·ρ²|·m``, κ the field curvature, 0 by
+default) and, along the direction away from its lenslet's axis, with the off-axis distance
+``ρ`` (``×(1 + a·ρ²)``); it is pushed outwards by a radial distortion
 ``b·ρ³`` and dimmed by a soft vignetting edge at ``ρ_v`` (side foci vanish for sources far
 from a lenslet, as in the paper for lateral positions > 1.7 mm).
 """
@@ -73,6 +74,8 @@ class AnalyticCM2:
     vignetting_soft_mm: width of the vignetting edge, mm.
     offset_px: (row, col) displacement of the whole image on the sensor, px (a sensor placed off
         its nominal position).
+    field_curvature_per_mm: κ, lenslet j's best focus lies at ``z = κ·ρ²`` (mm, ρ its off-axis
+        distance in mm): the defocus blur grows with ``|z − κ·ρ²|`` (0: a flat focal plane).
     """
 
     magnification: float
@@ -91,6 +94,7 @@ class AnalyticCM2:
     vignetting_mm: float = 3.2
     vignetting_soft_mm: float = 0.25
     offset_px: tuple[float, float] = (0.0, 0.0)
+    field_curvature_per_mm: float = 0.0
 
     def __post_init__(self) -> None:
         if self.sigma0_um is None:
@@ -131,7 +135,8 @@ class AnalyticCM2:
         s_mm = s_mm + direction * (self.distortion_um_per_mm3 * rho**3 / 1000.0)[:, None]
         row = (self.shape[0] - 1) / 2.0 + self.offset_px[0] + s_mm[:, 1] * 1000.0 / self.pixel_um
         col = (self.shape[1] - 1) / 2.0 + self.offset_px[1] + s_mm[:, 0] * 1000.0 / self.pixel_um
-        sigma_um = math.hypot(self.sigma0_um, 0.5 * self.object_na * abs(z_mm) * 1000.0 * m)
+        defocus_mm = z_mm - self.field_curvature_per_mm * rho**2  # from each lenslet's best focus
+        sigma_um = np.hypot(self.sigma0_um, 0.5 * self.object_na * np.abs(defocus_mm) * 1000.0 * m)
         sigma_t = sigma_um / self.pixel_um
         sigma_r = sigma_t * (1.0 + self.aberration_per_mm2 * rho**2)
         cov = np.empty((len(c), 2, 2))
@@ -140,7 +145,7 @@ class AnalyticCM2:
             if rho[j] < 1e-9:
                 u = np.array([1.0, 0.0])
             v = np.array([-u[1], u[0]])
-            cov[j] = sigma_r[j] ** 2 * np.outer(u, u) + sigma_t**2 * np.outer(v, v)
+            cov[j] = sigma_r[j] ** 2 * np.outer(u, u) + sigma_t[j] ** 2 * np.outer(v, v)
         cos4 = (self.reduced_distance_mm / np.hypot(self.reduced_distance_mm, rho)) ** 4
         vignetting = 1.0 / (1.0 + np.exp((rho - self.vignetting_mm) / self.vignetting_soft_mm))
         flux = cos4 * vignetting * (self.reduced_distance_mm / (self.reduced_distance_mm - z_mm)) ** 2
@@ -222,10 +227,15 @@ def analytic_lsv_model(
     patch_px: int | None = None,
     axial_um: float | None = None,
     trim: float | None = 1e-6,
+    focal_surface: bool = False,
+    refine: int = 2,
 ):
     """An :class:`~cm2optics.lsv.model.LSVModel` of the analytic system built straight from
-    noise-free crops on the grid x × y × z (mm): no scan files, the paraxial geometry known."""
+    noise-free crops on the grid x × y × z (mm): no scan files, the paraxial geometry known.
+    ``focal_surface``: estimate each lenslet's best-focus surface from the crops and interpolate
+    along it on the grid refined ``refine`` times (:mod:`cm2optics.lsv.focal_surface`)."""
     from cm2optics.lsv.build import default_patch_px, model_from_crops
+    from cm2optics.lsv.focal_surface import estimate_focal_surface
 
     patch = patch_px or default_patch_px(model.binning)
     xs, ys, zs = (np.asarray(a, float) for a in (x_mm, y_mm, z_mm))
@@ -244,6 +254,8 @@ def analytic_lsv_model(
         axial_um=model.axial_step_um if axial_um is None else axial_um,
         trim=trim,
         provenance={"source": "analytic CM²-like model (cm2optics.lsv.toy), noise-free crops"},
+        focal_surface=estimate_focal_surface(crops, grid_index, (xs, ys, zs)) if focal_surface else None,
+        refine=refine,
     )
     return lsv
 

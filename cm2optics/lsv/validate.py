@@ -5,7 +5,9 @@ Two cases, chosen by comparing the scan with the one the model was built from:
 - **The calibration scan itself: leave-one-out.** For each held-out node (interior nodes,
   a seeded sample), the SVD is redone without it and its coefficients are predicted from its
   neighbours along x, along y and along z (linear between the two neighbours, then averaged);
-  the predicted focus array is compared with the measured crops. Everything runs on Gram
+  the predicted focus array is compared with the measured crops (with the model's focal
+  surface, a lateral neighbour's coefficients are its axial stack's at the same defocus from its
+  own best focus, lenslet by lenslet). Everything runs on Gram
   matrices of the crops (per lenslet), so no pixel is touched twice.
 - **Another scan (e.g. offset by half a step): held-out positions.** Each position's image from
   the model (:meth:`LSVModel.point_image`) is compared with the measured image over the model's
@@ -30,7 +32,7 @@ import torch
 
 from cm2optics.formats.scan import ScanIndex, open_scan
 from cm2optics.lsv.build import scan_fingerprint
-from cm2optics.lsv.interpolate import chief_ray_nodes
+from cm2optics.lsv.interpolate import axis_coordinate, chief_ray_nodes, defocus_nodes, tent_pairs
 from cm2optics.lsv.model import LSVModel
 from cm2optics.lsv.preprocess import extract_crops, prepared_image
 
@@ -92,7 +94,6 @@ def _leave_one_out(
     G = sum(Gj)
     shape = (len(model.grid_x_mm), len(model.grid_y_mm), len(model.grid_z_mm))
     row_of = {tuple(k): n for n, k in enumerate(gi)}
-    axes_mm = (model.grid_x_mm, model.grid_y_mm, model.grid_z_mm)
     candidates = _interior(gi, shape)
     rng = np.random.default_rng(seed)
     if n_heldout > len(candidates):
@@ -114,30 +115,18 @@ def _leave_one_out(
         s, V = _svd(G[np.ix_(others, others)])
         coefficients = V * s  # (N-1, N-1)
         local = {m: i for i, m in enumerate(others)}
-        predictions: dict[str, np.ndarray] = {}
-        for axis, name in enumerate("xyz"):
-            lower, upper = gi[n].copy(), gi[n].copy()
-            lower[axis] -= 1
-            upper[axis] += 1
-            a, b = row_of.get(tuple(lower)), row_of.get(tuple(upper))
-            if a is None or b is None:
-                continue
-            xa, xb, xn = axes_mm[axis][lower[axis]], axes_mm[axis][upper[axis]], axes_mm[axis][gi[n, axis]]
-            t = (xn - xa) / (xb - xa)
-            predictions[name] = (1 - t) * coefficients[local[a]] + t * coefficients[local[b]]
+        predictions = _neighbour_coefficients(model, gi[n], row_of, local, coefficients, J)
         if not predictions:
             continue
-        mean = np.mean(list(predictions.values()), axis=0)
+        mean = np.mean(list(predictions.values()), axis=0)  # (J, N-1)
         for K in ranks:
             k = min(K, len(s))
             inverse = np.where(s[:k] > s[0] * 1e-9, 1.0 / np.maximum(s[:k], 1e-300), 0.0)
-            alpha = V[:, :k] @ (inverse * mean[:k])
-            per_rank[K].append(_loo_error(Gj, others, alpha, n))
+            per_rank[K].append(_loo_error(Gj, others, mean[:, :k] * inverse @ V[:, :k].T, n))
         k = min(K_model, len(s))
         inverse = np.where(s[:k] > s[0] * 1e-9, 1.0 / np.maximum(s[:k], 1e-300), 0.0)
         for name, prediction in predictions.items():
-            alpha = V[:, :k] @ (inverse * prediction[:k])
-            per_axis[name].append(_loo_error(Gj, others, alpha, n))
+            per_axis[name].append(_loo_error(Gj, others, prediction[:, :k] * inverse @ V[:, :k].T, n))
         if progress:
             progress("leave-one-out", count + 1, len(held))
     rank = min(model.rank, max(ranks))
@@ -150,10 +139,71 @@ def _leave_one_out(
     }
 
 
-def _loo_error(Gj: list[np.ndarray], others: np.ndarray, alpha: np.ndarray, n: int) -> float:
-    full = np.zeros(Gj[0].shape[0])
-    full[others] = alpha
-    return _quadratic_error(Gj, [full] * len(Gj), n)
+def _neighbour_coefficients(
+    model: LSVModel, node: np.ndarray, row_of: dict, local: dict[int, int], coefficients: np.ndarray, J: int
+) -> dict[str, np.ndarray]:
+    """Node ``node`` (ix, iy, iz)'s coefficients (J, N−1) per lenslet, predicted linearly between its
+    two neighbours along x, y and z; with the model's focal surface a lateral neighbour's are
+    those of its axial stack at the same defocus from its own best focus (per lenslet)."""
+    axes_mm = (model.grid_x_mm, model.grid_y_mm, model.grid_z_mm)
+    x_n, y_n, z_n = (axes_mm[k][node[k]] for k in range(3))
+    surface = model.focal_surface
+    z_best_n = None if surface is None else surface.z_best(x_n, y_n)  # (J,)
+    predictions: dict[str, np.ndarray] = {}
+    for axis, name in enumerate("xyz"):
+        lower, upper = node.copy(), node.copy()
+        lower[axis] -= 1
+        upper[axis] += 1
+        if lower[axis] < 0 or upper[axis] >= len(axes_mm[axis]):
+            continue
+        ends = []
+        for index in (lower, upper):
+            depths = None  # the neighbour's own node; laterally with a surface: the same defocus there
+            if surface is not None and axis < 2:
+                depths = z_n - z_best_n + surface.z_best(axes_mm[0][index[0]], axes_mm[1][index[1]])
+            ends.append(_stack_coefficients(model, index, depths, row_of, local, coefficients, J))
+        if ends[0] is None or ends[1] is None:
+            continue
+        xa, xb, xn = axes_mm[axis][lower[axis]], axes_mm[axis][upper[axis]], axes_mm[axis][node[axis]]
+        t = (xn - xa) / (xb - xa)
+        predictions[name] = (1 - t) * ends[0] + t * ends[1]
+    return predictions
+
+
+def _stack_coefficients(
+    model: LSVModel,
+    index: np.ndarray,
+    depths_mm: np.ndarray | None,
+    row_of: dict,
+    local: dict[int, int],
+    coefficients: np.ndarray,
+    J: int,
+) -> np.ndarray | None:
+    """(J, N−1) coefficients of node ``index`` (ix, iy, iz), or with ``depths_mm`` (J,) those of
+    its axial stack at those depths per lenslet (linear); None if a node needed is missing or held
+    out."""
+    if depths_mm is None:
+        row = row_of.get(tuple(index))
+        return None if row not in local else np.broadcast_to(coefficients[local[row]], (J, coefficients.shape[1]))
+    zs = model.grid_z_mm
+    lo, hi, t = tent_pairs(axis_coordinate(depths_mm, zs), len(zs))
+    out = np.zeros((J, coefficients.shape[1]))
+    for j in range(J):
+        for iz, weight in ((lo[j], 1 - t[j]), (hi[j], t[j])):
+            row = row_of.get((index[0], index[1], int(iz)))
+            if weight == 0:
+                continue
+            if row not in local:
+                return None
+            out[j] += weight * coefficients[local[row]]
+    return out
+
+
+def _loo_error(Gj: list[np.ndarray], others: np.ndarray, alphas: np.ndarray, n: int) -> float:
+    """Held-out error of lenslet-wise weights ``alphas`` (J, N−1) of the other nodes' crops."""
+    full = np.zeros((len(Gj), Gj[0].shape[0]))
+    full[:, others] = alphas
+    return _quadratic_error(Gj, list(full), n)
 
 
 def _subgrid(
@@ -181,7 +231,10 @@ def _subgrid(
     x, y, z = (axes_full[a][gi[dropped, a]] for a in range(3))
     interpolated = []
     for j in range(J):
-        nodes, weights = chief_ray_nodes(model.geometry, sub_axes, j, x, y, z)  # (n_d, 8, 3), (n_d, 8)
+        if model.focal_surface is not None:  # the model's own interpolation: along the focal surface
+            nodes, weights = defocus_nodes(model.focal_surface, sub_axes, j, x, y, z)
+        else:
+            nodes, weights = chief_ray_nodes(model.geometry, sub_axes, j, x, y, z)  # (n_d, 8, 3), (n_d, 8)
         interpolated.append(np.einsum("knm,nm->nk", grid[:, nodes[..., 0], nodes[..., 1], nodes[..., 2]], weights))
     out: dict[str, float | None] = {}
     for K in ranks:

@@ -93,15 +93,19 @@ def plot_coefficients(model: LSVModel, path: Path, count: int = 4) -> None:
     fig = Figure(figsize=(3.0 * count, 8.4))
     for k in range(count):
         coarse = model.coefficients[k, iz]
-        lateral = model.coefficients_at(fine_x[None, :], fine_y[:, None], np.full((len(fine_y), len(fine_x)), zs[iz]))[
-            ..., k
-        ]
-        section = model.coefficients_at(fine_x[None, :], np.zeros((len(fine_z), len(fine_x))), fine_z[:, None])[..., k]
+        # the central lenslet's, as every path interpolates them (along its focal surface if any)
+        centre = model.n_lenslets // 2
+        lateral = model.coefficients_at(
+            fine_x[None, :], fine_y[:, None], np.full((len(fine_y), len(fine_x)), zs[iz]), lenslet=centre
+        )[..., k]
+        section = model.coefficients_at(
+            fine_x[None, :], np.zeros((len(fine_z), len(fine_x))), fine_z[:, None], lenslet=centre
+        )[..., k]
         for row, (data, extent, title, labels) in enumerate(
             (
                 (coarse, (xs[0], xs[-1], ys[-1], ys[0]), f"k = {k + 1}: grid, z = {zs[iz]:g} mm", ("x mm", "y mm")),
-                (lateral, (xs[0], xs[-1], ys[-1], ys[0]), "interpolated in x, y", ("x mm", "y mm")),
-                (section, (xs[0], xs[-1], zs[-1], zs[0]), "interpolated in x, z (y = 0)", ("x mm", "z mm")),
+                (lateral, (xs[0], xs[-1], ys[-1], ys[0]), "central lenslet, interpolated in x, y", ("x mm", "y mm")),
+                (section, (xs[0], xs[-1], zs[-1], zs[0]), "central lenslet, in x, z (y = 0)", ("x mm", "z mm")),
             )
         ):
             ax = fig.add_subplot(3, count, row * count + k + 1)

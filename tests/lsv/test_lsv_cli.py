@@ -15,6 +15,7 @@ from typer.testing import CliRunner
 from cm2optics.cli.lsv import lsv_app, simulate_command
 from cm2optics.formats.emitters import Emitters, write_emitters
 from cm2optics.formats.volume import write_volume
+from cm2optics.lsv.model import load_model
 from cm2optics.lsv.toy import AnalyticCM2, write_analytic_scan
 from cm2optics.reports.lsv import FIGURES
 
@@ -52,6 +53,10 @@ def test_build_json_model_and_report(model):
     assert summary["rank"] == 16
     assert 0 <= summary["nmse_calibration"] < 0.05
     assert set(summary["nmse_vs_rank"]) >= {"1", "4", "8", "16"}
+    # a flat field whose 1-px foci hardly change over ±0.3 mm: no measurable best focus, so no
+    # focal surface (the build says why) and plain interpolation
+    assert "no focal surface" in summary["focal_surface"]["fallback"]
+    assert load_model(path).focal_surface is None
     report = Path(summary["report"])
     assert report.name == "report.html" and report.is_file()
     for name in FIGURES:
@@ -221,6 +226,7 @@ def test_simulate_volume_per_lenslet_and_lsi(model, tmp_path):
     [
         (["lsv", "build", "/no/such/scan"], "no such scan folder"),
         (["lsv", "build", "{scan}", "--rank", "0"], "--rank = 0"),
+        (["lsv", "build", "{scan}", "--refine", "0"], "--refine = 0"),
         (["lsv", "validate", "/no/model.h5", "{scan}"], "no such model file"),
         (["lsv", "validate", "{model}", "{scan}", "--ranks", "a,b"], "--ranks"),
         (["simulate", "--model", "{model}", "--out", "x.tif"], "exactly one of --volume and --emitters"),
