@@ -214,3 +214,11 @@ def test_cm2_train_export_refuses_a_missing_checkpoint_and_a_users_folder(tmp_pa
         "config.yaml",
         "model.safetensors",
     ]
+
+
+def test_running_mean_of_the_loss_curve():
+    from cm2optics.recon.net.train import running_mean
+
+    np.testing.assert_allclose(running_mean(np.array([1.0, 2.0, 3.0, 4.0]), 2), [1.0, 1.5, 2.5, 3.5])
+    np.testing.assert_allclose(running_mean(np.arange(10.0), 100), np.arange(10.0) / 2)
+    assert running_mean(np.zeros(0), 5).shape == (0,)

@@ -209,34 +209,52 @@ def evaluate(
 
 
 # ----------------------------------------------------------------------------- files
+def running_mean(values: np.ndarray, window: int) -> np.ndarray:
+    """Mean of the last ``window`` values at each position (fewer at the start), same length."""
+    values = np.asarray(values, float)
+    if len(values) == 0:
+        return values
+    cumulative = np.concatenate([[0.0], np.cumsum(values)])
+    ends = np.arange(1, len(values) + 1)
+    starts = np.maximum(ends - window, 0)
+    return (cumulative[ends] - cumulative[starts]) / (ends - starts)
+
+
 def plot_history(history: dict[str, Any], path: str | Path) -> Path:
     """The loss curve (per step) and validation loss (per epoch) as a PNG."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    fig = Figure(figsize=(7, 4), dpi=110)
+    fig = Figure(figsize=(10, 4), dpi=110)
     FigureCanvasAgg(fig)
-    ax = fig.add_subplot(1, 1, 1)
+    ax, ax_f1 = fig.subplots(1, 2, gridspec_kw={"width_ratios": [1.6, 1]})
     steps = history.get("steps", [])
     if steps:
         x = np.arange(1, len(steps) + 1)
-        for key, style in (("loss", "-"), ("demix", ":"), ("volume", "--")):
-            ax.plot(x, [s[key] for s in steps], style, lw=1, label=f"train {key}")
-    epochs = history.get("epochs", [])
-    if epochs and any("val_loss" in e for e in epochs):
-        ax.plot(
-            [e["step"] for e in epochs if "val_loss" in e],
-            [e["val_loss"] for e in epochs if "val_loss" in e],
-            "o-",
-            label="validation loss",
-        )
+        for (key, style), colour in zip(
+            (("loss", "-"), ("demix", ":"), ("volume", "--")), ("C0", "C1", "C2"), strict=True
+        ):
+            values = np.array([s[key] for s in steps], float)
+            ax.plot(x, values, style, lw=0.5, color=colour, alpha=0.2)
+            ax.plot(x, running_mean(values, 100), style, lw=1.5, color=colour, label=f"train {key} (mean of 100 steps)")
+    epochs = [e for e in history.get("epochs", []) if "val_loss" in e]
+    if epochs:
+        ax.plot([e["step"] for e in epochs], [e["val_loss"] for e in epochs], "o-", color="C3", label="validation loss")
+        for key, marker in (("f1", "o-"), ("precision", "^--"), ("recall", "v--")):
+            ax_f1.plot([e["step"] for e in epochs], [e.get(key, np.nan) for e in epochs], marker, ms=3, label=key)
     ax.set_xlabel("step")
     ax.set_ylabel("loss")
     ax.set_yscale("log")
     ax.grid(alpha=0.3)
     if steps or epochs:
-        ax.legend(fontsize=8)
+        ax.legend(fontsize=7)
     ax.set_title("CM²Net training")
+    ax_f1.set_xlabel("step")
+    ax_f1.set_ylim(0, 1)
+    ax_f1.grid(alpha=0.3)
+    ax_f1.set_title("validation detection (threshold of the config)", fontsize=9)
+    if epochs:
+        ax_f1.legend(fontsize=7)
     fig.tight_layout()
     return write_atomic(Path(path), lambda tmp: fig.savefig(tmp, format="png"))
 
