@@ -464,6 +464,25 @@ def _criterion(problem: Problem, n: int) -> Callable[[float, int], float]:
     return lambda chi2, k: n * math.log(max(chi2, 1e-300) / n) + k * math.log(n)
 
 
+#: Candidates of a round, best first by their one-step score, that get a few Gauss–Newton steps
+#: before the choice (an effect far outside its linear range, a vignetting edge moved by more
+#: than its softness, is under-scored by one linear step).
+FINALISTS = 3
+
+
+def _finalists(problem: Problem, scored: list, kept: list[str], bic, k_now: int) -> tuple[float, str, State] | None:
+    """The round's choice: the :data:`FINALISTS` best one-step candidates refined by three
+    Gauss–Newton steps each (probes are refined already), then the lowest criterion."""
+    best = None
+    for score, key, candidate, linear in sorted(scored, key=lambda item: item[0])[:FINALISTS]:
+        if linear:
+            candidate, c, _ = _refine(problem, candidate, kept + [key], iterations=3)
+            score = bic(c, k_now + len(_effect(problem, key).parameters))
+        if best is None or score < best[0]:
+            best = (score, key, candidate)
+    return best
+
+
 def attribute(problem: Problem, *, max_effects: int = 6, progress: Progress | None = None) -> Attribution:
     """Run the loop of the module docstring on ``problem``."""
     say = progress or (lambda message: None)
@@ -479,7 +498,7 @@ def attribute(problem: Problem, *, max_effects: int = 6, progress: Progress | No
         base = problem.features(state)
         params = _parameters(problem, kept)
         k_now = len(params)
-        best: tuple[float, str, State] | None = None
+        scored: list[tuple[float, str, State, bool]] = []
         base_jac = _columns(problem, state, params, base)
         for effect in problem.candidates:
             if effect.key in kept:
@@ -500,9 +519,8 @@ def attribute(problem: Problem, *, max_effects: int = 6, progress: Progress | No
                     c = problem.chi2(problem.features(candidate))
                 else:  # a probe starts far from the answer (a halo's width): a few steps, not one
                     candidate, c, _ = _refine(problem, candidate, kept + [effect.key], iterations=3)
-                score = bic(c, k_now + len(extra))
-                if best is None or score < best[0]:
-                    best = (score, effect.key, candidate)
+                scored.append((bic(c, k_now + len(extra)), effect.key, candidate, start == effect.defaults()))
+        best = _finalists(problem, scored, kept, bic, k_now)
         current_bic = bic(chi2, k_now)
         if best is None or current_bic - best[0] < BIC_THRESHOLD:
             say("no further effect is significant")

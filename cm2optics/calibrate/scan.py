@@ -24,6 +24,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+from warnings import catch_warnings, simplefilter
 
 import numpy as np
 
@@ -66,14 +67,27 @@ def _check_scan(scan: PSFScan, design: SystemDesign) -> None:
 
 
 def _spread_px(centroids: np.ndarray) -> float:
-    """Median distance (px) of the foci from their images' mean focus position."""
-    return float(np.nanmedian(np.linalg.norm(centroids - np.nanmean(centroids, axis=1, keepdims=True), axis=-1)))
+    """Median distance (px) of the foci from their images' mean focus position (NaN: none)."""
+    with catch_warnings():
+        simplefilter("ignore", RuntimeWarning)  # an image without foci is a NaN, not a warning
+        mean = np.nanmean(centroids, axis=1, keepdims=True)
+        return float(np.nanmedian(np.linalg.norm(centroids - mean, axis=-1)))
+
+
+#: Foci dimmer than this share of their image's brightest (model) focus take no part in the
+#: magnification check: at the field's edge their data centroids are mostly noise.
+BRIGHT_FOCUS = 0.1
 
 
 def _check_magnification(before: ResidualAnalysis) -> None:
-    """The foci's spread in the data against the model's: beyond 10 %, another design."""
-    used = before.used
-    ratio = _spread_px(before.data.centroid_px[used]) / max(_spread_px(before.model.centroid_px[used]), 1e-9)
+    """The foci's spread in the data against the model's, over the bright foci of the frames
+    used: beyond 10 %, another design."""
+    energy = before.model.energy[before.used]
+    with np.errstate(invalid="ignore"):
+        bright = energy >= BRIGHT_FOCUS * np.nanmax(energy, axis=1, keepdims=True)
+    data = np.where(bright[..., None], before.data.centroid_px[before.used], np.nan)
+    model = np.where(bright[..., None], before.model.centroid_px[before.used], np.nan)
+    ratio = _spread_px(data) / max(_spread_px(model), 1e-9)
     if np.isfinite(ratio) and abs(ratio - 1.0) > MAGNIFICATION_TOLERANCE:
         raise CalibrationError(
             f"the scan's foci spread {ratio:.2f}× as far as the design's (more than "
@@ -109,7 +123,7 @@ def _model_rate(simulator: TracerSimulator, positions: np.ndarray, attribution: 
 
 def _unexplained(after: ResidualAnalysis, noise_known: bool) -> list[dict[str, Any]]:
     """The signature of what remains above the noise after the fit (empty when nothing does)."""
-    if not np.any(after.used) or (noise_known and after.chi2_total <= CHI2_FLOOR):
+    if not np.any(after.used):
         return []
     ratio = np.where(after.used[:, None], after.energy_ratio, np.nan)
     deviation = np.abs(ratio - 1.0)
@@ -122,6 +136,8 @@ def _unexplained(after: ResidualAnalysis, noise_known: bool) -> list[dict[str, A
     residual_energy = float(np.sum(np.abs(after.residual_counts[after.used])))
     signal = after.model_counts[after.used] - after.registration.dark_level
     fraction = residual_energy / max(float(np.sum(np.abs(signal))), 1e-30)
+    if after.chi2_total <= CHI2_FLOOR and (noise_known or not flagged):
+        return []  # at the noise floor (with the noise estimated: and no lenslet out of line)
     if not (noise_known or flagged or worst.any()):
         return []
     where = np.flatnonzero(worst) if worst.any() else np.flatnonzero(after.used)
