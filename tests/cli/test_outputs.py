@@ -180,7 +180,8 @@ def _cm2(*args: str) -> subprocess.Popen:
     )
 
 
-PSF = ["psf", "simulate", "--grid", "1x1x3", "--binning", "8", "--workers", "1", "--json"]
+# five positions: room to interrupt after the first, even on a loaded machine
+PSF = ["psf", "simulate", "--grid", "1x1x5", "--binning", "8", "--workers", "1", "--json"]
 
 
 @pytest.fixture(scope="module")
@@ -193,7 +194,7 @@ def psf_reference(tmp_path_factory) -> dict[str, str]:
     assert codes in ([0, 0], [0, 2]), results
     if codes == [0, 2]:
         assert "another `cm2 psf simulate` is writing there" in [e for c, e in results if c == 2][0]
-    assert read_scan(out).images.shape[0] == 3
+    assert read_scan(out).images.shape[0] == 5
     assert not list(out.parent.glob(".scan*")), "work, staging or lock folders left behind"
     return _files(out)
 
