@@ -169,6 +169,14 @@ def test_debug_shows_tracebacks(monkeypatch, how):
 # ----------------------------------------------------------------------------- interrupts and races
 
 
+def _default_interrupts() -> None:
+    """In the child before exec: Ctrl-C and SIGTERM as a terminal delivers them. A disposition
+    set to 'ignore' is inherited across exec (and Python then installs no KeyboardInterrupt), and
+    a library used by an earlier test in this pytest process may have left SIGINT ignored."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
 def _cm2(*args: str) -> subprocess.Popen:
     return subprocess.Popen(
         [sys.executable, "-m", "cm2optics.cli", *args],
@@ -177,6 +185,7 @@ def _cm2(*args: str) -> subprocess.Popen:
         stderr=subprocess.PIPE,
         text=True,
         start_new_session=True,
+        preexec_fn=_default_interrupts,
     )
 
 
