@@ -26,6 +26,7 @@ from typer.testing import CliRunner
 from cm2optics.cli import app
 
 runner = CliRunner()
+SHIPPED_WEIGHTS = Path(__file__).resolve().parents[2] / "reconstruction" / "cm2net-cpu"
 
 
 # ----------------------------------------------------------------------------- fixtures
@@ -555,7 +556,45 @@ def _input_cases() -> list[Case]:
     ]
 
 
-CASES = _output_cases() + _input_cases()
+def _network_and_calibration_cases() -> list[Case]:
+    """`cm2 net-testset` (weights: the repository's shipped folder), `cm2 train`, `cm2 calibrate scan`."""
+    weights = str(SHIPPED_WEIGHTS)
+    return [
+        Case("net-testset", "output-is-input", ["net-testset", weights, weights], ("is the input",)),
+        Case("net-testset", "output-is-input", ["net-testset", weights, weights + "/sub"], ("inside the input",)),
+        Case(
+            "net-testset",
+            "existing-output",
+            ["net-testset", weights, "{case}"],
+            ("not empty", "--overwrite"),
+            {"k": "x"},
+        ),
+        Case("net-testset", "output-under-file", ["net-testset", weights, "{regular}/o"], ("regular", "is a file")),
+        Case("net-testset", "input-file", ["net-testset", "{missing}", "{case}/o"], ("missing.tif", "no such")),
+        Case(
+            "net-testset",
+            "input-file",
+            ["net-testset", "{case}/w", "{case}/o"],
+            ("SHA256SUMS", "missing"),
+            {"w/": "", "w/config.yaml": "channels: 8\n"},
+        ),
+        Case("train", "input-file", ["train", "{missing}"], ("missing.tif", "no such")),
+        Case("train", "input-file", ["train", "{garbage_yaml}"], ("garbage.yaml", "YAML")),
+        Case("calibrate scan", "input-file", ["calibrate", "scan", "{missing}", "--out", "{case}/r"], ("no such",)),
+        Case("calibrate scan", "input-file", ["calibrate", "scan", "{root}", "--out", "{case}/r"], ("scan.yaml",)),
+        Case(
+            "calibrate scan", "output-is-input", ["calibrate", "scan", "{scan}", "--out", "{scan}"], ("is the input",)
+        ),
+        Case(
+            "calibrate scan",
+            "option",
+            ["calibrate", "scan", "{scan}", "--preset", "nope", "--out", "{case}/r"],
+            ("unknown preset",),
+        ),
+    ]
+
+
+CASES = _output_cases() + _input_cases() + _network_and_calibration_cases()
 
 
 def _id(case: Case) -> str:
@@ -574,7 +613,14 @@ def catalogue_counts() -> dict[str, collections.Counter]:
 def test_the_catalogue_is_large_and_covers_every_writing_command():
     assert len(CASES) >= 100
     commands = {c.command for c in CASES}
-    for name in [*FOLDER_WRITERS, *FILE_WRITERS, "compare-baselines", "lsv validate", "spectra fit-filter"]:
+    for name in [
+        *FOLDER_WRITERS,
+        *FILE_WRITERS,
+        "compare-baselines",
+        "lsv validate",
+        "spectra fit-filter",
+        "net-testset",
+    ]:
         assert _command(name) in commands
 
 
@@ -591,7 +637,8 @@ def test_bad_input(case: Case, inputs, tmp_path, monkeypatch):
     args = [a.format(**values) for a in case.args]
     if case.cwd:
         monkeypatch.chdir(tmp_path)
-    before = _tree(inputs["root"], tmp_path)
+    watched = (inputs["root"], tmp_path, *([SHIPPED_WEIGHTS] if str(SHIPPED_WEIGHTS) in args else []))
+    before = _tree(*watched)
     result = runner.invoke(app, args)
     output = result.output + (result.stderr if result.stderr_bytes is not None else "")
     assert result.exit_code == case.code, f"{args}: exit {result.exit_code}\n{output}"
@@ -600,7 +647,7 @@ def test_bad_input(case: Case, inputs, tmp_path, monkeypatch):
     assert len(lines) == 1, result.stderr
     for text in case.expect:
         assert text in lines[0], f"{text!r} not in {lines[0]!r}"
-    after = _tree(inputs["root"], tmp_path)
+    after = _tree(*watched)
     changed = sorted(k for k in before.keys() | after.keys() if before.get(k) != after.get(k))
     assert not changed, f"an input or an earlier output changed, or debris was left: {changed}"
 

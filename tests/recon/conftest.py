@@ -23,3 +23,14 @@ def lsv_model(lsv_model_path):
     from cm2optics.lsv.model import load_model
 
     return load_model(lsv_model_path)
+
+
+@pytest.fixture(scope="module")
+def one_torch_thread():
+    """Torch on one thread for a module's tests (small nets run faster so on two shared cores)."""
+    import torch
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)

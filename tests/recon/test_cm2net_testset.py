@@ -10,7 +10,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
 from tiny_net import tiny
 
 from cm2optics.recon.net.data import VALIDATION_SEED_OFFSET
@@ -19,13 +18,7 @@ from cm2optics.recon.net.train import make_net
 from cm2optics.recon.net.weights import load_weights, save_weights
 from cm2optics.synth.config import SynthConfig
 
-
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture(scope="module")

@@ -28,12 +28,7 @@ def tiny(out: Path, **changes) -> NetConfig:
     return tiny_config(**{"epochs": 2, "out_dir": str(out), **changes})
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def _state(folder: Path) -> dict[str, torch.Tensor]:
