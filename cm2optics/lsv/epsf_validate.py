@@ -29,6 +29,7 @@ import numpy as np
 from cm2optics.lsv.decompose import decompose
 from cm2optics.lsv.focal_surface import FocalSurface
 from cm2optics.lsv.interpolate import axis_coordinate, tent_pairs
+from cm2optics.lsv.rotation import AzimuthTurn
 
 __all__ = ["heldout_nodes", "leave_one_out_pixels"]
 
@@ -80,11 +81,16 @@ class _Stacks:
 
 
 def _neighbour_predictions(
-    stacks: _Stacks, node: np.ndarray, axes: tuple[np.ndarray, ...], surface: FocalSurface | None
+    stacks: _Stacks,
+    node: np.ndarray,
+    axes: tuple[np.ndarray, ...],
+    surface: FocalSurface | None,
+    turn: AzimuthTurn | None = None,
 ) -> dict[str, np.ndarray]:
     """Node ``node`` (ix, iy, iz) predicted by linear interpolation between its two neighbours
     along x, y and z (those that exist and are kept); with ``surface`` the lateral neighbours'
-    PSFs are taken at the node's defocus from their own best focus."""
+    PSFs are taken at the node's defocus from their own best focus; with ``turn`` they are turned
+    to the node's azimuth about each lenslet's axis first (:mod:`cm2optics.lsv.rotation`)."""
     x_n, y_n, z_n = (axes[k][node[k]] for k in range(3))
     predictions = {}
     for axis, name in enumerate("xyz"):
@@ -98,7 +104,10 @@ def _neighbour_predictions(
             depth = None
             if surface is not None and axis < 2:  # the same defocus from the local best focus
                 depth = z_n - surface.z_best(x_n, y_n) + surface.z_best(axes[0][index[0]], axes[1][index[1]])
-            ends.append(stacks.at(index, depth))
+            end = stacks.at(index, depth)
+            if turn is not None and axis < 2 and end is not None:
+                end = turn(end, (x_n, y_n), (axes[0][index[0]], axes[1][index[1]]), z_n, int(node[2]))
+            ends.append(end)
         if ends[0] is None or ends[1] is None:
             continue
         xa, xb, xn = axes[axis][lower[axis]], axes[axis][upper[axis]], axes[axis][node[axis]]
@@ -119,6 +128,7 @@ def leave_one_out_pixels(
     held: np.ndarray,
     basis: np.ndarray | None = None,
     surface: FocalSurface | None = None,
+    turn: AzimuthTurn | None = None,
 ) -> dict[str, Any]:
     """Held-out NMSE (module docstring) of the node PSFs ``crops`` (N, J, h·S, w·S) registered on
     the chief rays, against ``targets`` (N, J, h+3, w+3): each node's frame whose pixel (1 +
@@ -127,7 +137,9 @@ def leave_one_out_pixels(
     (default: the SVD of the nodes not held out). ``surface``: each lenslet's best-focus surface;
     with it a lateral neighbour's PSF is taken at the same defocus from the local best focus
     (``z − z_best(x_n, y_n) + z_best(x_a, y_a)``, its axial stack interpolated linearly), as
-    :func:`cm2optics.lsv.interpolate.defocus_nodes` does."""
+    :func:`cm2optics.lsv.interpolate.defocus_nodes` does. ``turn``: each lateral neighbour's PSFs
+    turned to the node's azimuth about each lenslet's axis before the blend
+    (:class:`~cm2optics.lsv.rotation.AzimuthTurn`)."""
     S = int(oversample)
     N, J = crops.shape[:2]
     keep = np.ones(N, bool)
@@ -153,7 +165,7 @@ def leave_one_out_pixels(
 
     stacks = _Stacks(crops, row_of, keep, np.asarray(axes[2], float))
     for n in held:
-        predictions = _neighbour_predictions(stacks, np.asarray(grid_index[n]), axes, surface)
+        predictions = _neighbour_predictions(stacks, np.asarray(grid_index[n]), axes, surface, turn)
         if not predictions:
             continue
         full = np.mean(list(predictions.values()), axis=0)
