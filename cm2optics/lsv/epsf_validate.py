@@ -31,7 +31,7 @@ from cm2optics.lsv.focal_surface import FocalSurface
 from cm2optics.lsv.interpolate import axis_coordinate, tent_pairs
 from cm2optics.lsv.rotation import AzimuthTurn
 
-__all__ = ["heldout_nodes", "leave_one_out_pixels"]
+__all__ = ["heldout_nodes", "leave_one_out_pixels", "turn_check"]
 
 
 def heldout_nodes(grid_index: np.ndarray, n: int, seed: int) -> np.ndarray:
@@ -187,3 +187,37 @@ def leave_one_out_pixels(
             "low_rank": result["interpolated_rank"] - result["interpolated_full"],
         }
     return result
+
+
+def turn_check(
+    crops: np.ndarray,
+    grid_index: np.ndarray,
+    axes: tuple[np.ndarray, np.ndarray, np.ndarray],
+    surface: FocalSurface | None,
+    turn: AzimuthTurn,
+    *,
+    n_heldout: int = 24,
+    seed: int = 0,
+) -> dict[str, Any]:
+    """Does turning the lateral neighbours' PSFs with the azimuth predict nodes left out better?
+    For ``n_heldout`` seeded interior nodes, each node's registered crops (N, J, h, w) predicted
+    from its x and y neighbours (the node left out, full rank, along ``surface`` if given) with
+    and without ``turn``; returns the mean NMSE of each against the node's own crops."""
+    gi = np.asarray(grid_index)
+    held = heldout_nodes(gi, n_heldout, seed)
+    keep = np.ones(len(gi), bool)
+    keep[held] = False
+    stacks = _Stacks(crops, {tuple(k): n for n, k in enumerate(gi)}, keep, np.asarray(axes[2], float))
+    errors: dict[str, list[float]] = {"fixed_orientation": [], "turned": []}
+    for n in held:
+        y = np.asarray(crops[n], np.float64)
+        norm = max(float((y**2).sum()), 1e-300)
+        for name, how in (("fixed_orientation", None), ("turned", turn)):
+            predictions = _neighbour_predictions(stacks, gi[n], axes, surface, how)
+            lateral = [p for axis, p in predictions.items() if axis in "xy"]
+            if lateral:
+                errors[name].append(float(np.mean([((p - y) ** 2).sum() / norm for p in lateral])))
+    return {
+        "n_heldout": len(errors["turned"]),
+        **{f"nmse_{name}": (float(np.mean(v)) if v else None) for name, v in errors.items()},
+    }
