@@ -206,10 +206,11 @@ def turn_check(
     gi = np.asarray(grid_index)
     held = heldout_nodes(gi, n_heldout, seed)
     keep = np.ones(len(gi), bool)
-    keep[held] = False
     stacks = _Stacks(crops, {tuple(k): n for n, k in enumerate(gi)}, keep, np.asarray(axes[2], float))
     errors: dict[str, list[float]] = {"fixed_orientation": [], "turned": []}
     for n in held:
+        keep[:] = True
+        keep[n] = False  # this node alone left out
         y = np.asarray(crops[n], np.float64)
         norm = max(float((y**2).sum()), 1e-300)
         for name, how in (("fixed_orientation", None), ("turned", turn)):

@@ -13,9 +13,10 @@ import torch
 
 from cm2optics.lsv import model as model_module
 from cm2optics.lsv.build import model_from_crops
+from cm2optics.lsv.epsf_validate import turn_check
 from cm2optics.lsv.model import ModelError, load_model
 from cm2optics.lsv.preprocess import Geometry
-from cm2optics.lsv.rotation import lenslet_axes, rotate_patches, sensor_azimuth
+from cm2optics.lsv.rotation import AzimuthTurn, lenslet_axes, rotate_patches, sensor_azimuth
 
 S = 4  # oversample
 PATCH = 16  # px
@@ -63,7 +64,7 @@ def toy():
         trim=None,
         oversample=S,
     )
-    return geometry, model
+    return geometry, model, crops, grid_index
 
 
 def test_the_lenslet_axis_is_the_source_whose_focus_stays_put():
@@ -96,7 +97,7 @@ def _error(model, geometry, points) -> float:
 def test_turning_the_neighbours_reproduces_a_psf_that_turns_with_the_field(toy):
     """Known answer: where the PSF is the on-axis-turned one, each neighbour turned to the source's
     azimuth is the source's PSF; a plain blend of differently oriented neighbours is not."""
-    geometry, plain = toy
+    geometry, plain, _, _ = toy
     turned = replace(plain, refine=2, rotate_aberrations=True)
     xs, ys, zs = plain.axes
     # the refined grid's own nodes between the calibration nodes, at and between depths
@@ -109,7 +110,7 @@ def test_turning_the_neighbours_reproduces_a_psf_that_turns_with_the_field(toy):
 
 
 def test_the_choice_is_kept_in_the_model_file(toy, tmp_path, monkeypatch):
-    _, plain = toy
+    _, plain, _, _ = toy
     turned = replace(plain, refine=2, rotate_aberrations=True)
     path = turned.save(tmp_path / "turned.h5")
 
@@ -125,3 +126,12 @@ def test_the_choice_is_kept_in_the_model_file(toy, tmp_path, monkeypatch):
         replace(plain, rotate_aberrations=True)
     with pytest.raises(AssertionError, match="computed again"):  # other coefficients: not the saved turn
         replace(loaded, coefficients=loaded.coefficients * 2)
+
+
+def test_the_scan_decides_for_the_turn_where_the_psf_turns(toy):
+    """turn_check (what `cm2 lsv build --rotate auto` decides by): nodes left out, predicted from
+    their lateral neighbours, are far better predicted turned on this toy."""
+    _, model, crops, grid_index = toy
+    check = turn_check(crops, grid_index, model.axes, None, AzimuthTurn.of_model(model), n_heldout=6)
+    assert check["n_heldout"] == 6
+    assert check["nmse_turned"] < 0.1 * check["nmse_fixed_orientation"], check
