@@ -212,7 +212,8 @@ class LSVModel:
         """The same model keeping its first ``rank`` basis PSFs."""
         if not 1 <= rank <= self.rank:
             raise ModelError(f"rank = {rank}: must lie within 1–{self.rank}")
-        return replace(self, basis=self.basis[:rank], coefficients=self.coefficients[:rank])
+        turned = None if self.turned_coefficients is None else self.turned_coefficients[:, :rank]
+        return replace(self, basis=self.basis[:rank], coefficients=self.coefficients[:rank], turned_coefficients=turned)
 
     # -- point responses (numpy, for checks and figures) ----------------------------------
     def coefficients_at(self, x_mm, y_mm, z_mm, lenslet: int | None = None) -> np.ndarray:

@@ -124,6 +124,7 @@ def test_the_choice_is_kept_in_the_model_file(toy, tmp_path, monkeypatch):
     assert not load_model(plain.save(tmp_path / "plain.h5")).rotate_aberrations
     with pytest.raises(ModelError, match="refine ≥ 2"):
         replace(plain, rotate_aberrations=True)
+    assert loaded.truncated(5).lenslet_coefficients(0).shape[0] == 5  # the saved turn, first 5 terms
     with pytest.raises(AssertionError, match="computed again"):  # other coefficients: not the saved turn
         replace(loaded, coefficients=loaded.coefficients * 2)
 
