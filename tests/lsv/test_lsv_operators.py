@@ -62,6 +62,19 @@ def _inner(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.sum(a.astype(np.float64) * b.astype(np.float64)))
 
 
+def _check_adjoint_and_naive(model: LSVModel, op, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """⟨Ax, y⟩ = ⟨x, Aᵀy⟩ to float32 precision and the fast forward = the naive reference, for a
+    seeded volume x; returns x and Ax."""
+    rng = np.random.default_rng(seed)
+    x = rng.random(op.grid.shape).astype(np.float32)
+    y = rng.normal(size=SENSOR).astype(np.float32)
+    Ax, ATy = op.forward(x), op.adjoint(y)
+    assert abs(_inner(Ax, y) - _inner(x, ATy)) <= 1e-5 * np.linalg.norm(Ax) * np.linalg.norm(y)
+    naive = reference_forward(model, op, x)
+    assert np.linalg.norm(Ax - naive) / np.linalg.norm(naive) < 1e-5
+    return x, Ax
+
+
 GRIDS = {
     "native": None,
     "coarser": VolumeGrid((4, 17, 15), (130.0, 45.0, 52.0)),
@@ -275,13 +288,7 @@ def test_a_sub_pixel_cross_coupling_stays_exact_and_keeps_no_per_voxel_data(grid
     grid = GRIDS[grid_name]
     op = model.operator(grid)
     assert op._kind_all == "general"
-    rng = np.random.default_rng(3)
-    x = rng.random(op.grid.shape).astype(np.float32)
-    y = rng.normal(size=SENSOR).astype(np.float32)
-    Ax, ATy = op.forward(x), op.adjoint(y)
-    assert abs(_inner(Ax, y) - _inner(x, ATy)) <= 1e-5 * np.linalg.norm(Ax) * np.linalg.norm(y)
-    naive = reference_forward(model, op, x)
-    assert np.linalg.norm(Ax - naive) / np.linalg.norm(naive) < 1e-5
+    x, Ax = _check_adjoint_and_naive(model, op, seed=3)
     aligned = synthetic_model("diag").operator(grid)
     assert op.memory_bytes() <= aligned.memory_bytes()
     # and it differs from the aligned model's image by the sub-pixel amount only
@@ -325,13 +332,7 @@ def test_a_turned_model_keeps_every_path_consistent():
     model = replace(synthetic_model("general"), refine=2, rotate_aberrations=True)
     assert not model.shared_coefficients
     op = model.operator(GRIDS["coarser"])
-    rng = np.random.default_rng(4)
-    x = rng.random(op.grid.shape).astype(np.float32)
-    y = rng.normal(size=SENSOR).astype(np.float32)
-    Ax, ATy = op.forward(x), op.adjoint(y)
-    assert abs(_inner(Ax, y) - _inner(x, ATy)) <= 1e-5 * np.linalg.norm(Ax) * np.linalg.norm(y)
-    naive = reference_forward(model, op, x)
-    assert np.linalg.norm(Ax - naive) / np.linalg.norm(naive) < 1e-5
+    _check_adjoint_and_naive(model, op, seed=4)
     emitters = Emitters(
         np.array([120.0, -330.0]), np.array([250.0, 410.0]), np.array([60.0, -90.0]), np.zeros(2), np.ones(2)
     )
