@@ -14,6 +14,7 @@ import torch
 from cm2optics.lsv import model as model_module
 from cm2optics.lsv.build import model_from_crops
 from cm2optics.lsv.epsf_validate import turn_check
+from cm2optics.lsv.lsi import lsi_model
 from cm2optics.lsv.model import ModelError, load_model
 from cm2optics.lsv.preprocess import Geometry
 from cm2optics.lsv.rotation import AzimuthTurn, lenslet_axes, rotate_patches, sensor_azimuth
@@ -122,6 +123,7 @@ def test_the_choice_is_kept_in_the_model_file(toy, tmp_path, monkeypatch):
     assert loaded.rotate_aberrations and loaded.refine == 2
     np.testing.assert_allclose(loaded.lenslet_coefficients(0), turned.lenslet_coefficients(0), atol=1e-6)
     assert not load_model(plain.save(tmp_path / "plain.h5")).rotate_aberrations
+    assert not lsi_model(loaded).rotate_aberrations  # the shift-invariant baseline has no lateral neighbours
     with pytest.raises(ModelError, match="refine ≥ 2"):
         replace(plain, rotate_aberrations=True)
     assert loaded.truncated(5).lenslet_coefficients(0).shape[0] == 5  # the saved turn, first 5 terms
