@@ -291,25 +291,25 @@ TURN_GAIN = 0.1
 
 
 def _choose_turn(
-    model: LSVModel, crops: np.ndarray, grid_index: np.ndarray, rotate: bool | None, refine: int
+    model: LSVModel, crops: np.ndarray, grid_index: np.ndarray, rotate: bool | None, refine: int, crop_sampling: int
 ) -> tuple[LSVModel, dict[str, Any]]:
     """The model with its lateral neighbours turned with the azimuth (:mod:`cm2optics.lsv.rotation`)
     if ``rotate`` is True, or (None) if the scan itself says so: held-out nodes predicted from
     their lateral neighbours better by :data:`TURN_GAIN` (:func:`~cm2optics.lsv.epsf_validate.turn_check`);
-    returns it and the record for the provenance. A geometry whose lenslet axes cannot be found
-    keeps the fixed orientation, with a warning."""
+    returns it and the record for the provenance. ``crop_sampling``: samples per pixel of ``crops``.
+    A geometry whose lenslet axes cannot be found keeps the fixed orientation, with a warning."""
     try:
         turn = AzimuthTurn.of_model(model)
     except ValueError as error:
         message = f"no turn with the azimuth ({error}): neighbours are blended at a fixed orientation"
         warnings.warn(message, stacklevel=3)  # at build_model's caller
-        return model, {"fallback": message}
-    S = model.oversample
-    shift = (
-        S * (crops.shape[-2] // S // 2 - model.patch_shape[0] // 2),
-        S * (crops.shape[-1] // S // 2 - model.patch_shape[1] // 2),
-    )
-    turn = replace(turn, pivots=turn.pivots + np.array(shift, float))  # the crops' frame (the basis may be trimmed)
+        return model, {"fallback": message, "turned": False}
+    # the pivots in the crops' frame: c samples per pixel (the basis may be trimmed, and an estimated
+    # ePSF basis is finer than its whole-pixel crops); the chief ray at pixel h // 2 in both
+    c = crop_sampling
+    crop_px = np.array(crops.shape[-2:]) // c
+    pivots = c * (turn.pivots / model.oversample - np.array(model.patch_shape) // 2 + crop_px // 2)
+    turn = replace(turn, pivots=pivots)
     record: dict[str, Any] = {"lenslet_axes_mm": turn.lens_axes.round(4).tolist()}
     if rotate is None:
         check = turn_check(crops, grid_index, model.axes, model.focal_surface, turn)
@@ -418,7 +418,7 @@ def build_model(
         if refine < 2 and rotate is not False:
             turn_info["fallback"] = "refine 1: a turn needs the refined grid"
     else:
-        model, turn_info = _choose_turn(model, crops, gi, rotate, refine)
+        model, turn_info = _choose_turn(model, crops, gi, rotate, refine, oversample if synthetic else 1)
     model.provenance["rotation"] = turn_info
     seconds["rotation"] = time.perf_counter() - start
     if model.rank < rank:
