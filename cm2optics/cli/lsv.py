@@ -242,7 +242,8 @@ def _save_build(result: Any, model_path: Path, report_folder: Path | None, overs
 
 
 def _build_table(model_path: Path, summary: dict[str, Any]) -> Table:
-    """The built model's rank, calibration errors, positions, crop (px) and default grid (µm)."""
+    """The built model's rank, calibration errors, positions, crop (px), default grid (µm) and
+    whether its lateral neighbours are turned with the azimuth."""
     table = Table(title=f"LSV model {model_path}")
     table.add_column("quantity")
     table.add_column("value", justify="right")
@@ -251,6 +252,14 @@ def _build_table(model_path: Path, summary: dict[str, Any]) -> Table:
         table.add_row(key, f"{value:.4g}" if isinstance(value, float) else str(value))
     grid = summary["default_grid"]
     table.add_row("default grid", f"{grid['shape']} × {[round(v, 3) for v in grid['voxel_um']]} µm")
+    rotation = summary.get("rotation") or {}
+    check = rotation.get("leave_one_out")
+    turned = "yes" if rotation.get("turned") else "no"
+    if check and check.get("nmse_turned") is not None:
+        turned += (
+            f" (nodes left out: NMSE {check['nmse_fixed_orientation']:.3g} fixed, {check['nmse_turned']:.3g} turned)"
+        )
+    table.add_row("neighbours turned with the azimuth", turned)
     return table
 
 
