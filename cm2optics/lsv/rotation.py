@@ -3,12 +3,13 @@
 A lenslet that is rotationally symmetric about its own axis images a field point at polar
 position (ρ, φ) about that axis as the point at (ρ, 0), rotated by φ: the astigmatic and comatic
 foci turn with the azimuth. Linear blending of two neighbouring nodes' PSFs of different
-orientation makes a cross; here each neighbour's PSF is first rotated about its chief ray by the
-difference of azimuths, then blended with the same tent weights, and re-projected on the
-lenslet's basis patches (least squares). This is done once per model, on the refined lateral
-grid of :func:`~cm2optics.lsv.interpolate.refined_lenslet_coefficients`, so every path (point,
-sparse, dense forward and adjoint, the naive reference) uses the rotated coefficients through
-:meth:`LSVModel.lenslet_coefficients` and stays as fast as before.
+orientation makes a cross; here each neighbour's PSF is first turned by the difference of
+azimuths about the focus of the lenslet's axis (:func:`axis_pivots`), then blended with the same
+tent weights (along the focal surface if the model has one), and re-projected on the lenslet's
+basis patches (least squares). This is done once per model, on the refined lateral grid of
+:func:`~cm2optics.lsv.interpolate.refined_lenslet_coefficients`, so every path (point, sparse,
+dense forward and adjoint, the naive reference) uses the turned coefficients through
+:meth:`LSVModel.lenslet_coefficients` at the cost of the refined grid, no more.
 
 Azimuths are measured on the sensor, as the direction of the focus's displacement from the image
 of the lenslet's axis (``A(z)·((x, y) − a_j)``, (row, col)): a mirror-imaging geometry turns the
@@ -16,7 +17,8 @@ PSF the other way round in (x, y), not on the sensor. The lenslet's axis ``a_j``
 is the source position whose focus does not move with depth (a point on a lens's axis is imaged
 onto that axis at every depth): least squares over the calibration depths. Housing vignetting
 and a real lens's asymmetries break the symmetry; whether a scan follows it is decided by the
-data (:func:`rotation_gain`).
+scan's own nodes, left out and predicted with and without the turn
+(:func:`cm2optics.lsv.epsf_validate.turn_check`, ``cm2 lsv build --rotate auto``).
 """
 
 from __future__ import annotations
