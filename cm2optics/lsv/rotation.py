@@ -43,8 +43,9 @@ __all__ = [
     "sensor_azimuth",
 ]
 
-#: Patches rotated per batch (bounds the memory of one batch to ≈ 200 MB at 224² samples).
-ROTATION_BATCH = 1024
+#: Patches turned per batch (bounds one batch's patches, sampling grid and turned copies to
+#: ≈ 250 MB at 224² samples).
+ROTATION_BATCH = 256
 
 
 def lenslet_axes(geometry: Geometry, z_mm: np.ndarray) -> np.ndarray:
@@ -113,10 +114,11 @@ def rotated_blend(
     pivot: np.ndarray,
 ) -> np.ndarray:
     """Coefficients (M, K) of the blends ``Σ_l w_l · rot(Δφ_l)[Σ_k c_lk P_k]`` re-projected on the
-    basis patches P (least squares; ``basis``: :func:`basis_projector`, patches of ``shape``), for ``neighbours`` (M, L, K) coefficient
-    vectors, tent ``weights`` (M, L) and azimuth differences ``angles`` (M, L) rad, each PSF turned
-    about ``pivot`` (row, col) samples (:func:`rotate_patches`). Blends whose
-    angles are all zero are the plain weighted sums of the coefficients (no re-projection)."""
+    basis patches P (least squares; ``basis``: :func:`basis_projector`, patches of ``shape``),
+    for ``neighbours`` (M, L, K) coefficient vectors, tent ``weights`` (M, L) and azimuth
+    differences ``angles`` (M, L) rad, each PSF turned about ``pivot`` (row, col) samples
+    (:func:`rotate_patches`). Blends whose angles are all zero are the plain weighted sums of the
+    coefficients (no re-projection)."""
     B, projector = basis
     K = B.shape[0]
     h, w = shape
