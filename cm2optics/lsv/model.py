@@ -76,7 +76,8 @@ class LSVModel:
     rotate_aberrations: bool = False
     #: With ``rotate_aberrations``: the turned coefficients (J, K, nz, ny', nx') on the refined
     #: grid as computed before (saved with the model, minutes to compute at full size); None, or
-    #: ones that no longer agree with ``coefficients`` at the calibration nodes: computed anew.
+    #: ones that no longer agree with ``coefficients`` at the calibration nodes: computed anew
+    #: (a ``replace`` that changes the focal surface, refine or basis must pass None here).
     turned_coefficients: np.ndarray | None = field(default=None, repr=False)
 
     def __post_init__(self) -> None:
