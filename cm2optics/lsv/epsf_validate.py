@@ -86,14 +86,18 @@ def _neighbour_predictions(
     axes: tuple[np.ndarray, ...],
     surface: FocalSurface | None,
     turn: AzimuthTurn | None = None,
+    which: str = "xyz",
 ) -> dict[str, np.ndarray]:
     """Node ``node`` (ix, iy, iz) predicted by linear interpolation between its two neighbours
     along x, y and z (those that exist and are kept); with ``surface`` the lateral neighbours'
     PSFs are taken at the node's defocus from their own best focus; with ``turn`` they are turned
-    to the node's azimuth about each lenslet's axis first (:mod:`cm2optics.lsv.rotation`)."""
+    to the node's azimuth about each lenslet's axis first (:mod:`cm2optics.lsv.rotation`);
+    ``which``: the axes to predict along."""
     x_n, y_n, z_n = (axes[k][node[k]] for k in range(3))
     predictions = {}
     for axis, name in enumerate("xyz"):
+        if name not in which:
+            continue
         lower, upper = node.copy(), node.copy()
         lower[axis] -= 1
         upper[axis] += 1
@@ -214,8 +218,7 @@ def turn_check(
         y = np.asarray(crops[n], np.float64)
         norm = max(float((y**2).sum()), 1e-300)
         for name, how in (("fixed_orientation", None), ("turned", turn)):
-            predictions = _neighbour_predictions(stacks, gi[n], axes, surface, how)
-            lateral = [p for axis, p in predictions.items() if axis in "xy"]
+            lateral = list(_neighbour_predictions(stacks, gi[n], axes, surface, how, which="xy").values())
             if lateral:
                 errors[name].append(float(np.mean([((p - y) ** 2).sum() / norm for p in lateral])))
     return {
