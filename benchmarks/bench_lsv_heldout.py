@@ -9,7 +9,9 @@ depth-wise LSI baseline; on axis and at r = 1, 2, 3 mm, per binning.
    --pinhole-um D`` (a D-µm bead, the emitters' own kind of source), reused when present.
 2. **Models**: ``cm2 lsv build`` with ``--oversample 1`` and ``--oversample 4`` on the scan, and
    ``--oversample 4`` on a copy of the scan without ``epsf.h5`` (the estimate), each interpolating
-   along the focal surface (the default), and ``--oversample 4 --fixed-depth`` beside them.
+   along the focal surface and turning the lateral neighbours with the azimuth where the scan
+   says so (the defaults), and ``--oversample 4`` with ``--rotate off`` (fixed orientation) and
+   with ``--fixed-depth --rotate off`` beside them.
 3. **Emitters** (``--per-radius`` per radius, seed ``--seed``): on axis = within ±20 µm of the
    axis (random sub-pixel phase), off axis at radius r along a random angle; z uniform over the
    inner 80 % of the scanned depth. *Traced*: the library call behind ``cm2 psf image``
@@ -113,26 +115,28 @@ def bench_binning(args: argparse.Namespace, binning: int, design) -> dict:
         for item in scan.iterdir():
             if item.name != "epsf.h5":
                 (frames / item.name).symlink_to(item.resolve())
-    builds = {  # name: scan folder, oversample, interpolation (build option)
-        "oversample 1": (scan, 1, "--focal-surface"),
-        "oversample 4 (synthetic ePSF), fixed depth": (scan, 4, "--fixed-depth"),
-        "oversample 4 (synthetic ePSF)": (scan, 4, "--focal-surface"),
-        "oversample 4 (estimated from frames)": (frames, 4, "--focal-surface"),
+    builds = {  # name: scan folder, oversample, interpolation (build options)
+        "oversample 1": (scan, 1, ["--focal-surface"]),
+        "oversample 4 (synthetic ePSF), fixed depth": (scan, 4, ["--fixed-depth", "--rotate", "off"]),
+        "oversample 4 (synthetic ePSF), fixed orientation": (scan, 4, ["--focal-surface", "--rotate", "off"]),
+        "oversample 4 (synthetic ePSF)": (scan, 4, ["--focal-surface"]),
+        "oversample 4 (estimated from frames)": (frames, 4, ["--focal-surface"]),
     }
     if args.skip_estimate:
         del builds["oversample 4 (estimated from frames)"]
     models, build_info = {}, {}
     for name, (folder, S, interpolation) in builds.items():
-        path = root / f"model_S{S}_{folder.name}_{interpolation.strip('-')}.h5"
+        path = root / f"model_S{S}_{folder.name}_{'_'.join(a.strip('-') for a in interpolation)}.h5"
         if not path.is_file():
             start = time.perf_counter()
             command = ["lsv", "build", str(folder), "--rank", str(args.rank), "--oversample", str(S), "--no-report"]
-            command += ["--out", str(path), interpolation]
+            command += ["--out", str(path), *interpolation]
             if args.patch_px:
                 command += ["--patch-px", str(args.patch_px)]
             summary = run(command)
             seconds[f"build {name}"] = time.perf_counter() - start
-            build_info[name] = {k: summary.get(k) for k in ("nmse_calibration", "patch_px", "epsf", "focal_surface")}
+            keys = ("nmse_calibration", "patch_px", "epsf", "focal_surface", "rotation")
+            build_info[name] = {k: summary.get(k) for k in keys}
         models[name] = load_model(path)
     models["LSI"] = lsi_model(models["oversample 1"])
     zs = models["oversample 1"].grid_z_mm

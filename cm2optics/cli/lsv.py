@@ -145,6 +145,15 @@ def build(
             "lenslet's coefficients are precomputed along its surface (1–64).",
         ),
     ] = 2,
+    rotate: Annotated[
+        str,
+        typer.Option(
+            "--rotate",
+            help="auto: turn each lateral neighbour's PSF to the source's azimuth about the lenslet's axis before "
+            "the blend if nodes of the scan left out are predicted ≥ 10 % better so (the aberrations of a "
+            "symmetric lens turn with the field); on; off (blend at a fixed orientation). Needs --refine ≥ 2.",
+        ),
+    ] = "auto",
     preset: PresetOption = "cm2-v2",
     overwrite: OverwriteOption = False,
     as_json: JsonOption = False,
@@ -155,7 +164,8 @@ def build(
     against depth, the axial shear from the on-axis stack); crops the foci around their chief rays
     with the shear undone; truncated SVD into K basis PSFs and coefficients on the calibration grid;
     each lenslet's best-focus surface, along which the coefficients are interpolated between
-    lateral nodes (--fixed-depth: at fixed depth, as models without a surface).
+    lateral nodes (--fixed-depth: at fixed depth, as models without a surface), each lateral
+    neighbour's PSF turned to the source's azimuth where the scan says so (--rotate).
     Writes one HDF5 model with its provenance, and a report with the error against K, the first
     basis PSFs and coefficient maps. JSON keys include rank, nmse_calibration, nmse_vs_rank.
     """
@@ -168,6 +178,11 @@ def build(
         raise UserError(f"--trim = {trim}: must lie within 0 ≤ trim < 1")
     if not 1 <= refine <= 64:
         raise UserError(f"--refine = {refine}: must lie within 1–64")
+    turn = {"auto": None, "on": True, "off": False}.get(rotate, "bad")
+    if turn == "bad":
+        raise UserError(f"--rotate = {rotate!r}: must be auto, on or off")
+    if turn is True and refine < 2:
+        raise UserError("--rotate on needs --refine ≥ 2 (the turned PSFs are blended on the refined grid)")
     design = load_preset(preset)
     _check_sizes(scan_dir, patch_px, lateral_um, axial_um or design.volume.axial_step_um)
     model_path, folder = _build_paths(scan_dir, out, report_dir, no_report, preset, overwrite)
@@ -184,6 +199,7 @@ def build(
             oversample=oversample,
             focal_surface=focal_surface,
             refine=refine,
+            rotate=turn,
         )
     summary = _save_build(result, model_path, None if no_report else folder, oversample)
     if as_json:
@@ -218,6 +234,7 @@ def _save_build(result: Any, model_path: Path, report_folder: Path | None, overs
     if oversample > 1:
         summary["epsf"] = result.model.provenance.get("epsf", {})
     summary["focal_surface"] = result.model.provenance.get("focal_surface")
+    summary["rotation"] = result.model.provenance.get("rotation")
     if report_folder is not None:
         summary["report"] = str(write_build_report(result, report_folder))
         claim_folder(report_folder, "lsv build")
@@ -225,7 +242,8 @@ def _save_build(result: Any, model_path: Path, report_folder: Path | None, overs
 
 
 def _build_table(model_path: Path, summary: dict[str, Any]) -> Table:
-    """The built model's rank, calibration errors, positions, crop (px) and default grid (µm)."""
+    """The built model's rank, calibration errors, positions, crop (px), default grid (µm) and
+    whether its lateral neighbours are turned with the azimuth."""
     table = Table(title=f"LSV model {model_path}")
     table.add_column("quantity")
     table.add_column("value", justify="right")
@@ -234,6 +252,14 @@ def _build_table(model_path: Path, summary: dict[str, Any]) -> Table:
         table.add_row(key, f"{value:.4g}" if isinstance(value, float) else str(value))
     grid = summary["default_grid"]
     table.add_row("default grid", f"{grid['shape']} × {[round(v, 3) for v in grid['voxel_um']]} µm")
+    rotation = summary.get("rotation") or {}
+    check = rotation.get("leave_one_out")
+    turned = "yes" if rotation.get("turned") else "no"
+    if check and check.get("nmse_turned") is not None:
+        turned += (
+            f" (nodes left out: NMSE {check['nmse_fixed_orientation']:.3g} fixed, {check['nmse_turned']:.3g} turned)"
+        )
+    table.add_row("neighbours turned with the azimuth", turned)
     return table
 
 

@@ -7,7 +7,12 @@ Layout (``format = "cm2optics-lsv"``, ``version = 1``): ``basis`` (K, J, h, w),
 options, geometry fit, package version, time). Version 2 adds each lenslet's best-focus surface,
 ``focal_surface/coefficients`` (J, 4) and ``focal_surface/rms_mm`` (J,), and the attribute
 ``refine`` (:mod:`cm2optics.lsv.focal_surface`); a model without a surface is written as
-version 1, and a version-1 file reads without one (plain interpolation), as before. An NPZ file holds the same arrays under the same names
+version 1, and a version-1 file reads without one (plain interpolation), as before. Version 3
+adds the attribute ``rotate_aberrations`` (true: each lateral neighbour's PSF is turned to the
+source's azimuth about the lenslet's axis before the blend, :mod:`cm2optics.lsv.rotation`); a
+model without it is written as version 1 or 2, and an older file reads with it false; such a model
+also keeps its turned coefficients, ``interpolation/turned_coefficients`` (J, K, nz, ny', nx'),
+which take minutes to compute at full size. An NPZ file holds the same arrays under the same names
 (``grid/x_mm`` …) and the attributes as one JSON string ``attrs``.
 
 This module reads and writes the fields as plain arrays (:func:`read_lsv_model`,
@@ -31,9 +36,11 @@ from cm2optics.formats.volume import VolumeGrid
 __all__ = ["FORMAT", "VERSION", "ModelError", "read_lsv_model", "write_lsv_model"]
 
 FORMAT = "cm2optics-lsv"
-VERSION = 2
+VERSION = 3
 #: The focal surface's arrays and their paths in the file (version 2).
 _SURFACE = {"coefficients": "focal_surface/coefficients", "rms_mm": "focal_surface/rms_mm"}
+#: The turned coefficients' path (version 3, with ``rotate_aberrations``).
+_TURNED = "interpolation/turned_coefficients"
 #: Array fields and their paths in the file.
 _ARRAYS = {
     "basis": "basis",
@@ -64,10 +71,12 @@ def json_default(value: Any) -> Any:
 
 def _attrs(fields: dict[str, Any]) -> dict[str, Any]:
     surface = fields.get("focal_surface") is not None
+    rotate = bool(fields.get("rotate_aberrations", False))
     return {
         "format": FORMAT,
-        "version": VERSION if surface else 1,
+        "version": 3 if rotate else 2 if surface else 1,
         "refine": int(fields.get("refine", 1)),
+        "rotate_aberrations": rotate,
         "sensor_shape": [int(v) for v in fields["sensor_shape"]],
         "pixel_um": float(fields["pixel_um"]),
         "scale": float(fields.get("scale", 1.0)),
@@ -86,6 +95,8 @@ def write_lsv_model(path: str | Path, fields: dict[str, Any]) -> Path:
     arrays |= {f"geometry/{k}": np.asarray(v) for k, v in fields["geometry"].items()}
     if fields.get("focal_surface") is not None:
         arrays |= {where: np.asarray(fields["focal_surface"][name]) for name, where in _SURFACE.items()}
+    if attrs["rotate_aberrations"] and fields.get("turned_coefficients") is not None:
+        arrays[_TURNED] = np.asarray(fields["turned_coefficients"], np.float32)
 
     def write_h5(tmp: Path) -> None:
         with h5py.File(tmp, "w") as f:
@@ -137,6 +148,8 @@ def read_lsv_model(path: str | Path) -> dict[str, Any]:
         fields["scale"] = float(attrs.get("scale", 1.0))
         fields["oversample"] = int(attrs.get("oversample", 1))
         fields["refine"] = int(attrs.get("refine", 1))
+        fields["rotate_aberrations"] = bool(attrs.get("rotate_aberrations", False))
+        fields["turned_coefficients"] = arrays.get(_TURNED)
         have = [where in arrays for where in _SURFACE.values()]
         if any(have) and not all(have):
             raise ModelError(f"{path}: an incomplete focal surface ({', '.join(_SURFACE.values())})")

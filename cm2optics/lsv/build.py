@@ -29,9 +29,11 @@ from cm2optics.design import SystemDesign, default_design
 from cm2optics.formats.scan import ScanError, ScanIndex, open_scan
 from cm2optics.formats.volume import VolumeGrid
 from cm2optics.lsv.decompose import Decomposition, decompose, numerical_rank, trim_window
+from cm2optics.lsv.epsf_validate import turn_check
 from cm2optics.lsv.focal_surface import FocalSurface, estimate_focal_surface
 from cm2optics.lsv.model import LSVModel
 from cm2optics.lsv.preprocess import Geometry, GeometryFit, estimate_geometry, extract_crops
+from cm2optics.lsv.rotation import AzimuthTurn
 
 __all__ = ["BuildResult", "build_model", "default_patch_px", "model_from_crops", "scan_fingerprint"]
 
@@ -283,6 +285,43 @@ def _focal_surface(
     }
 
 
+#: The turn is kept where it predicts held-out nodes from their lateral neighbours at least this
+#: much better (relative NMSE) than blending them at a fixed orientation.
+TURN_GAIN = 0.1
+
+
+def _choose_turn(
+    model: LSVModel, crops: np.ndarray, grid_index: np.ndarray, rotate: bool | None, refine: int, crop_sampling: int
+) -> tuple[LSVModel, dict[str, Any]]:
+    """The model with its lateral neighbours turned with the azimuth (:mod:`cm2optics.lsv.rotation`)
+    if ``rotate`` is True, or (None) if the scan itself says so: held-out nodes predicted from
+    their lateral neighbours better by :data:`TURN_GAIN` (:func:`~cm2optics.lsv.epsf_validate.turn_check`);
+    returns it and the record for the provenance. ``crop_sampling``: samples per pixel of ``crops``.
+    A geometry whose lenslet axes cannot be found keeps the fixed orientation, with a warning."""
+    try:
+        turn = AzimuthTurn.of_model(model)
+    except ValueError as error:
+        message = f"no turn with the azimuth ({error}): neighbours are blended at a fixed orientation"
+        warnings.warn(message, stacklevel=3)  # at build_model's caller
+        return model, {"fallback": message, "turned": False}
+    # the pivots in the crops' frame: c samples per pixel (the basis may be trimmed, and an estimated
+    # ePSF basis is finer than its whole-pixel crops); the chief ray at pixel h // 2 in both
+    c = crop_sampling
+    crop_px = np.array(crops.shape[-2:]) // c
+    pivots = c * (turn.pivots / model.oversample - np.array(model.patch_shape) // 2 + crop_px // 2)
+    turn = replace(turn, pivots=pivots)
+    record: dict[str, Any] = {"lenslet_axes_mm": turn.lens_axes.round(4).tolist()}
+    if rotate is None:
+        check = turn_check(crops, grid_index, model.axes, model.focal_surface, turn)
+        record["leave_one_out"] = check
+        fixed, turned = check["nmse_fixed_orientation"], check["nmse_turned"]
+        rotate = fixed is not None and turned is not None and turned < (1.0 - TURN_GAIN) * fixed
+    record["turned"] = bool(rotate)
+    if not rotate:
+        return model, record
+    return replace(model, refine=refine, rotate_aberrations=True), record
+
+
 def _warn_rank(rank: int, n_positions: int, model_rank: int) -> None:
     """Warn (at build_model's caller) that the scan's positions allow fewer basis PSFs than asked."""
     warnings.warn(
@@ -307,6 +346,7 @@ def build_model(
     estimate_options: dict[str, Any] | None = None,
     focal_surface: bool = True,
     refine: int = 2,
+    rotate: bool | None = None,
 ) -> BuildResult:
     """Build an LSV model from the scan folder ``scan_dir`` (see the module docstring).
 
@@ -326,7 +366,10 @@ def build_model(
         whose foci all share one sub-pixel phase falls back to whole pixels, with a warning.
     focal_surface: interpolate between lateral nodes at equal defocus from each lenslet's
         best-focus surface, estimated from the scan (:mod:`cm2optics.lsv.focal_surface`), on the
-        grid refined ``refine`` times laterally; False: at fixed depth."""
+        grid refined ``refine`` times laterally; False: at fixed depth.
+    rotate: turn each lateral neighbour's PSF to the source's azimuth about the lenslet's axis
+        before the blend (:mod:`cm2optics.lsv.rotation`; on the grid refined ``refine`` times);
+        None: if held-out nodes of the scan say so (:func:`_choose_turn`); False: never."""
     axial_um = _check_build_options(oversample, rank, lateral_um, axial_um, design, refine)
     seconds: dict[str, float] = {}
     start = time.perf_counter()
@@ -348,6 +391,7 @@ def build_model(
     options = dict(rank=rank, patch_px=patch, trim=trim, lateral_um=lateral_um, axial_um=axial_um, degree=degree)
     options |= {"design": design.name if design is not None else None, "oversample": oversample}
     options |= {"focal_surface": surface is not None, "refine": refine if surface is not None else 1}
+    options |= {"rotate": {None: "data decides", True: "on", False: "off"}[rotate]}
     provenance = _build_provenance(index, fit, alignment, options, epsf_info) | {"focal_surface": surface_info}
     synthetic = epsf_info.get("source", "").startswith("synthetic")
     model, decomposition = model_from_crops(
@@ -368,6 +412,15 @@ def build_model(
         refine=refine,
     )
     seconds["svd"] = time.perf_counter() - start
+    start = time.perf_counter()
+    if rotate is False or refine < 2:
+        turn_info = {"turned": False}
+        if refine < 2 and rotate is not False:
+            turn_info["fallback"] = "refine 1: a turn needs the refined grid"
+    else:
+        model, turn_info = _choose_turn(model, crops, gi, rotate, refine, oversample if synthetic else 1)
+    model.provenance["rotation"] = turn_info
+    seconds["rotation"] = time.perf_counter() - start
     if model.rank < rank:
         _warn_rank(rank, len(index), model.rank)
     model.provenance["seconds"] = {k: round(v, 3) for k, v in seconds.items()}

@@ -149,7 +149,7 @@ def fine_model(model: LSVModel, sampling: int | None = None) -> LSVModel:
     g = model.geometry
     geometry = Geometry(g.r0_poly * S, g.A_poly * S, g.o_poly * S, g.rows, g.cols)
     H, W = model.sensor_shape
-    return replace(
+    fine = replace(
         model,
         geometry=geometry,
         sensor_shape=((H - 1) * S + 1, (W - 1) * S + 1),
@@ -157,7 +157,14 @@ def fine_model(model: LSVModel, sampling: int | None = None) -> LSVModel:
         basis=np.ascontiguousarray(model.basis[:, :, ::step, ::step]),
         oversample=1,
         provenance={},
+        focal_surface=None,
+        refine=1,
+        rotate_aberrations=False,
     )
+    # the interpolated coefficients live in the basis's coefficient space, whatever its sampling:
+    # the model's own (along its focal surface, turned with the azimuth), not computed again
+    object.__setattr__(fine, "_interpolation", model._interpolation)  # type: ignore[attr-defined]
+    return fine
 
 
 class EPSFOperator:

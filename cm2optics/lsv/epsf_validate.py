@@ -29,8 +29,9 @@ import numpy as np
 from cm2optics.lsv.decompose import decompose
 from cm2optics.lsv.focal_surface import FocalSurface
 from cm2optics.lsv.interpolate import axis_coordinate, tent_pairs
+from cm2optics.lsv.rotation import AzimuthTurn
 
-__all__ = ["heldout_nodes", "leave_one_out_pixels"]
+__all__ = ["heldout_nodes", "leave_one_out_pixels", "turn_check"]
 
 
 def heldout_nodes(grid_index: np.ndarray, n: int, seed: int) -> np.ndarray:
@@ -80,14 +81,23 @@ class _Stacks:
 
 
 def _neighbour_predictions(
-    stacks: _Stacks, node: np.ndarray, axes: tuple[np.ndarray, ...], surface: FocalSurface | None
+    stacks: _Stacks,
+    node: np.ndarray,
+    axes: tuple[np.ndarray, ...],
+    surface: FocalSurface | None,
+    turn: AzimuthTurn | None = None,
+    which: str = "xyz",
 ) -> dict[str, np.ndarray]:
     """Node ``node`` (ix, iy, iz) predicted by linear interpolation between its two neighbours
     along x, y and z (those that exist and are kept); with ``surface`` the lateral neighbours'
-    PSFs are taken at the node's defocus from their own best focus."""
+    PSFs are taken at the node's defocus from their own best focus; with ``turn`` they are turned
+    to the node's azimuth about each lenslet's axis first (:mod:`cm2optics.lsv.rotation`);
+    ``which``: the axes to predict along."""
     x_n, y_n, z_n = (axes[k][node[k]] for k in range(3))
     predictions = {}
     for axis, name in enumerate("xyz"):
+        if name not in which:
+            continue
         lower, upper = node.copy(), node.copy()
         lower[axis] -= 1
         upper[axis] += 1
@@ -98,7 +108,10 @@ def _neighbour_predictions(
             depth = None
             if surface is not None and axis < 2:  # the same defocus from the local best focus
                 depth = z_n - surface.z_best(x_n, y_n) + surface.z_best(axes[0][index[0]], axes[1][index[1]])
-            ends.append(stacks.at(index, depth))
+            end = stacks.at(index, depth)
+            if turn is not None and axis < 2 and end is not None:
+                end = turn(end, (x_n, y_n), (axes[0][index[0]], axes[1][index[1]]), z_n, int(node[2]))
+            ends.append(end)
         if ends[0] is None or ends[1] is None:
             continue
         xa, xb, xn = axes[axis][lower[axis]], axes[axis][upper[axis]], axes[axis][node[axis]]
@@ -119,6 +132,7 @@ def leave_one_out_pixels(
     held: np.ndarray,
     basis: np.ndarray | None = None,
     surface: FocalSurface | None = None,
+    turn: AzimuthTurn | None = None,
 ) -> dict[str, Any]:
     """Held-out NMSE (module docstring) of the node PSFs ``crops`` (N, J, h·S, w·S) registered on
     the chief rays, against ``targets`` (N, J, h+3, w+3): each node's frame whose pixel (1 +
@@ -127,7 +141,9 @@ def leave_one_out_pixels(
     (default: the SVD of the nodes not held out). ``surface``: each lenslet's best-focus surface;
     with it a lateral neighbour's PSF is taken at the same defocus from the local best focus
     (``z − z_best(x_n, y_n) + z_best(x_a, y_a)``, its axial stack interpolated linearly), as
-    :func:`cm2optics.lsv.interpolate.defocus_nodes` does."""
+    :func:`cm2optics.lsv.interpolate.defocus_nodes` does. ``turn``: each lateral neighbour's PSFs
+    turned to the node's azimuth about each lenslet's axis before the blend
+    (:class:`~cm2optics.lsv.rotation.AzimuthTurn`)."""
     S = int(oversample)
     N, J = crops.shape[:2]
     keep = np.ones(N, bool)
@@ -153,7 +169,7 @@ def leave_one_out_pixels(
 
     stacks = _Stacks(crops, row_of, keep, np.asarray(axes[2], float))
     for n in held:
-        predictions = _neighbour_predictions(stacks, np.asarray(grid_index[n]), axes, surface)
+        predictions = _neighbour_predictions(stacks, np.asarray(grid_index[n]), axes, surface, turn)
         if not predictions:
             continue
         full = np.mean(list(predictions.values()), axis=0)
@@ -175,3 +191,37 @@ def leave_one_out_pixels(
             "low_rank": result["interpolated_rank"] - result["interpolated_full"],
         }
     return result
+
+
+def turn_check(
+    crops: np.ndarray,
+    grid_index: np.ndarray,
+    axes: tuple[np.ndarray, np.ndarray, np.ndarray],
+    surface: FocalSurface | None,
+    turn: AzimuthTurn,
+    *,
+    n_heldout: int = 24,
+    seed: int = 0,
+) -> dict[str, Any]:
+    """Does turning the lateral neighbours' PSFs with the azimuth predict nodes left out better?
+    For ``n_heldout`` seeded interior nodes, each node's registered crops (N, J, h, w) predicted
+    from its x and y neighbours (the node left out, full rank, along ``surface`` if given) with
+    and without ``turn``; returns the mean NMSE of each against the node's own crops."""
+    gi = np.asarray(grid_index)
+    held = heldout_nodes(gi, n_heldout, seed)
+    keep = np.ones(len(gi), bool)
+    stacks = _Stacks(crops, {tuple(k): n for n, k in enumerate(gi)}, keep, np.asarray(axes[2], float))
+    errors: dict[str, list[float]] = {"fixed_orientation": [], "turned": []}
+    for n in held:
+        keep[:] = True
+        keep[n] = False  # this node alone left out
+        y = np.asarray(crops[n], np.float64)
+        norm = max(float((y**2).sum()), 1e-300)
+        for name, how in (("fixed_orientation", None), ("turned", turn)):
+            lateral = list(_neighbour_predictions(stacks, gi[n], axes, surface, how, which="xy").values())
+            if lateral:
+                errors[name].append(float(np.mean([((p - y) ** 2).sum() / norm for p in lateral])))
+    return {
+        "n_heldout": len(errors["turned"]),
+        **{f"nmse_{name}": (float(np.mean(v)) if v else None) for name, v in errors.items()},
+    }

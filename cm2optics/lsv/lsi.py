@@ -356,4 +356,6 @@ def lsi_model(model: LSVModel) -> LSVModel:
         provenance=provenance,
         focal_surface=None,
         refine=1,
+        rotate_aberrations=False,
+        turned_coefficients=None,
     )

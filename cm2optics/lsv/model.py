@@ -27,8 +27,14 @@ from cm2optics.formats.emitters import Emitters
 from cm2optics.formats.lsv_model import ModelError, read_lsv_model, write_lsv_model
 from cm2optics.formats.volume import VolumeGrid
 from cm2optics.lsv.focal_surface import FocalSurface
-from cm2optics.lsv.interpolate import chief_ray_nodes, refined_lenslet_coefficients, trilinear_coefficients
+from cm2optics.lsv.interpolate import (
+    chief_ray_nodes,
+    refine_axis,
+    refined_lenslet_coefficients,
+    trilinear_coefficients,
+)
 from cm2optics.lsv.preprocess import Geometry
+from cm2optics.lsv.rotation import rotated_lenslet_coefficients
 
 if TYPE_CHECKING:  # pragma: no cover
     from cm2optics.lsv.operators import LSVOperator
@@ -65,6 +71,14 @@ class LSVModel:
     #: each lenslet's coefficients precomputed there along its surface (every path then
     #: interpolates them trilinearly along the chief rays); 1 without a surface.
     refine: int = 1
+    #: True: between lateral nodes each neighbour's PSF is turned to the source's azimuth about
+    #: the lenslet's axis before the blend (:mod:`.rotation`), on the grid refined ``refine`` times.
+    rotate_aberrations: bool = False
+    #: With ``rotate_aberrations``: the turned coefficients (J, K, nz, ny', nx') on the refined
+    #: grid as computed before (saved with the model, minutes to compute at full size); None, or
+    #: ones that no longer agree with ``coefficients`` at the calibration nodes: computed anew
+    #: (a ``replace`` that changes the focal surface, refine or basis must pass None here).
+    turned_coefficients: np.ndarray | None = field(default=None, repr=False)
 
     def __post_init__(self) -> None:
         if not (isinstance(self.oversample, int | np.integer) and self.oversample >= 1):
@@ -102,19 +116,30 @@ class LSVModel:
 
     def _set_interpolation_grid(self) -> None:
         """Check the focal surface and refinement; precompute each lenslet's refined coefficients."""
-        surface, refine = self.focal_surface, self.refine
+        surface, refine, rotate = self.focal_surface, self.refine, bool(self.rotate_aberrations)
         if not (isinstance(refine, int | np.integer) and 1 <= refine <= 64):
             raise ModelError(f"refine = {refine!r}: must be an integer within 1–64")
-        if surface is None:
+        if rotate and refine < 2:
+            raise ModelError("rotate_aberrations needs refine ≥ 2 (the turned PSFs are blended on the refined grid)")
+        if surface is None and not rotate:
             if refine != 1:
                 raise ModelError(f"refine = {refine}: needs a focal surface (refine 1 without one)")
             object.__setattr__(self, "_interpolation", (self.axes, None))
             return
-        if not isinstance(surface, FocalSurface):
+        if surface is not None and not isinstance(surface, FocalSurface):
             raise ModelError(f"focal_surface must be a FocalSurface, got {type(surface).__name__}")
-        if surface.n_lenslets != self.n_lenslets:
+        if surface is not None and surface.n_lenslets != self.n_lenslets:
             raise ModelError(f"focal surface has {surface.n_lenslets} lenslets, the basis {self.n_lenslets}")
-        axes, coefficients = refined_lenslet_coefficients(self.coefficients, self.axes, surface, int(refine))
+        if rotate:
+            axes = tuple(refine_axis(a, int(refine)) for a in self.axes[:2]) + (self.grid_z_mm,)
+            coefficients = self.turned_coefficients
+            if not _agrees_at_nodes(coefficients, self.coefficients, self.n_lenslets, int(refine)):
+                axes, coefficients = rotated_lenslet_coefficients(
+                    self.coefficients, self.basis, self.axes, self.geometry, surface, int(refine)
+                )
+            object.__setattr__(self, "turned_coefficients", coefficients)
+        else:
+            axes, coefficients = refined_lenslet_coefficients(self.coefficients, self.axes, surface, int(refine))
         object.__setattr__(self, "_interpolation", (axes, coefficients))
 
     # -- shape ------------------------------------------------------------------------------
@@ -141,6 +166,12 @@ class LSVModel:
         """Grid (x, y, z mm) of :meth:`lenslet_coefficients`: the calibration grid, its lateral
         steps cut ``refine`` times with a focal surface."""
         return self._interpolation[0]  # type: ignore[attr-defined]
+
+    @property
+    def shared_coefficients(self) -> bool:
+        """True where every lenslet interpolates the calibration grid's own coefficients (no focal
+        surface, no rotation): :meth:`lenslet_coefficients` is then the same array for all."""
+        return self._interpolation[1] is None  # type: ignore[attr-defined]
 
     def lenslet_coefficients(self, lenslet: int) -> np.ndarray:
         """(K, nz, ny, nx) float32 coefficients of ``lenslet`` on :attr:`interpolation_axes`,
@@ -182,7 +213,8 @@ class LSVModel:
         """The same model keeping its first ``rank`` basis PSFs."""
         if not 1 <= rank <= self.rank:
             raise ModelError(f"rank = {rank}: must lie within 1–{self.rank}")
-        return replace(self, basis=self.basis[:rank], coefficients=self.coefficients[:rank])
+        turned = None if self.turned_coefficients is None else self.turned_coefficients[:, :rank]
+        return replace(self, basis=self.basis[:rank], coefficients=self.coefficients[:rank], turned_coefficients=turned)
 
     # -- point responses (numpy, for checks and figures) ----------------------------------
     def coefficients_at(self, x_mm, y_mm, z_mm, lenslet: int | None = None) -> np.ndarray:
@@ -254,6 +286,18 @@ class LSVModel:
         fields["geometry"] = self.geometry.to_arrays()
         fields["focal_surface"] = None if self.focal_surface is None else self.focal_surface.to_arrays()
         return write_lsv_model(path, fields)
+
+
+def _agrees_at_nodes(turned: np.ndarray | None, coefficients: np.ndarray, n_lenslets: int, refine: int) -> bool:
+    """True if ``turned`` (J, K, nz, ny', nx') holds, at every R-th refined node, the calibration
+    nodes' own ``coefficients`` (K, nz, ny, nx) for every lenslet (a turn changes nothing there)."""
+    K, nz, ny, nx = coefficients.shape
+    shape = (n_lenslets, K, nz, (ny - 1) * refine + 1, (nx - 1) * refine + 1)
+    if turned is None or tuple(np.shape(turned)) != shape:
+        return False
+    at_nodes = np.asarray(turned)[:, :, :, ::refine, ::refine]
+    scale = float(np.abs(coefficients).max()) or 1.0
+    return bool(np.allclose(at_nodes, coefficients[None], rtol=0.0, atol=1e-5 * scale))
 
 
 def load_model(path: str | Path) -> LSVModel:

@@ -304,8 +304,8 @@ class LSVOperator:
         self._slot = {g: i for i, g in enumerate(self.depth_nodes)}
         # node stage
         self._basis = torch.as_tensor(model.basis, device=self.device)  # (K, J, h, w)
-        # per lenslet (K, nz, ny, nx) on the interpolation grid (one shared tensor without a focal surface)
-        shared = model.focal_surface is None
+        # per lenslet (K, nz, ny, nx) on the interpolation grid (one shared tensor on the plain grid)
+        shared = model.shared_coefficients
         self._coefficients = [
             torch.as_tensor(model.lenslet_coefficients(0 if shared else j), device=self.device)
             for j in range(self.n_lenslets)

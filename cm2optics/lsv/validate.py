@@ -9,6 +9,9 @@ Two cases, chosen by comparing the scan with the one the model was built from:
   surface, a lateral neighbour's coefficients are its axial stack's at the same defocus from its
   own best focus, lenslet by lenslet). Everything runs on Gram
   matrices of the crops (per lenslet), so no pixel is touched twice.
+  A model that turns its lateral neighbours with the azimuth (:mod:`cm2optics.lsv.rotation`)
+  also gets ``leave_one_out_turned``: held-out nodes predicted from their x and y neighbours with
+  and without the turn, full rank, on the crops (:func:`~cm2optics.lsv.epsf_validate.turn_check`).
 - **Another scan (e.g. offset by half a step): held-out positions.** Each position's image from
   the model (:meth:`LSVModel.point_image`) is compared with the measured image over the model's
   focus windows.
@@ -24,6 +27,7 @@ from __future__ import annotations
 
 import warnings
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -32,9 +36,11 @@ import torch
 
 from cm2optics.formats.scan import ScanIndex, open_scan
 from cm2optics.lsv.build import scan_fingerprint
+from cm2optics.lsv.epsf_validate import turn_check
 from cm2optics.lsv.interpolate import axis_coordinate, chief_ray_nodes, defocus_nodes, tent_pairs
 from cm2optics.lsv.model import LSVModel
 from cm2optics.lsv.preprocess import extract_crops, prepared_image
+from cm2optics.lsv.rotation import AzimuthTurn
 
 __all__ = ["image_errors", "validate_model"]
 
@@ -314,6 +320,12 @@ def validate_model(
         crops = extract_crops(index, model.geometry, model.patch_shape, progress=progress) * np.float32(model.scale)
         gi = index.grid_index()
         result.update(_leave_one_out(model, crops, gi, _ranks(model, ranks, len(index) - 1), n_heldout, seed, progress))
+        if model.rotate_aberrations:  # the Gram-matrix check cannot turn PSFs: the lateral neighbours, turned
+            turn = AzimuthTurn.of_model(model)
+            turn = replace(turn, pivots=turn.pivots / model.oversample)  # whole-pixel crops
+            result["leave_one_out_turned"] = turn_check(
+                crops, gi, model.axes, model.focal_surface, turn, n_heldout=n_heldout, seed=seed
+            )
         if model.oversample > 1:
             result["note"] = (
                 "leave-one-out of the scan's whole-pixel registered crops: the model's ePSF basis is not used "

@@ -57,6 +57,12 @@ def test_build_json_model_and_report(model):
     # focal surface (the build says why) and plain interpolation
     assert "no focal surface" in summary["focal_surface"]["fallback"]
     assert load_model(path).focal_surface is None
+    # the turn with the azimuth: decided by nodes left out, both errors and the choice recorded
+    rotation = summary["rotation"]
+    check = rotation["leave_one_out"]
+    assert check["n_heldout"] > 0 and check["nmse_fixed_orientation"] >= 0 and check["nmse_turned"] >= 0
+    assert rotation["turned"] == (check["nmse_turned"] < 0.9 * check["nmse_fixed_orientation"])
+    assert load_model(path).rotate_aberrations == rotation["turned"]
     report = Path(summary["report"])
     assert report.name == "report.html" and report.is_file()
     for name in FIGURES:
@@ -227,6 +233,8 @@ def test_simulate_volume_per_lenslet_and_lsi(model, tmp_path):
         (["lsv", "build", "/no/such/scan"], "no such scan folder"),
         (["lsv", "build", "{scan}", "--rank", "0"], "--rank = 0"),
         (["lsv", "build", "{scan}", "--refine", "0"], "--refine = 0"),
+        (["lsv", "build", "{scan}", "--rotate", "sideways"], "--rotate = 'sideways'"),
+        (["lsv", "build", "{scan}", "--rotate", "on", "--refine", "1"], "--rotate on needs --refine ≥ 2"),
         (["lsv", "validate", "/no/model.h5", "{scan}"], "no such model file"),
         (["lsv", "validate", "{model}", "{scan}", "--ranks", "a,b"], "--ranks"),
         (["simulate", "--model", "{model}", "--out", "x.tif"], "exactly one of --volume and --emitters"),
