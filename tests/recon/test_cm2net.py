@@ -299,6 +299,7 @@ def test_cm2_reconstruct_method_net_writes_the_volume_record_and_emitters(weight
     record = json.loads(result.stdout)
     volume_path = tmp_path / "meas.volume.tif"
     assert record["volume"] == str(volume_path) and record["threshold"] == 0.3 and record["method"] == "net"
+    assert record["lateral_correction"] is None  # these weights were never calibrated
     volume, volume_grid = read_volume(volume_path)
     assert volume.shape == (config.n_planes, config.synth.view_px, config.synth.view_px)
     np.testing.assert_allclose(volume_grid.voxel_um, grid.voxel_um, rtol=1e-4)

@@ -25,6 +25,7 @@ refocusing shifts recomputed from its geometry, one view pixel per voxel; anythi
 
 from __future__ import annotations
 
+import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -286,6 +287,7 @@ def reconstruct_net_file(
         "threshold": result.threshold,
         "n_emitters": len(result.emitters),
         "border_px": result.border_px,
+        "lateral_correction": json.loads(loaded.lateral.to_json()) if loaded.lateral is not None else None,
         "seconds": {k: round(v, 3) for k, v in result.seconds.items()},
     }
     if emitters_out is not None:
