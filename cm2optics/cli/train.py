@@ -29,6 +29,14 @@ def train_command(
     device: Annotated[
         str | None, typer.Option("--device", help="cpu or cuda:N (default: the process's GPU if any, else cpu).")
     ] = None,
+    ablation: Annotated[
+        str | None,
+        typer.Option(
+            "--ablation",
+            help="Train (or export) one of the paper's ablations instead of the config's network: no-demix, "
+            "enhancement-only or synthesis-only; the run goes to <out_dir>-<ablation>.",
+        ),
+    ] = None,
     export: Annotated[
         Path | None,
         typer.Option(
@@ -56,6 +64,8 @@ def train_command(
     if not config.is_file():
         raise FileNotFoundError(f"{config}: no such config file")
     settings = load_config(config)
+    if ablation is not None:
+        settings = _ablated(settings, ablation)
     out_dir = Path(settings.out_dir)
     if export is not None:
         _export(out_dir, export, config, overwrite)
@@ -68,6 +78,15 @@ def train_command(
         print(json.dumps(summary, indent=2, default=str))
     else:
         typer.echo(json.dumps(shown, indent=1, default=str))
+
+
+def _ablated(settings, ablation: str):
+    """The config with ``ablation`` and its own run folder ``<out_dir>-<ablation>``."""
+    from cm2optics.recon.net.config import ABLATIONS, ConfigError
+
+    if ablation not in ABLATIONS[1:]:
+        raise ConfigError(f"--ablation {ablation}: must be one of {', '.join(ABLATIONS[1:])}")
+    return settings.with_changes(ablation=ablation, out_dir=f"{str(settings.out_dir).rstrip('/')}-{ablation}")
 
 
 def _export(run_dir: Path, folder: Path, config: Path, overwrite: bool) -> None:

@@ -95,23 +95,11 @@ def _run(
     }
 
 
-def _centred(volume: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
-    """``volume`` cropped or zero-padded about its centre to ``shape`` (both grids centred on the axis)."""
-    out = np.zeros(shape, volume.dtype)
-    src, dst = [], []
-    for n_in, n_out in zip(volume.shape, shape, strict=True):
-        lo_in, lo_out = max((n_in - n_out) // 2, 0), max((n_out - n_in) // 2, 0)
-        n = min(n_in, n_out)
-        src.append(slice(lo_in, lo_in + n))
-        dst.append(slice(lo_out, lo_out + n))
-    out[tuple(dst)] = volume[tuple(src)]
-    return out
-
-
 def _run_net(model_path: str, grid: Any, run: dict[str, Any], samples: list[str], out_dir: str, threads: int):
     """A CM²Net run (``method: net``, ``weights``: a weights folder, ``preprocess``): one pass per
     sample through :func:`~cm2optics.recon.net.infer.reconstruct_with_net` with the test set's
-    model, the volume brought onto the test grid (same voxel, centred)."""
+    model, the volume resampled onto the test grid (centred on the axis; the network's lateral
+    pitch is the model's object-side pixel, within 2 % of the test voxel)."""
     from cm2optics.lsv.model import load_model
     from cm2optics.recon.net.infer import reconstruct_with_net
     from cm2optics.recon.net.weights import load_weights
@@ -130,9 +118,11 @@ def _run_net(model_path: str, grid: Any, run: dict[str, Any], samples: list[str]
     records = []
     for path in samples:
         data = read_sample(path)
-        result = reconstruct_with_net(data["measurement"], loaded, model, preprocess=run.get("preprocess", "none"))
+        result = reconstruct_with_net(
+            data["measurement"], loaded, model, preprocess=run.get("preprocess", "none"), grid=grid
+        )
         target = folder / (Path(path).stem + ".npy")
-        np.save(target, _centred(result.volume, tuple(grid.shape)))
+        np.save(target, result.volume)
         seconds = result.seconds["total"]
         records.append(
             {

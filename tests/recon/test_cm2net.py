@@ -77,6 +77,30 @@ def test_refocusing_planes_from_the_geometry_match_the_paper_at_full_size(v2):
     assert auto.z_mm.min() >= -0.4 - 1e-9 and auto.z_mm.max() <= 0.4 + 1e-9
 
 
+def test_refocusing_planes_of_a_scan_fitted_geometry_that_turns_far_outside_the_scan(v2):
+    """Regression: a geometry fitted to a ±0.4-mm scan is quadratic in z and may turn back far
+    outside the scan (here at z = 1.5 mm); an 800-µm volume still gets its planes (the search
+    for the paper's fixed 36 widens only as far as they need), and a turn inside the volume is
+    still refused."""
+    from cm2optics.lsv.toy import AnalyticCM2, analytic_geometry
+
+    g = analytic_geometry(AnalyticCM2.from_design(v2), np.linspace(-0.4, 0.4, 5))
+    straight = refocus_planes(types.SimpleNamespace(geometry=g), (-0.4, 0.4), 0)
+
+    def bent(turn_mm):
+        o = np.array(g.o_poly, float, copy=True)
+        o[2] = -o[1] / (2 * turn_mm)  # d(z) ∝ z − z²/(2·turn): extremum at z = turn
+        return types.SimpleNamespace(geometry=type(g)(g.r0_poly, g.A_poly, o, g.rows, g.cols))
+
+    auto = refocus_planes(bent(1.5), (-0.4, 0.4), 0)
+    assert 15 <= auto.n_planes <= 40 and abs(auto.n_planes - straight.n_planes) <= 2
+    assert np.all(np.diff(auto.z_mm) > 0) and auto.z_mm.min() >= -0.4 - 1e-9 and auto.z_mm.max() <= 0.4 + 1e-9
+    fixed = refocus_planes(bent(1.5), (-0.4, 0.4), 36)
+    assert fixed.n_planes == 36 and fixed.disparity_px.min() == -18 and fixed.disparity_px.max() == 17
+    with pytest.raises(ValueError, match="not monotonic in depth over the volume"):
+        refocus_planes(bent(0.2), (-0.4, 0.4), 0)
+
+
 def test_shift_and_add_brings_a_point_into_focus_at_its_depth():
     grid = SYNTH.grid
     op = gaussian_cm2(grid, (160, 160), defocus_px_per_um=0.006)
@@ -269,6 +293,7 @@ def test_cm2_reconstruct_method_net_writes_the_volume_record_and_emitters(weight
     record = json.loads(result.stdout)
     volume_path = tmp_path / "meas.volume.tif"
     assert record["volume"] == str(volume_path) and record["threshold"] == 0.3 and record["method"] == "net"
+    assert record["lateral_correction"] is None  # these weights were never calibrated
     volume, volume_grid = read_volume(volume_path)
     assert volume.shape == (config.n_planes, config.synth.view_px, config.synth.view_px)
     np.testing.assert_allclose(volume_grid.voxel_um, grid.voxel_um, rtol=1e-4)

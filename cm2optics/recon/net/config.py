@@ -26,11 +26,13 @@ import yaml
 from cm2optics.errors import UserError
 from cm2optics.synth.config import SynthConfig
 
-__all__ = ["LOSSES", "NORMS", "RUNTIME_FIELDS", "ConfigError", "NetConfig", "load_config"]
+__all__ = ["ABLATIONS", "LOSSES", "NORMS", "RUNTIME_FIELDS", "ConfigError", "NetConfig", "load_config"]
 
 NORMS = ("batch", "group", "none")
 LOSSES = ("bce", "weighted-bce", "focal")
 TARGETS = ("occupancy", "emission")
+#: The paper's ablations (Fig. 4): the full network, or without view demixing, or one branch.
+ABLATIONS = ("none", "no-demix", "enhancement-only", "synthesis-only")
 #: Fields that do not change the weights a step produces (left out of the hash).
 RUNTIME_FIELDS = frozenset({"out_dir", "epochs", "workers", "threads", "checkpoint_every", "progress"})
 
@@ -65,7 +67,10 @@ class NetConfig:
     conv–BN) per sub-network (demixing, view synthesis, enhancement); fusion_blocks: residual
     blocks after the two branches are summed; n_planes: output planes P (= the grid's nz);
     refocus_planes: shift-and-add planes N (0: one per pixel of disparity over the depth range);
-    norm: ``batch`` (synchronised across DDP ranks), ``group`` or ``none``.
+    norm: ``batch`` (synchronised across DDP ranks), ``group`` or ``none``; ablation: ``none``
+    (the full network), ``no-demix`` (the raw views go to the refocusing and the view synthesis;
+    no demixing net, no demixing loss), ``enhancement-only`` (refocus enhancement, no view
+    synthesis) or ``synthesis-only`` (view synthesis, no refocusing branch) — the paper's ablations.
 
     Data — forward_model: a model file (3D-LSV HDF5 or PSF stack), ``analytic:<preset>:<binning>``
     (the analytic CM²-like model of :mod:`cm2optics.lsv.toy`, built in memory) or
@@ -94,6 +99,7 @@ class NetConfig:
     n_planes: int = 80
     refocus_planes: int = 0
     norm: str = "batch"
+    ablation: str = "none"
     forward_model: str = "analytic:cm2-v2:1"
     toy_sensor_px: int = 160
     synth: SynthConfig = field(default_factory=SynthConfig)
@@ -136,6 +142,7 @@ class NetConfig:
         _int("n_planes", self.n_planes, 1, 4096)
         _int("refocus_planes", self.refocus_planes, 0, 4096)
         _choice("norm", self.norm, NORMS)
+        _choice("ablation", self.ablation, ABLATIONS)
         if not isinstance(self.forward_model, str) or not self.forward_model:
             raise ConfigError(
                 f"forward_model = {self.forward_model!r}: must name a model file, analytic:… or toy:gaussian"
@@ -220,8 +227,11 @@ class NetConfig:
         return write_atomic(Path(path), lambda tmp: tmp.write_text(text, encoding="utf-8"))
 
     def hash(self) -> str:
-        """SHA-256 (hex) of the fields that change the weights (not :data:`RUNTIME_FIELDS`)."""
+        """SHA-256 (hex) of the fields that change the weights (not :data:`RUNTIME_FIELDS`; nor
+        ``ablation`` when ``none``, so that configs written before it existed keep their hash)."""
         data = {k: v for k, v in self.to_dict().items() if k not in RUNTIME_FIELDS}
+        if data["ablation"] == "none":
+            del data["ablation"]
         return hashlib.sha256(json.dumps(data, sort_keys=True, default=str).encode()).hexdigest()
 
     def with_changes(self, **changes: Any) -> NetConfig:

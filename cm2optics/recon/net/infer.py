@@ -6,10 +6,13 @@
    the paper's preprocessing of measured frames);
 3. crop the nine views at the chief rays of the model's geometry (zeros beyond the sensor, as in
    training), ``view_px`` on a side (default: the training views');
-4. run the network on the whole view stack (fully convolutional), σ → [0, 1];
-5. turn the output from the views' orientation into the volume's (the image through a lenslet
-   is inverted) on a grid centred on the axis whose lateral voxel is the model's object-side
-   pixel (the config's voxel within 2 %) and axial voxel the config's, and detect emitters
+4. run the network on the whole view stack (fully convolutional, channels-last memory layout),
+   σ → [0, 1];
+5. resample the output from the views' orientation into the volume's (the image through a
+   lenslet is inverted) on a grid centred on the axis whose lateral voxel is the model's
+   object-side pixel (the config's voxel within 2 %) and axial voxel the config's, each plane
+   moved by the weights' lateral correction (:mod:`~cm2optics.recon.net.lateral`: the
+   depth-dependent magnification a convolutional network cannot learn), and detect emitters
    (:func:`cm2optics.metrics.detect_emitters`).
 
 Border: nothing is cropped. The outer ``border_px`` (the largest refocusing shift) of the field
@@ -23,6 +26,7 @@ refocusing shifts recomputed from its geometry, one view pixel per voxel; anythi
 
 from __future__ import annotations
 
+import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -34,6 +38,7 @@ import torch
 from cm2optics.formats.emitters import Emitters
 from cm2optics.formats.volume import VolumeGrid
 from cm2optics.recon.net.data import pixel_voxel_um
+from cm2optics.recon.net.lateral import LateralCorrection, volume_on_grid
 from cm2optics.recon.net.refocus import refocus_planes
 from cm2optics.recon.net.weights import GeometryMismatchError, LoadedNet, NetInputError, load_weights
 
@@ -171,6 +176,8 @@ def reconstruct_with_net(
     view_px: int | None = None,
     device: str = "cpu",
     name: str = "measurement",
+    lateral: LateralCorrection | None = None,
+    grid: VolumeGrid | None = None,
 ) -> NetResult:
     """The volume of one measurement (see the module docstring).
 
@@ -179,7 +186,11 @@ def reconstruct_with_net(
     3D-LSV model or its file, or an operator with chief rays; None: the one the weights were
     trained through, on its whole sensor). preprocess: ``none``, ``max`` or
     ``histogram``. threshold: detection threshold on [0, 1] (default: the config's).
-    view_px: side of the views (default: the training views'). name: how errors call the input."""
+    view_px: side of the views (default: the training views'). name: how errors call the input.
+    lateral: the output planes' lateral correction (default: the one stored with the weights,
+    none if they carry none; :mod:`~cm2optics.recon.net.lateral`). grid: the output grid, centred
+    on the axis (default: the views' size at the model's object-side pixel; its planes must be the
+    network's), e.g. a test set's, onto which the planes are resampled."""
     t0 = time.perf_counter()
     if preprocess not in PREPROCESS:
         raise ValueError(f"preprocess = {preprocess!r}: must be one of {', '.join(PREPROCESS)}")
@@ -199,18 +210,27 @@ def reconstruct_with_net(
     V = int(view_px or config.synth.view_px)
     views = views_from_measurement(image, model, V)
     t1 = time.perf_counter()
-    net = loaded.net.to(device).eval()
+    # channels-last: 0.58× the time of the default layout at full field on this CPU (BENCHMARKS.md)
+    net = loaded.net.to(device, memory_format=torch.channels_last).eval()
     with torch.inference_mode():
-        demix_logits, volume_logits = net(torch.from_numpy(views)[None].to(device))
+        x = torch.from_numpy(views)[None].to(device).contiguous(memory_format=torch.channels_last)
+        demix_logits, volume_logits = net(x)
         volume = torch.sigmoid(volume_logits)[0].float().cpu().numpy()
-        demixed = torch.sigmoid(demix_logits)[0].float().cpu().numpy()
+        demixed = torch.sigmoid(demix_logits)[0].float().cpu().numpy() if demix_logits is not None else views
     t2 = time.perf_counter()
-    if scale[0] < 0:
-        volume = volume[:, ::-1, :]
-    if scale[1] < 0:
-        volume = volume[:, :, ::-1]
-    volume = np.ascontiguousarray(volume)
-    grid = VolumeGrid((volume.shape[0], V, V), pixel_voxel_um(config, scale))
+    own = VolumeGrid((volume.shape[0], V, V), pixel_voxel_um(config, scale))
+    if grid is None:
+        grid = own
+    elif grid.shape[0] != own.shape[0] or not np.isclose(grid.voxel_um[0], own.voxel_um[0], rtol=1e-6):
+        raise ValueError(
+            f"grid {grid.shape} of {grid.voxel_um} µm: the network's planes are {own.shape[0]} at {own.voxel_um[0]} µm"
+        )
+    if lateral is None:
+        lateral = loaded.lateral or LateralCorrection()
+    z_mm = loaded.net.volume_z_mm.cpu().numpy()
+    volume = volume_on_grid(
+        volume, z_mm, own.voxel_um[1:], scale, lateral, out_shape=grid.shape[1:], out_voxel_um=grid.voxel_um[1:]
+    )
     from cm2optics.metrics import detect_emitters
 
     threshold = config.detect_threshold if threshold is None else float(threshold)
@@ -270,6 +290,7 @@ def reconstruct_net_file(
         "threshold": result.threshold,
         "n_emitters": len(result.emitters),
         "border_px": result.border_px,
+        "lateral_correction": json.loads(loaded.lateral.to_json()) if loaded.lateral is not None else None,
         "seconds": {k: round(v, 3) for k, v in result.seconds.items()},
     }
     if emitters_out is not None:

@@ -39,15 +39,19 @@ def volume_loss(
 
 
 def cm2net_loss(
-    demix_logits: torch.Tensor,
+    demix_logits: torch.Tensor | None,
     volume_logits: torch.Tensor,
     demixed: torch.Tensor,
     volume: torch.Tensor,
     config: NetConfig,
     border: int,
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-    """Total loss and its parts (``demix``, ``volume``), detached parts for logging."""
-    l_demix = F.binary_cross_entropy_with_logits(demix_logits, demixed.clamp(0.0, 1.0))
+    """Total loss and its parts (``demix``, ``volume``), detached parts for logging; without a
+    demixing net (``demix_logits`` None, the ``no-demix`` ablation) the demixing term is 0."""
+    if demix_logits is None:
+        l_demix = volume_logits.new_zeros(())
+    else:
+        l_demix = F.binary_cross_entropy_with_logits(demix_logits, demixed.clamp(0.0, 1.0))
     l_volume = volume_loss(
         _crop(volume_logits, border),
         _crop(volume, border).clamp(0.0, 1.0),

@@ -18,6 +18,10 @@ in [0, 1], the BCE targets); the last biases start at a sparse prior (σ(−4) �
 Normalisation ``batch`` is :class:`SyncBatchNorm2d`: batch statistics pooled over the
 distributed ranks (gloo or NCCL, differentiable), so a DDP run computes what one process does
 with the same global batch; ``group`` (GroupNorm, per sample) and ``none`` are options.
+
+Ablations (``config.ablation``, the paper's Fig. 4): ``no-demix`` feeds the raw views to both
+branches (no demixing net; the demixed-logits output is None), ``enhancement-only`` and
+``synthesis-only`` keep one branch before the fusion.
 """
 
 from __future__ import annotations
@@ -116,20 +120,25 @@ class CM2Net(nn.Module):
         if len(z_out_mm) != P:
             raise ValueError(f"{len(z_out_mm)} output depths for n_planes = {P}")
         self.n_views, self.n_planes, self.n_refocus = J, P, N
-        self.demix = _branch(J, J, C, B, config.norm)
+        self.ablation = config.ablation
+        self.demix = _branch(J, J, C, B, config.norm) if config.ablation != "no-demix" else None
         self.refocus = ShiftAndAdd(planes.shifts_px)
         self.register_buffer("refocus_z_mm", torch.as_tensor(planes.z_mm, dtype=torch.float64))
         self.register_buffer("refocus_disparity_px", torch.as_tensor(planes.disparity_px, dtype=torch.float64))
         self.register_buffer("volume_z_mm", torch.as_tensor(np.asarray(z_out_mm, float), dtype=torch.float64))
-        self.resample = nn.Conv2d(N, P, 1, bias=False)
-        with torch.no_grad():
-            self.resample.weight.copy_(torch.from_numpy(planes.resampling(z_out_mm))[:, :, None, None])
-        self.enhance = _branch(P, P, C, B, config.norm)
-        self.synthesis = _branch(J, P, C, B, config.norm)
+        self.resample = self.enhance = self.synthesis = None
+        if config.ablation != "synthesis-only":
+            self.resample = nn.Conv2d(N, P, 1, bias=False)
+            with torch.no_grad():
+                self.resample.weight.copy_(torch.from_numpy(planes.resampling(z_out_mm))[:, :, None, None])
+            self.enhance = _branch(P, P, C, B, config.norm)
+        if config.ablation != "enhancement-only":
+            self.synthesis = _branch(J, P, C, B, config.norm)
         self.fusion = _branch(P, P, C, config.fusion_blocks, config.norm)
         with torch.no_grad():
-            for head in (self.demix[-1], self.fusion[-1]):
-                head.bias.fill_(PRIOR_LOGIT)
+            for head in (self.demix, self.fusion):
+                if head is not None:
+                    head[-1].bias.fill_(PRIOR_LOGIT)
 
     @property
     def planes(self) -> RefocusPlanes:
@@ -137,15 +146,19 @@ class CM2Net(nn.Module):
             self.refocus_z_mm.cpu().numpy(), self.refocus_disparity_px.cpu().numpy(), self.refocus.shifts.cpu().numpy()
         )
 
-    def forward(self, views: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """views (B, J, H, W) → (demixed logits (B, J, H, W), volume logits (B, P, H, W))."""
+    def forward(self, views: torch.Tensor) -> tuple[torch.Tensor | None, torch.Tensor]:
+        """views (B, J, H, W) → (demixed logits (B, J, H, W), or None without demixing; volume
+        logits (B, P, H, W))."""
         if views.ndim != 4 or views.shape[1] != self.n_views:
             raise ValueError(f"views must be (B, {self.n_views}, H, W), got shape {tuple(views.shape)}")
-        demix_logits = self.demix(views)
-        demixed = torch.sigmoid(demix_logits)
-        refocused = self.refocus(demixed)
-        volume = self.fusion(self.enhance(self.resample(refocused)) + self.synthesis(demixed))
-        return demix_logits, volume
+        demix_logits = self.demix(views) if self.demix is not None else None
+        demixed = torch.sigmoid(demix_logits) if demix_logits is not None else views
+        fused = 0.0
+        if self.enhance is not None:
+            fused = fused + self.enhance(self.resample(self.refocus(demixed)))
+        if self.synthesis is not None:
+            fused = fused + self.synthesis(demixed)
+        return demix_logits, self.fusion(fused)
 
     def parameter_count(self) -> int:
         return sum(p.numel() for p in self.parameters())

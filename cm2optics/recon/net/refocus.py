@@ -110,15 +110,6 @@ def refocus_planes(source: Any, z_range_mm: tuple[float, float], n_planes: int =
     z_range_mm: the volume's depth range (low, high), mm; n_planes: N (0: auto)."""
     lo, hi = float(min(z_range_mm)), float(max(z_range_mm))
     span = max(hi - lo, 1e-3)
-    # a fine table of d(z) over a range wide enough for the paper's fixed N at any geometry
-    z_table = np.linspace(lo - 4 * span, hi + 4 * span, 4001)
-    _, d_table = _disparity(source, z_table)
-    if not np.all(np.diff(d_table) > 0) and not np.all(np.diff(d_table) < 0):
-        raise ValueError(
-            "the lenslets' disparity is not monotonic in depth over the volume: cannot place refocus planes"
-        )
-    if d_table[-1] < d_table[0]:
-        z_table, d_table = z_table[::-1], d_table[::-1]
     _, d_ends = _disparity(source, np.array([lo, hi]))
     if n_planes == 0:
         targets = np.arange(np.ceil(d_ends.min() - 1e-9), np.floor(d_ends.max() + 1e-9) + 1)
@@ -126,7 +117,27 @@ def refocus_planes(source: Any, z_range_mm: tuple[float, float], n_planes: int =
             targets = np.array([0.0])
     else:
         targets = np.arange(n_planes, dtype=float) - n_planes // 2
-    if targets.min() < d_table[0] or targets.max() > d_table[-1]:
+    # a fine table of d(z) over the volume, widened (up to ±4 depth ranges) only as far as the
+    # planes need: a geometry fitted to a scan is a polynomial valid near the scan, and far
+    # outside it may turn back (d(z) not monotonic) where no plane lies
+    for extra in (0.0, 0.25, 0.5, 1.0, 2.0, 4.0):
+        z_table = np.linspace(lo - extra * span, hi + extra * span, 4001)
+        _, d_table = _disparity(source, z_table)
+        if not np.all(np.diff(d_table) > 0) and not np.all(np.diff(d_table) < 0):
+            if extra == 0.0:
+                raise ValueError(
+                    "the lenslets' disparity is not monotonic in depth over the volume: cannot place refocus planes"
+                )
+            raise ValueError(
+                f"{len(targets)} refocus planes need disparities {targets.min():g}…{targets.max():g} px; the geometry "
+                f"gives {d_ends.min():.3g}…{d_ends.max():.3g} px over the volume and is not monotonic beyond "
+                f"{extra * span * 1000:.0f} µm outside it: use fewer planes (or 0: auto)"
+            )
+        if d_table[-1] < d_table[0]:
+            z_table, d_table = z_table[::-1], d_table[::-1]
+        if targets.min() >= d_table[0] and targets.max() <= d_table[-1]:
+            break
+    else:
         raise ValueError(
             f"{len(targets)} refocus planes need disparities {targets.min():g}…{targets.max():g} px; the geometry gives "
             f"{d_table[0]:.3g}…{d_table[-1]:.3g} px within ±4 depth ranges: use fewer planes (or 0: auto)"

@@ -4,7 +4,8 @@
 
     weights/
       model.safetensors   the state dict (refocusing planes and shifts included as buffers);
-                          metadata: format, config hash, reference histogram for inference
+                          metadata: format, config hash, reference histogram for inference,
+                          lateral correction of the output planes (once fitted)
       config.yaml         the NetConfig that built it
       MODEL_CARD.md       data, training, metrics, geometry, intended use, limitations
       SHA256SUMS          SHA-256 of the two files above (``sha256sum -c`` reads it)
@@ -28,6 +29,8 @@ import numpy as np
 from cm2optics.errors import UserError
 from cm2optics.formats.atomic import write_atomic
 from cm2optics.recon.net.config import ConfigError, NetConfig, load_config
+from cm2optics.recon.net.lateral import METADATA_KEY as LATERAL_KEY
+from cm2optics.recon.net.lateral import LateralCorrection
 from cm2optics.recon.net.model import CM2Net
 from cm2optics.recon.net.refocus import RefocusPlanes
 
@@ -46,6 +49,7 @@ __all__ = [
     "net_from_tensors",
     "shipped_weights",
     "save_weights",
+    "store_metadata",
 ]
 
 FORMAT = "cm2optics-cm2net"
@@ -78,6 +82,7 @@ class LoadedNet:
     folder: Path
     histogram: np.ndarray | None  # reference quantiles of training views (for histogram matching)
     metadata: dict[str, str]
+    lateral: LateralCorrection | None = None  # the output planes' lateral correction, if fitted
 
     @property
     def planes(self) -> RefocusPlanes:
@@ -170,7 +175,6 @@ def save_weights(
     histogram: np.ndarray | None = None,
 ) -> Path:
     """Write the weights folder (each file atomically, the sums last); returns the folder."""
-    from safetensors.torch import save_file
 
     folder = Path(folder)
     net = getattr(net, "module", net)
@@ -178,13 +182,33 @@ def save_weights(
     metadata = {"format": FORMAT, "config_hash": config.hash()}
     if histogram is not None:
         metadata["histogram"] = json.dumps([float(v) for v in np.asarray(histogram, float)])
-    write_atomic(folder / WEIGHTS_FILE, lambda tmp: save_file(state, str(tmp), metadata=metadata))
+    _write_tensors(folder, state, metadata)
     config.save(folder / CONFIG_FILE)
     card = _card(net, config, metrics, training)
     write_atomic(folder / CARD_FILE, lambda tmp: tmp.write_text(card, encoding="utf-8"))
+    _write_sums(folder)
+    return folder
+
+
+def _write_tensors(folder: Path, state: dict, metadata: dict[str, str]) -> None:
+    from safetensors.torch import save_file
+
+    write_atomic(folder / WEIGHTS_FILE, lambda tmp: save_file(state, str(tmp), metadata=metadata))
+
+
+def _write_sums(folder: Path) -> None:
     sums = "".join(f"{_sha256(folder / name)}  {name}\n" for name in (WEIGHTS_FILE, CONFIG_FILE))
     write_atomic(folder / SUMS_FILE, lambda tmp: tmp.write_text(sums, encoding="utf-8"))
-    return folder
+
+
+def store_metadata(folder: str | Path, entries: dict[str, str]) -> None:
+    """Add ``entries`` to the metadata of the (checked) weights in ``folder``: the tensors, config
+    and card stay, ``model.safetensors`` and the SHA-256 sums are rewritten."""
+    loaded = load_weights(folder)
+    folder = Path(folder)
+    state = {k: v.detach().cpu().contiguous() for k, v in loaded.net.state_dict().items()}
+    _write_tensors(folder, state, {**loaded.metadata, **entries})
+    _write_sums(folder)
 
 
 def _check_sums(folder: Path) -> None:
@@ -240,7 +264,11 @@ def load_weights(folder: str | Path, device: str = "cpu") -> LoadedNet:
     net = net_from_tensors(config, tensors, f"{path}", f"{folder / CONFIG_FILE}")
     net.to(device).eval()
     histogram = np.asarray(json.loads(metadata["histogram"]), float) if "histogram" in metadata else None
-    return LoadedNet(net, config, folder, histogram, metadata)
+    try:
+        lateral = LateralCorrection.from_json(metadata[LATERAL_KEY]) if LATERAL_KEY in metadata else None
+    except (ValueError, KeyError, TypeError) as error:
+        raise WeightsError(f"{path}: unreadable {LATERAL_KEY} metadata ({error})") from None
+    return LoadedNet(net, config, folder, histogram, metadata, lateral)
 
 
 def net_from_tensors(config: NetConfig, tensors: dict, where: str, config_name: str = CONFIG_FILE) -> CM2Net:
