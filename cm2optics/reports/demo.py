@@ -121,7 +121,9 @@ def run_demo(
     The 3D-LSV model of sections 6–7 is built from section 5's traced calibration scan (one
     chain); ``analytic``: from a closed-form CM²-like scan instead (the fast fallback, about
     two minutes sooner). Section 8 uses the CM²Net weights ``weights`` (default: the shipped
-    ones, :func:`~cm2optics.recon.net.weights.shipped_weights`); without them it says so."""
+    ones, :func:`~cm2optics.recon.net.weights.shipped_weights`); without them it says so. Section 9
+    traces a 9-position scan with an MLA rotation it does not declare and runs the calibration
+    loop on it (:func:`~cm2optics.reports.calibration_demo.add_calibration_section`)."""
     out_dir = Path(out_dir)
     console = Console(stderr=True)
     report = Report(f"cm2optics demo — {design.name}")
