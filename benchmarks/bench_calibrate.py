@@ -24,6 +24,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import resource
 import time
 from pathlib import Path
 
@@ -81,6 +82,17 @@ def reference(design, scan_dir: Path, fit_positions: int) -> None:
     )
 
 
+def timestamped(start: float):
+    """A progress callback printing the seconds since ``start`` before each message."""
+    return lambda message: print(f"{time.perf_counter() - start:7.1f} s  {message}", flush=True)
+
+
+def _children_cpu() -> float:
+    """CPU seconds (user + system) of this process's finished child processes."""
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--grid", default="9x9x5", help="NXxNYxNZ positions")
@@ -91,7 +103,7 @@ def main() -> None:
     parser.add_argument("--read-noise", type=float, default=2.0, help="read noise, counts")
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--fit-positions", type=int, default=27)
-    parser.add_argument("--workers", type=int, default=2, help="processes simulating the scan")
+    parser.add_argument("--workers", type=int, default=2, help="processes simulating the scan and tracing the model")
     parser.add_argument("--work", type=Path, default=Path("out/bench-calibrate"), help="where the scans are kept")
     parser.add_argument("--skip-reference", action="store_true")
     args = parser.parse_args()
@@ -101,14 +113,18 @@ def main() -> None:
     scan_dir = make_scan(args, design, args.work)
     load = os.getloadavg()[0]
     start = time.perf_counter()
-    result = calibrate_scan(scan_dir, design, fit_positions=args.fit_positions, progress=print)
+    cpu, children = time.process_time(), _children_cpu()
+    result = calibrate_scan(
+        scan_dir, design, fit_positions=args.fit_positions, workers=args.workers, progress=timestamped(start)
+    )
     wall = time.perf_counter() - start
     doc = result.document
     summary = {k: doc[k] for k in ("effects", "nmse_before", "nmse_after", "chi2_before", "chi2_after", "unexplained")}
     print(json.dumps(summary, indent=1, ensure_ascii=False))
     print(
         f"calibrate_scan: {len(result.before.files)} positions at binning {result.before.residual_counts.shape} "
-        f"in {wall:.0f} s (load {load:.1f} → {os.getloadavg()[0]:.1f})"
+        f"in {wall:.0f} s (load {load:.1f} → {os.getloadavg()[0]:.1f}); CPU of this process "
+        f"{time.process_time() - cpu:.0f} s, of its finished worker processes {_children_cpu() - children:.0f} s"
     )
     if not args.skip_reference:
         reference(design, scan_dir, args.fit_positions)

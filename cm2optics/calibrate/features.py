@@ -52,13 +52,19 @@ def circular_windows(
 
 
 def away_from_foci(shape: tuple[int, int], centres: np.ndarray, radius_px: np.ndarray) -> np.ndarray:
-    """(N, y, x) pixels farther than ``radius_px`` (N, J) from every focus centre (N, J, 2) px."""
-    rows = np.arange(shape[0])[:, None]
-    cols = np.arange(shape[1])[None, :]
+    """(N, y, x) pixels farther than ``radius_px`` (N, J) from every focus centre (N, J, 2) px
+    (each disc cleared within its bounding box; an image with a NaN centre or radius has none)."""
     out = np.ones((len(centres),) + tuple(shape), bool)
-    for j in range(centres.shape[1]):  # J ≈ 9 lenslets; every image at once
-        distance = np.hypot(rows - centres[:, j, 0, None, None], cols - centres[:, j, 1, None, None])
-        out &= distance > radius_px[:, j, None, None]
+    for n, j in np.ndindex(*centres.shape[:2]):  # N·J small boxes, not N·J full frames
+        (row, col), radius = centres[n, j], radius_px[n, j]
+        if not np.isfinite([row, col, radius]).all():
+            out[n] = False
+            continue
+        r0, r1 = max(int(np.floor(row - radius)), 0), min(int(np.ceil(row + radius)) + 1, shape[0])
+        c0, c1 = max(int(np.floor(col - radius)), 0), min(int(np.ceil(col + radius)) + 1, shape[1])
+        if r0 < r1 and c0 < c1:
+            rows, cols = np.arange(r0, r1)[:, None], np.arange(c0, c1)[None, :]
+            out[n, r0:r1, c0:c1] &= np.hypot(rows - row, cols - col) > radius
     return out
 
 

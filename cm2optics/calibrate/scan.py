@@ -31,7 +31,7 @@ import numpy as np
 from cm2optics.calibrate.attribute import CHI2_FLOOR, Attribution, Problem, attribute
 from cm2optics.calibrate.effects import apply_image_effects, library
 from cm2optics.calibrate.residual import CalibrationError, ResidualAnalysis, ScanData, analyse_scan
-from cm2optics.calibrate.tracer import TracerSimulator, design_with
+from cm2optics.calibrate.tracer import TracerSimulator, design_with, traced_rates
 from cm2optics.design import SystemDesign
 from cm2optics.emission.source import AngularProfile, PointSource
 from cm2optics.formats.scan import PSFScan, grid_index, read_scan
@@ -110,12 +110,12 @@ def fit_subset(positions_mm: np.ndarray, count: int) -> np.ndarray:
     return picked[np.round(np.linspace(0, len(picked) - 1, min(count, len(picked)))).astype(int)]
 
 
-def _model_rate(simulator: TracerSimulator, positions: np.ndarray, attribution: Attribution | None) -> np.ndarray:
-    """The model's images at every position: nominal (None) or with the fitted effects (optical
-    ones traced, sensor-side ones applied, leakage as a uniform rate per unit flux)."""
-    if attribution is None:
-        return simulator.rates(positions, {})
-    rate = simulator.rates(positions, attribution.effects)
+def _model_rate(
+    simulator: TracerSimulator, positions: np.ndarray, attribution: Attribution, workers: int
+) -> np.ndarray:
+    """The model's images at every position with the fitted effects (optical ones traced by
+    ``workers`` processes, sensor-side ones applied, leakage as a uniform rate per unit flux)."""
+    rate, _ = traced_rates(simulator, positions, attribution.effects, workers=workers)
     rate = apply_image_effects(rate, attribution.effects, simulator.pixel_um)
     leak = attribution.effects.get("leakage_background", {}).get("counts_per_ms", 0.0)
     return rate + np.float32(leak / max(attribution.registration.flux_scale, 1e-30))
@@ -262,6 +262,7 @@ def calibrate_scan(
     max_effects: int = 6,
     source_diameter_um: float | None = None,
     source_profile: str | None = None,
+    workers: int = 1,
     progress: Progress | None = None,
 ) -> ScanCalibration:
     """Run the loop of the module docstring on the scan folder ``scan_dir`` taken on ``design``.
@@ -273,6 +274,7 @@ def calibrate_scan(
     source_profile: the calibration source's angular profile as
         :meth:`~cm2optics.emission.source.AngularProfile.describe` writes it (default: the scan's
         ``source_profile`` metadata, else isotropic, said in the document's ``warnings``).
+    workers: processes tracing the model at every position (before and after; 1: this process).
     """
     say = progress or (lambda message: None)
     scan = read_scan(scan_dir, sensor_pixel_um=design.sensor.pixel_um)
@@ -287,12 +289,12 @@ def calibrate_scan(
     files = tuple(scan.files)
     positions = scan.positions_mm
     data = ScanData(scan.images, scan.exposure_ms, positions, files, scan.meta.bit_depth)
-    centres, pitch = simulator.focus_centres_px(positions), simulator.pitch_px()
+    pitch = simulator.pitch_px()
 
     say(f"tracing the nominal design at {len(positions)} positions")
-    before = analyse_scan(
-        data, _model_rate(simulator, positions, None), positions, centres, pitch, counts_per_electron=gain
-    )
+    nominal, centres = traced_rates(simulator, positions, {}, workers=workers, with_centres=True)
+    before = analyse_scan(data, nominal, positions, centres, pitch, counts_per_electron=gain)
+    del nominal
     _check_magnification(before)
 
     subset = fit_subset(positions, fit_positions)
@@ -311,7 +313,7 @@ def calibrate_scan(
     attribution = attribute(problem, max_effects=max_effects, progress=say)
 
     say("tracing the corrected design at every position")
-    rate = _model_rate(simulator, positions, attribution)
+    rate = _model_rate(simulator, positions, attribution, workers)
     after = analyse_scan(data, rate, positions, centres, pitch, counts_per_electron=gain)
     corrected = corrected_design(design, attribution)
     document = {

@@ -39,7 +39,9 @@ from __future__ import annotations
 
 import math
 from collections import OrderedDict
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field, replace
+from multiprocessing import get_context
 
 import numpy as np
 
@@ -52,7 +54,7 @@ from cm2optics.emission.source import AngularProfile, PointSource, ProfileKind
 from cm2optics.optics import first_order
 from cm2optics.optics.lenslets import lens_cells
 
-__all__ = ["UNIT_SOURCE", "TracerSimulator", "design_with"]
+__all__ = ["UNIT_SOURCE", "TracerSimulator", "design_with", "traced_rates"]
 
 #: Counts per ms of a unit source per photon detected per emitted photon.
 UNIT_SOURCE = 1e6
@@ -359,3 +361,47 @@ def _transmissions(design: SystemDesign) -> np.ndarray:
             for c in lens_cells(design.mla, design.as_built)
         ]
     )
+
+
+def _rates_task(
+    spec: tuple, positions_mm: np.ndarray, values: Values, with_centres: bool
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """Worker: the images (and the nominal focus centres) of a chunk of positions, traced by a
+    simulator of ``spec`` (design, binning, source, settings, oversample, anchor; an empty
+    cache), Dr.Jit on one thread (one worker per core)."""
+    from cm2optics.emission.scan import _set_jit_threads
+
+    _set_jit_threads(1)
+    design, binning, source, settings, oversample, anchor = spec
+    simulator = TracerSimulator(design, binning, source, settings, oversample, anchor=anchor)
+    centres = simulator.focus_centres_px(positions_mm) if with_centres else None
+    return simulator.rates(positions_mm, values), centres
+
+
+def traced_rates(
+    simulator: TracerSimulator,
+    positions_mm: np.ndarray,
+    values: Values,
+    *,
+    workers: int = 1,
+    with_centres: bool = False,
+    chunk: int = 8,
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """``simulator.rates(positions_mm, values)`` and, ``with_centres``, its nominal
+    ``focus_centres_px`` — in this process (``workers`` 1, the simulator's cache filled), or
+    traced by ``workers`` processes, ``chunk`` positions per task (for a whole scan: every
+    position is traced once, so a shared cache gains nothing)."""
+    positions = np.asarray(positions_mm, float).reshape(-1, 3)
+    if workers <= 1 or len(positions) <= chunk:
+        centres = simulator.focus_centres_px(positions) if with_centres else None
+        return simulator.rates(positions, values), centres
+    s = simulator
+    spec = (s.design, s.binning, s.source, s.settings, s.oversample, {k: dict(v) for k, v in s.anchor.items()})
+    with ProcessPoolExecutor(workers, mp_context=get_context("spawn")) as pool:
+        futures = [
+            pool.submit(_rates_task, spec, positions[i : i + chunk], values, with_centres)
+            for i in range(0, len(positions), chunk)
+        ]
+        parts = [future.result() for future in futures]
+    rates = np.concatenate([rate for rate, _ in parts])
+    return rates, (np.concatenate([c for _, c in parts]) if with_centres else None)

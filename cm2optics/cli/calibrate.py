@@ -33,6 +33,9 @@ def scan(
         int, typer.Option("--fit-positions", min=3, help="Positions traced for the attribution, spread over the grid.")
     ] = 27,
     max_effects: Annotated[int, typer.Option("--max-effects", min=1, max=12, help="Effects kept at most.")] = 6,
+    workers: Annotated[
+        int, typer.Option("--workers", min=1, max=64, help="Processes tracing the model at every scan position.")
+    ] = 1,
     source_um: Annotated[
         float | None,
         typer.Option(
@@ -86,6 +89,7 @@ def scan(
         max_effects=max_effects,
         source_diameter_um=source_um,
         source_profile=source_profile,
+        workers=workers,
         progress=say,
     )
     claim_folder(out, "calibrate scan")

@@ -7,7 +7,8 @@ collimators and excitation filters onto the sample; a traced PSF calibration sca
 forward model built from that scan (effective-PSF basis), checked against traced points between
 its nodes; a synthetic volume simulated through that model, reconstructed with the model-based
 baselines and evaluated; CM²Net with the shipped weights beside FISTA on a measurement simulated
-at the weights' own geometry. One chain: design → traced scan → model → data → volume.
+at the weights' own geometry; the calibration loop finding an effect injected into a traced scan
+without telling it. One chain: design → traced scan → model → data → volume.
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ import numpy as np
 from rich.console import Console
 
 from cm2optics.design import SystemDesign
+from cm2optics.reports.calibration_demo import add_calibration_section
 from cm2optics.reports.document import Report
 from cm2optics.reports.emission import CHAIN_SCAN, add_psf_section
 from cm2optics.reports.illumination import add_illumination_section
@@ -119,22 +121,24 @@ def run_demo(
     The 3D-LSV model of sections 6–7 is built from section 5's traced calibration scan (one
     chain); ``analytic``: from a closed-form CM²-like scan instead (the fast fallback, about
     two minutes sooner). Section 8 uses the CM²Net weights ``weights`` (default: the shipped
-    ones, :func:`~cm2optics.recon.net.weights.shipped_weights`); without them it says so."""
+    ones, :func:`~cm2optics.recon.net.weights.shipped_weights`); without them it says so. Section 9
+    traces a 9-position scan with an MLA rotation it does not declare and runs the calibration
+    loop on it (:func:`~cm2optics.reports.calibration_demo.add_calibration_section`)."""
     out_dir = Path(out_dir)
     console = Console(stderr=True)
     report = Report(f"cm2optics demo — {design.name}")
-    console.print("[bold]1/8[/] design optics")
+    console.print("[bold]1/9[/] design optics")
     _design_section(report, design)
-    console.print("[bold]2/8[/] CAD export and checks")
+    console.print("[bold]2/9[/] CAD export and checks")
     _cad_section(report, design, out_dir)
-    console.print("[bold]3/8[/] spectra, filters and SBR")
+    console.print("[bold]3/9[/] spectra, filters and SBR")
     add_spectra_section(report, design, out_dir, title="3. Spectra, filters and the hybrid emission filter")
-    console.print("[bold]4/8[/] illumination")
+    console.print("[bold]4/9[/] illumination")
     add_illumination_section(report, design, out_dir, heading="4. Illumination")
-    console.print("[bold]5/8[/] PSFs and the calibration scan")
+    console.print("[bold]5/9[/] PSFs and the calibration scan")
     scan = add_psf_section(report, design, out_dir, title="5. PSFs and calibration scans")
     console.print(
-        "[bold]6/8[/] 3D-LSV forward model" + (" (analytic fallback)" if analytic else " from the traced scan")
+        "[bold]6/9[/] 3D-LSV forward model" + (" (analytic fallback)" if analytic else " from the traced scan")
     )
     title = "6. The 3D-LSV forward model"
     if analytic:
@@ -144,9 +148,11 @@ def run_demo(
         add_lsv_section(
             report, design, scan, out_dir, rank=48, title=title, oversample=CHAIN_SCAN["oversample"], traced=traced
         )
-    console.print("[bold]7/8[/] synthetic volume, model-based reconstruction, metrics")
+    console.print("[bold]7/9[/] synthetic volume, model-based reconstruction, metrics")
     model = None if analytic else out_dir / "lsv" / "model.h5"
     add_baseline_section(report, design, model, out_dir, title="7. Synthetic data, baselines and metrics")
-    console.print("[bold]8/8[/] CM²Net with the shipped weights beside FISTA")
+    console.print("[bold]8/9[/] CM²Net with the shipped weights beside FISTA")
     add_net_section(report, out_dir, weights=weights, title="8. CM²Net")
+    console.print("[bold]9/9[/] calibration loop on a scan with an undeclared effect")
+    add_calibration_section(report, design, out_dir, title="9. Calibration: an effect nobody declared, found")
     return report.write(out_dir)

@@ -163,3 +163,19 @@ def test_the_source_profile_effect_multiplies_the_scans_profile():
     np.testing.assert_allclose(
         table.relative_intensity(theta), np.cos(theta) * np.exp(-6.0 * theta**2), rtol=2e-3, atol=1e-4
     )
+
+
+@pytest.mark.slow
+def test_traced_rates_over_processes_equal_this_process(v2: SystemDesign):
+    """Positions traced by two worker processes (the anchor travelling with them) give the same
+    images and focus centres as the same simulator in this process."""
+    from cm2optics.calibrate.tracer import traced_rates
+
+    positions = np.array([[0.0, 0.0, 0.0], [0.5, -0.3, 0.2], [-1.0, 0.8, -0.2]])
+    values = {"mla_rotation": {"angle_deg": 0.3}, "lenslet_transmission[4]": {"transmission": 0.7}}
+    simulator = TracerSimulator(v2, binning=8, anchor={"mla_rotation": {"angle_deg": 0.2}})
+    here, centres_here = traced_rates(simulator, positions, values, with_centres=True)
+    there, centres_there = traced_rates(simulator, positions, values, workers=2, chunk=1, with_centres=True)
+    assert here.max() > 0
+    np.testing.assert_array_equal(there, here)
+    np.testing.assert_array_equal(centres_there, centres_here)
