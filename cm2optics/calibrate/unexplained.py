@@ -1,0 +1,128 @@
+"""What the fitted effects leave unexplained: the signature of a structured residual.
+
+After the attribution, every focus of every image is tested against the noise model: its patch
+of the residual (2·half + 1 px square around the model focus) has χ² = Σ r²/σ² over n pixels;
+a focus is *flagged* when that χ² exceeds n by more than :data:`Z_FLAG` standard deviations
+(√(2n)) and its reduced χ² exceeds :data:`REDUCED_FLAG`. Clean data flag nothing.
+
+Flagged foci are grouped: when most lenslets are flagged in most images the residual is common
+to all foci (one entry); otherwise each flagged lenslet is one entry. Each entry says where
+(``lenslets``, the field radius range ``field_mm`` and ``depths_mm`` of its flagged images),
+how much (``energy_fraction``: Σ|residual| over its flagged patches / the model's signal in
+those patches) and what shape (``description``), read from the entry's mean residual patch
+relative to its foci's energy: a displaced copy of the foci (light outside the focus with its
+own centroid, offset and width), or foci dimmed by a share that changes with the position (a
+transmission loss that no constant per-lenslet transmission explains), or neither.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from cm2optics.calibrate.features import focus_patches
+from cm2optics.calibrate.residual import ResidualAnalysis
+
+__all__ = ["PATCH_HALF_PX", "describe_unexplained", "flagged_foci"]
+
+#: Half-size of the residual patch around each focus, px (17 × 17 px at the default).
+PATCH_HALF_PX = 8
+#: A focus is flagged when its patch χ² exceeds its pixel count by this many standard deviations…
+Z_FLAG = 8.0
+#: …and its reduced χ² exceeds this.
+REDUCED_FLAG = 1.5
+#: Lenslets flagged in at least this share of the images with flags are "common".
+COMMON_SHARE = 0.5
+
+
+def flagged_foci(after: ResidualAnalysis, half: int = PATCH_HALF_PX) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(N, J) flagged foci (module docstring), and the residual and model-signal patches
+    (N, J, 2·half + 1, 2·half + 1) in counts."""
+    model_signal = after.model_counts - after.registration.dark_level
+    centres = after.model.centroid_px
+    residual, inside = focus_patches(after.residual_counts, centres, half)
+    model, _ = focus_patches(model_signal, centres, half)
+    variance = after.noise.variance(model)
+    pixels = float((2 * half + 1) ** 2)
+    chi2 = np.sum(residual**2 / variance, axis=(-2, -1))
+    z = (chi2 - pixels) / np.sqrt(2.0 * pixels)
+    flagged = after.used[:, None] & inside & (z > Z_FLAG) & (chi2 / pixels > REDUCED_FLAG)
+    return flagged, residual, model
+
+
+def describe_unexplained(after: ResidualAnalysis, pixel_um: float, half: int = PATCH_HALF_PX) -> list[dict[str, Any]]:
+    """The entries ``{lenslets, field_mm, depths_mm, energy_fraction, description}`` of what
+    remains above the noise after the fit (empty when no focus is flagged); ``pixel_um`` is the
+    binned pixel pitch, µm."""
+    flagged, residual, model = flagged_foci(after, half)
+    if not flagged.any():
+        return []
+    images = flagged.any(axis=1)
+    share = flagged[images].mean(axis=0)  # per lenslet: share of the flagged images it is flagged in
+    common = share >= COMMON_SHARE
+    if common.sum() > flagged.shape[1] // 2:
+        groups = [np.flatnonzero(flagged.any(axis=0))]
+    else:
+        groups = [np.array([j]) for j in np.flatnonzero(flagged.any(axis=0))]
+    return [_entry(after, flagged, residual, model, group, pixel_um) for group in groups]
+
+
+def _entry(
+    after: ResidualAnalysis,
+    flagged: np.ndarray,
+    residual: np.ndarray,
+    model: np.ndarray,
+    lenslets: np.ndarray,
+    pixel_um: float,
+) -> dict[str, Any]:
+    mask = np.zeros_like(flagged)
+    mask[:, lenslets] = flagged[:, lenslets]
+    where = np.flatnonzero(mask.any(axis=1))
+    field = np.hypot(after.positions_mm[where, 0], after.positions_mm[where, 1])
+    energy = model.sum(axis=(-2, -1))  # (N, J) model focus energy, counts
+    fraction = float(np.abs(residual[mask]).sum() / max(float(np.abs(model[mask]).sum()), 1e-30))
+    shape = _shape(residual[mask], energy[mask], model[mask], pixel_um)
+    # per flagged focus: the relative change of its energy
+    change = residual[mask].sum(axis=(-2, -1)) / np.maximum(energy[mask], 1e-30)
+    count = f"{int(mask.sum())} foci in {len(where)} of {int(after.used.sum())} images"
+    if shape is None:
+        low, high = float(change.min()), float(change.max())
+        description = (
+            f"the foci of lenslet{'s' if len(lenslets) > 1 else ''} {[int(j) for j in lenslets]} change in "
+            f"energy by {low:+.1%} to {high:+.1%} ({count}) while the other positions match: a loss that "
+            f"depends on the source position (e.g. a scratch or dust on a filter in front of the array), "
+            f"not a constant lenslet transmission"
+        )
+    else:
+        description = f"{shape} ({count})"
+    return {
+        "lenslets": [int(j) for j in lenslets],
+        "field_mm": [round(float(field.min()), 3), round(float(field.max()), 3)],
+        "depths_mm": sorted({round(float(z), 4) for z in after.positions_mm[where, 2]}),
+        "energy_fraction": round(fraction, 5),
+        "description": description,
+    }
+
+
+def _shape(residual: np.ndarray, energy: np.ndarray, model: np.ndarray, pixel_um: float) -> str | None:
+    """A displaced copy of the foci read from the mean residual patch relative to the foci's
+    energy (residual, model: (F, w, w) counts; energy (F,)), or None when the residual is the
+    focus itself scaled (a change of energy)."""
+    relative = residual.sum(axis=0) / energy.sum()
+    focus = model.sum(axis=0) / energy.sum()
+    half = relative.shape[0] // 2
+    rows, cols = np.mgrid[-half : half + 1, -half : half + 1]
+    width = float(np.sqrt(np.sum(focus * (rows**2 + cols**2))))
+    core = np.hypot(rows, cols) <= max(1.5, 2.0 * width)
+    outside = np.where(core, 0.0, np.clip(relative, 0.0, None))
+    if outside.sum() <= 0.5 * np.abs(relative).sum():
+        return None
+    share = float(outside.sum())
+    dr, dc = float((outside * rows).sum() / share), float((outside * cols).sum() / share)
+    spread = float(np.sqrt((outside * ((rows - dr) ** 2 + (cols - dc) ** 2)).sum() / share))
+    return (
+        f"a displaced copy of the foci (a ghost): {share:.1%} of each focus's energy at ({dr:+.1f}, {dc:+.1f}) px "
+        f"(row, col; {np.hypot(dr, dc) * pixel_um:.0f} µm on the sensor) from it, RMS radius {spread:.1f} px "
+        f"against the foci's {width:.1f} px"
+    )
