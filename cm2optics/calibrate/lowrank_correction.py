@@ -20,7 +20,9 @@ and χ² of those images are reported before and after.
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -28,6 +30,7 @@ import numpy as np
 from cm2optics.calibrate.features import focus_patches
 from cm2optics.calibrate.residual import ResidualAnalysis
 from cm2optics.calibrate.unexplained import PATCH_HALF_PX
+from cm2optics.formats.atomic import write_atomic
 
 __all__ = ["LowRankCorrection", "fit_correction", "held_out_error"]
 
@@ -103,6 +106,28 @@ class LowRankCorrection:
             "singular_share": [round(float(s), 4) for s in self.singular_share],
             "kernel_scale_mm": [None if not np.isfinite(s) else round(float(s), 4) for s in self.scale_mm],
         }
+
+    def save(self, path: str | Path) -> Path:
+        """Write the correction as ``.npz`` (arrays, and its :meth:`to_dict` as JSON under
+        ``metadata``, which says ``physical: false``), atomically."""
+        arrays = {name: getattr(self, name) for name in ARRAYS}
+
+        def write(target: Path) -> None:
+            with open(target, "wb") as f:
+                np.savez(f, metadata=np.array(json.dumps(self.to_dict())), **arrays)
+
+        return write_atomic(Path(path), write)
+
+    @classmethod
+    def load(cls, path: str | Path) -> LowRankCorrection:
+        """A correction :meth:`save` wrote."""
+        with np.load(path) as f:
+            metadata = json.loads(str(f["metadata"]))
+            return cls(**{name: f[name] for name in ARRAYS}, physical=bool(metadata["physical"]))
+
+
+#: The arrays a saved correction holds.
+ARRAYS = ("basis", "positions_mm", "coefficients", "fitted", "scale_mm", "singular_share")
 
 
 def _kernel(a: np.ndarray, b: np.ndarray, scale_mm: np.ndarray) -> np.ndarray:

@@ -85,7 +85,12 @@ def _entry(
     shape = _shape(residual[mask], energy[mask], model[mask], pixel_um)
     # per flagged focus: the relative change of its energy
     change = residual[mask].sum(axis=(-2, -1)) / np.maximum(energy[mask], 1e-30)
-    count = f"{int(mask.sum())} foci in {len(where)} of {int(after.used.sum())} images"
+    misfit = np.where(mask, np.sum(residual**2, axis=(-2, -1)) / np.maximum(np.sum(model**2, axis=(-2, -1)), 1e-30), -1)
+    worst = after.positions_mm[np.unravel_index(np.argmax(misfit), misfit.shape)[0]]
+    count = (
+        f"{int(mask.sum())} foci in {len(where)} of {int(after.used.sum())} images, largest at field "
+        f"{np.hypot(worst[0], worst[1]):.2f} mm: x, y, z = {worst[0]:.3g}, {worst[1]:.3g}, {worst[2]:.3g} mm"
+    )
     if shape is None:
         low, high = float(change.min()), float(change.max())
         description = (

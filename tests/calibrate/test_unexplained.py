@@ -66,14 +66,27 @@ def _analysis(simulator, positions, case, seed=0):
     return analyse_scan(data, nominal, positions, centres, simulator.pitch_px(), counts_per_electron=1.0)
 
 
+@pytest.fixture(scope="module")
+def analyses(simulator, positions) -> dict:
+    """One analysis per case, made when first asked for."""
+    cache: dict = {}
+
+    def get(case):
+        if case not in cache:
+            cache[case] = _analysis(simulator, positions, case)
+        return cache[case]
+
+    return get
+
+
 def test_clean_data_leave_nothing_unexplained(simulator, positions):
-    few = positions[::3]
+    few = positions[::5]
     for seed in range(10):
         assert describe_unexplained(_analysis(simulator, few, "clean", seed), simulator.pixel_um) == []
 
 
-def test_a_ghost_is_located_and_described(simulator, positions):
-    entries = describe_unexplained(_analysis(simulator, positions, "ghost"), simulator.pixel_um)
+def test_a_ghost_is_located_and_described(simulator, analyses):
+    entries = describe_unexplained(analyses("ghost"), simulator.pixel_um)
     assert len(entries) == 1, entries
     entry = entries[0]
     assert entry["lenslets"] == list(range(9))
@@ -86,8 +99,8 @@ def test_a_ghost_is_located_and_described(simulator, positions):
     assert 0.05 < entry["energy_fraction"] < 0.3
 
 
-def test_a_position_dependent_loss_is_located(simulator, positions):
-    entries = describe_unexplained(_analysis(simulator, positions, "scratch"), simulator.pixel_um)
+def test_a_position_dependent_loss_is_located(simulator, positions, analyses):
+    entries = describe_unexplained(analyses("scratch"), simulator.pixel_um)
     assert [e["lenslets"] for e in entries] == [[SCRATCHED]], entries
     lost = scratch_loss(positions) > 0.05
     field = np.hypot(positions[lost, 0], positions[lost, 1])
@@ -98,8 +111,8 @@ def test_a_position_dependent_loss_is_located(simulator, positions):
 
 
 @pytest.mark.parametrize("case", ["ghost", "scratch"])
-def test_the_low_rank_correction_lowers_the_held_out_error(simulator, positions, case):
-    analysis = _analysis(simulator, positions, case)
+def test_the_low_rank_correction_lowers_the_held_out_error(positions, analyses, case):
+    analysis = analyses(case)
     held = held_out_error(analysis)
     assert held["images"] == len(positions)
     floor = held["nmse_noise_floor"]
@@ -110,8 +123,21 @@ def test_the_low_rank_correction_lowers_the_held_out_error(simulator, positions,
     assert correction.physical is False and "non-physical" in correction.to_dict()["label"]
 
 
-def test_on_clean_data_the_correction_gains_nothing(simulator, positions):
+def test_on_clean_data_the_correction_gains_nothing(analyses):
     """Fitted to noise, it cannot predict held-out positions: their error does not drop."""
-    held = held_out_error(_analysis(simulator, positions, "clean"))
+    held = held_out_error(analyses("clean"))
     assert held["nmse_before"] < 1.1 * held["nmse_noise_floor"]
     assert held["nmse_after"] > 0.99 * held["nmse_before"], held
+
+
+def test_a_saved_correction_reads_back_the_same(analyses, tmp_path):
+    from cm2optics.calibrate.lowrank_correction import LowRankCorrection
+
+    analysis = analyses("ghost")
+    correction = fit_correction(analysis)
+    back = LowRankCorrection.load(correction.save(tmp_path / "correction.npz"))
+    model_signal = analysis.model_counts[:3] - analysis.registration.dark_level
+    centres, positions = analysis.model.centroid_px[:3], analysis.positions_mm[:3]
+    added = correction.images(model_signal, centres, positions)
+    assert np.abs(added).max() > 0 and back.physical is False
+    np.testing.assert_array_equal(back.images(model_signal, centres, positions), added)
