@@ -26,14 +26,19 @@ from cm2optics.calibrate.residual import ResidualAnalysis
 
 __all__ = ["PATCH_HALF_PX", "describe_unexplained", "flagged_foci"]
 
-#: Half-size of the residual patch around each focus, px (17 × 17 px at the default).
-PATCH_HALF_PX = 8
+#: Half-size of the residual patch around each focus, px (33 × 33 px: a focus defocused by
+#: 0.5 mm spreads over ≈ 20 px at 8× binning; the lenslet pitch is ≈ 80 px there).
+PATCH_HALF_PX = 16
 #: A focus is flagged when its patch χ² exceeds its pixel count by this many standard deviations…
 Z_FLAG = 8.0
 #: …and its reduced χ² exceeds this.
 REDUCED_FLAG = 1.5
-#: Lenslets flagged in at least this share of the images with flags are "common".
-COMMON_SHARE = 0.5
+#: Largest ghost offset sought, px.
+GHOST_REACH_PX = 8
+#: A displaced copy is named when it explains this share of the mean residual patch…
+GHOST_EXPLAINS = 0.6
+#: …and this much more than a change of the focus's energy alone.
+GHOST_GAIN = 0.3
 
 
 def flagged_foci(after: ResidualAnalysis, half: int = PATCH_HALF_PX) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -58,11 +63,9 @@ def describe_unexplained(after: ResidualAnalysis, pixel_um: float, half: int = P
     flagged, residual, model = flagged_foci(after, half)
     if not flagged.any():
         return []
-    images = flagged.any(axis=1)
-    share = flagged[images].mean(axis=0)  # per lenslet: share of the flagged images it is flagged in
-    common = share >= COMMON_SHARE
-    if common.sum() > flagged.shape[1] // 2:
-        groups = [np.flatnonzero(flagged.any(axis=0))]
+    lenslets = np.flatnonzero(flagged.any(axis=0))
+    if len(lenslets) > flagged.shape[1] // 2:
+        groups = [lenslets]
     else:
         groups = [np.array([j]) for j in np.flatnonzero(flagged.any(axis=0))]
     return [_entry(after, flagged, residual, model, group, pixel_um) for group in groups]
@@ -111,23 +114,44 @@ def _entry(
 
 
 def _shape(residual: np.ndarray, energy: np.ndarray, model: np.ndarray, pixel_um: float) -> str | None:
-    """A displaced copy of the foci read from the mean residual patch relative to the foci's
-    energy (residual, model: (F, w, w) counts; energy (F,)), or None when the residual is the
-    focus itself scaled (a change of energy)."""
+    """A displaced copy of the foci read from the mean residual patch R relative to the foci's
+    energy (residual, model: (F, w, w) counts; energy (F,)): R is fitted by a·M + b·M shifted
+    by d (M the mean model focus) for every integer d within :data:`GHOST_REACH_PX`; the best d
+    is named when it explains :data:`GHOST_EXPLAINS` of R and :data:`GHOST_GAIN` more than a·M
+    alone (a change of energy). None otherwise."""
     relative = residual.sum(axis=0) / energy.sum()
     focus = model.sum(axis=0) / energy.sum()
-    half = relative.shape[0] // 2
-    rows, cols = np.mgrid[-half : half + 1, -half : half + 1]
-    width = float(np.sqrt(np.sum(focus * (rows**2 + cols**2))))
-    core = np.hypot(rows, cols) <= max(1.5, 2.0 * width)
-    outside = np.where(core, 0.0, np.clip(relative, 0.0, None))
-    if outside.sum() <= 0.5 * np.abs(relative).sum():
+    total = float(np.sum(relative**2))
+    if total <= 0:
         return None
-    share = float(outside.sum())
-    dr, dc = float((outside * rows).sum() / share), float((outside * cols).sum() / share)
-    spread = float(np.sqrt((outside * ((rows - dr) ** 2 + (cols - dc) ** 2)).sum() / share))
+    alone = float(np.sum(relative * focus)) ** 2 / max(float(np.sum(focus**2)), 1e-30)
+    best = (0.0, 0.0, (0, 0))
+    reach = min(GHOST_REACH_PX, relative.shape[0] // 2)
+    for dr in range(-reach, reach + 1):
+        for dc in range(-reach, reach + 1):
+            if (dr, dc) == (0, 0):
+                continue
+            moved = _moved(focus, dr, dc)
+            basis = np.stack([focus.ravel(), moved.ravel()], axis=1)
+            coefficients, *_ = np.linalg.lstsq(basis, relative.ravel(), rcond=None)
+            explained = total - float(np.sum((relative.ravel() - basis @ coefficients) ** 2))
+            if coefficients[1] > 0 and explained > best[0]:
+                best = (explained, float(coefficients[1]), (dr, dc))
+    explained, share, (dr, dc) = best
+    if explained < GHOST_EXPLAINS * total or explained - alone < GHOST_GAIN * total:
+        return None
     return (
-        f"a displaced copy of the foci (a ghost): {share:.1%} of each focus's energy at ({dr:+.1f}, {dc:+.1f}) px "
-        f"(row, col; {np.hypot(dr, dc) * pixel_um:.0f} µm on the sensor) from it, RMS radius {spread:.1f} px "
-        f"against the foci's {width:.1f} px"
+        f"a displaced copy of the foci (a ghost): {share:.1%} of each focus's energy at ({dr:+d}, {dc:+d}) px "
+        f"(row, col; {np.hypot(dr, dc) * pixel_um:.0f} µm on the sensor) from it, explaining {explained / total:.0%} "
+        f"of the mean residual around the foci"
     )
+
+
+def _moved(patch: np.ndarray, dr: int, dc: int) -> np.ndarray:
+    """``patch`` moved by (dr, dc) px, zeros shifted in."""
+    out = np.zeros_like(patch)
+    h, w = patch.shape
+    out[max(dr, 0) : h + min(dr, 0), max(dc, 0) : w + min(dc, 0)] = patch[
+        max(-dr, 0) : h + min(-dr, 0), max(-dc, 0) : w + min(-dc, 0)
+    ]
+    return out

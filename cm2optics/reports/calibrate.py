@@ -73,17 +73,17 @@ def _field_maps(before: ResidualAnalysis, after: ResidualAnalysis, path: Path) -
 
 
 def _patterns(correction: LowRankCorrection, path: Path) -> None:
-    """The correction's patterns (relative to the focus's energy), one panel each."""
-    fig = Figure(figsize=(2.6 * len(correction.basis), 2.6))
-    half = correction.half_px
-    for k, pattern in enumerate(correction.basis):
-        ax = fig.add_subplot(1, len(correction.basis), k + 1)
+    """The correction's convolution kernels, one panel each."""
+    fig = Figure(figsize=(2.6 * len(correction.kernels), 2.6))
+    half = correction.kernels.shape[-1] // 2
+    for k, pattern in enumerate(correction.kernels):
+        ax = fig.add_subplot(1, len(correction.kernels), k + 1)
         limit = float(np.abs(pattern).max()) or 1.0
         ax.imshow(
             pattern, cmap="RdBu_r", vmin=-limit, vmax=limit, extent=(-half - 0.5, half + 0.5, half + 0.5, -half - 0.5)
         )
-        ax.set_title(f"pattern {k + 1} ({correction.singular_share[k]:.0%})", fontsize=9)
-        ax.set_xlabel("col − focus (px)", fontsize=8)
+        ax.set_title(f"kernel {k + 1} ({correction.explained_share[k]:.0%} of the residual)", fontsize=9)
+        ax.set_xlabel("offset (px)", fontsize=8)
     fig.tight_layout()
     _save(fig, path)
 
@@ -96,13 +96,14 @@ def _correction_section(report: Report, result: ScanCalibration, folder: Path) -
     held = summary["held_out"]
     report.heading("Low-rank correction (non-physical)")
     report.paragraph(
-        f"{summary['label']}. Rank {summary['rank']} patterns of {summary['patch_px']} × {summary['patch_px']} px on "
-        f"every focus, weights interpolated over the positions; saved as lowrank-correction.npz. On positions held "
+        f"{summary['label']}. Rank {summary['rank']}: {summary['kernel_px']} × {summary['kernel_px']}-px convolution "
+        f"kernels acting on every model focus, weights interpolated over the positions; saved as "
+        f"lowrank-correction.npz. On positions held "
         f"out of its fit ({held['method']}; {held['images']} images): NMSE {held['nmse_before']:.4g} → "
         f"{held['nmse_after']:.4g} (noise floor {held['nmse_noise_floor']:.4g}), χ² {held['chi2_before']:.3g} → "
         f"{held['chi2_after']:.3g}."
     )
-    report.figure("correction_patterns.png", "The correction's patterns around each focus (share of the residual)")
+    report.figure("correction_patterns.png", "The correction's kernels (the share of the residual each removes)")
 
 
 def write_calibration_report(result: ScanCalibration, folder: str | Path) -> Path:
