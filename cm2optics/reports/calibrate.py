@@ -79,11 +79,11 @@ def _patterns(correction: LowRankCorrection, path: Path) -> None:
     for k, pattern in enumerate(correction.kernels):
         ax = fig.add_subplot(1, len(correction.kernels), k + 1)
         limit = float(np.abs(pattern).max()) or 1.0
-        ax.imshow(
-            pattern, cmap="RdBu_r", vmin=-limit, vmax=limit, extent=(-half - 0.5, half + 0.5, half + 0.5, -half - 0.5)
-        )
+        extent = (-half - 0.5, half + 0.5, half + 0.5, -half - 0.5)
+        # flipped: each pixel shows where the kernel moves a focus's light (row, col px)
+        ax.imshow(pattern[::-1, ::-1], cmap="RdBu_r", vmin=-limit, vmax=limit, extent=extent)
         ax.set_title(f"kernel {k + 1} ({correction.explained_share[k]:.0%} of the residual)", fontsize=9)
-        ax.set_xlabel("offset (px)", fontsize=8)
+        ax.set_xlabel("light moved by (col px)", fontsize=8)
     fig.tight_layout()
     _save(fig, path)
 
