@@ -27,7 +27,8 @@ def clean_scan(v2, tmp_path_factory):
     folder = tmp_path_factory.mktemp("foreign")
     positions = calibration_grid_mm(v2, (3, 3, 2))
     settings = ScanSettings(psf=PSFSettings(binning=8))
-    return simulate_scan(v2, positions, folder / "clean", settings, workers=1, processes=False, progress=False)
+    simulate_scan(v2, positions, folder / "clean", settings, workers=1, processes=False, progress=False)
+    return folder / "clean"
 
 
 def _calibrate(v2, injected, folder):
