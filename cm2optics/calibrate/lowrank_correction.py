@@ -58,6 +58,9 @@ KERNEL_RIDGE = 1e-2
 ROUNDS = 8
 #: Foci dimmer than this share of their image's brightest take no part (their patches are noise).
 BRIGHT_SHARE = 0.05
+#: Foci the fit uses at most (the images spread over the scan): their normal matrices take
+#: 0.2 MB each at the defaults.
+MAX_FOCI = 1500
 #: Folds of the held-out check.
 FOLDS = 6
 #: What the report and the saved correction say of it.
@@ -188,6 +191,10 @@ def _foci(analysis: ResidualAnalysis, half: int) -> _Foci:
     energy = model.sum(axis=(-2, -1))
     brightest = np.max(np.where(inside_wide, energy, 0.0), axis=1, keepdims=True)
     usable = analysis.used[:, None] & inside & inside_wide & (energy > BRIGHT_SHARE * brightest)
+    images = np.flatnonzero(usable.any(axis=1))
+    if usable.sum() > MAX_FOCI:  # every k-th image, so that the fit spans the scan
+        step = int(np.ceil(usable.sum() / MAX_FOCI))
+        usable[np.setdiff1d(images, images[::step])] = False
     scale = 1.0 / np.sqrt(energy[usable])
     targets = residual[usable].reshape(int(usable.sum()), -1) * scale[:, None]
     wide = wide[usable] * scale[:, None, None]

@@ -293,7 +293,10 @@ def calibrate_scan(
     }
     correction = None
     if document["unexplained"]:
-        say("fitting the low-rank correction to the unexplained residual (held-out check: leave-one-out)")
-        correction = fit_correction(after)
-        document["correction"] = {**correction.to_dict(), "held_out": held_out_error(after)}
+        say("fitting the low-rank correction to the unexplained residual (and on held-out positions)")
+        try:
+            correction = fit_correction(after)
+            document["correction"] = {**correction.to_dict(), "held_out": held_out_error(after)}
+        except ValueError as error:  # no focus bright and whole enough
+            document["warnings"].append(f"no low-rank correction: {error}")
     return ScanCalibration(document, before, after, attribution, corrected, correction)
