@@ -3,7 +3,8 @@
 After the attribution, every focus of every image is tested against the noise model: its patch
 of the residual (2·half + 1 px square around the model focus) has χ² = Σ r²/σ² over n pixels;
 a focus is *flagged* when that χ² exceeds n by more than :data:`Z_FLAG` standard deviations
-(√(2n)) and its reduced χ² exceeds :data:`REDUCED_FLAG`. Clean data flag nothing.
+(√(2n)) and its reduced χ² exceeds :data:`REDUCED_FLAG`; a lenslet counts when at least
+:data:`MIN_FOCI` of its foci are flagged. Clean data flag nothing.
 
 Flagged foci are grouped: when most lenslets are flagged in most images the residual is common
 to all foci (one entry); otherwise each flagged lenslet is one entry. Each entry says where
@@ -33,6 +34,9 @@ PATCH_HALF_PX = 16
 Z_FLAG = 8.0
 #: …and its reduced χ² exceeds this.
 REDUCED_FLAG = 1.5
+#: A lenslet flagged in fewer foci than this is no signature: one focus at the field's edge can
+#: hold the model's own local error (a corner focus after a fitted 0.5° rotation, traced scan).
+MIN_FOCI = 2
 #: Largest ghost offset sought, px.
 GHOST_REACH_PX = 8
 #: A displaced copy is named when it explains this share of the mean residual patch…
@@ -63,7 +67,11 @@ def describe_unexplained(after: ResidualAnalysis, pixel_um: float, half: int = P
     flagged, residual, model = flagged_foci(after, half)
     if not flagged.any():
         return []
-    lenslets = np.flatnonzero(flagged.any(axis=0))
+    repeated = flagged.sum(axis=0) >= MIN_FOCI
+    flagged = flagged & repeated[None, :]
+    if not flagged.any():
+        return []
+    lenslets = np.flatnonzero(repeated)
     if len(lenslets) > flagged.shape[1] // 2:
         groups = [lenslets]
     else:
