@@ -11,7 +11,10 @@ name the physical effect the model lacks, add it, and report the error before an
 - :mod:`.tracer`: the emission tracer as a simulator, the effects written into the design's
   ``as_built`` section (:class:`cm2optics.design.AsBuilt`) so a fitted effect is a design value;
 - :mod:`.attribute`: which effects explain the residual (finite-difference Jacobians of the
-  features, greedy selection under the BIC, joint Gauss–Newton refits, uncertainties).
-
-Not yet here (issue 14): ``cm2 calibrate``, the unexplained-residual signature and its low-rank correction, the report.
+  features, greedy selection under the BIC, joint Gauss–Newton refits, uncertainties);
+- :mod:`.unexplained`: the signature of what the fitted effects leave above the noise (which
+  lenslets, field, depths, share of the energy, shape) instead of a forced physical fit;
+- :mod:`.lowrank_correction`: the data-driven, non-physical low-rank correction of the foci fitted
+  to that residual, with its error on positions held out of its fit;
+- :mod:`.scan`: ``cm2 calibrate scan``'s loop on a PSF scan.
 """

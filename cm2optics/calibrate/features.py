@@ -118,3 +118,19 @@ def focus_windows(model_signal: np.ndarray, centres_px: np.ndarray, pitch_px: fl
     refined = focus_features(model_signal, centres_px, wide).centroid_px
     centres = np.where(np.isnan(refined), centres_px, refined)
     return centres, window_radii(model_signal, centres, pitch_px)
+
+
+def focus_patches(values: np.ndarray, centres: np.ndarray, half: int) -> tuple[np.ndarray, np.ndarray]:
+    """Square patches (N, J, 2·half + 1, 2·half + 1) of ``values`` (N, y, x) centred on the pixel
+    nearest each focus centre (N, J, 2) (row, col) px, and (N, J) whether the patch lies whole on
+    the frame (False also for a NaN centre; its patch is zeros)."""
+    n, h, w = values.shape
+    known = np.isfinite(centres).all(axis=-1)
+    centre = np.rint(np.where(known[..., None], centres, 0.0)).astype(int)
+    inside = known & (centre[..., 0] >= half) & (centre[..., 0] < h - half)
+    inside &= (centre[..., 1] >= half) & (centre[..., 1] < w - half)
+    offsets = np.arange(-half, half + 1)
+    rows = np.clip(centre[..., 0, None, None] + offsets[:, None], 0, h - 1)
+    cols = np.clip(centre[..., 1, None, None] + offsets[None, :], 0, w - 1)
+    patches = values[np.arange(n)[:, None, None, None], rows, cols]
+    return np.where(inside[..., None, None], patches, 0.0), inside

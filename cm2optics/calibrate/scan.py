@@ -28,10 +28,12 @@ from warnings import catch_warnings, simplefilter
 
 import numpy as np
 
-from cm2optics.calibrate.attribute import CHI2_FLOOR, Attribution, Problem, attribute
+from cm2optics.calibrate.attribute import Attribution, Problem, attribute
 from cm2optics.calibrate.effects import apply_image_effects, library
+from cm2optics.calibrate.lowrank_correction import LowRankCorrection, fit_correction, held_out_error
 from cm2optics.calibrate.residual import CalibrationError, ResidualAnalysis, ScanData, analyse_scan
 from cm2optics.calibrate.tracer import TracerSimulator, design_with, traced_rates
+from cm2optics.calibrate.unexplained import describe_unexplained
 from cm2optics.design import SystemDesign
 from cm2optics.emission.source import AngularProfile, PointSource
 from cm2optics.formats.scan import PSFScan, grid_index, read_scan
@@ -53,6 +55,7 @@ class ScanCalibration:
     after: ResidualAnalysis
     attribution: Attribution
     corrected_design: SystemDesign
+    correction: LowRankCorrection | None = None
 
 
 def _check_scan(scan: PSFScan, design: SystemDesign) -> None:
@@ -121,44 +124,6 @@ def _model_rate(
     return rate + np.float32(leak / max(attribution.registration.flux_scale, 1e-30))
 
 
-def _unexplained(after: ResidualAnalysis, noise_known: bool) -> list[dict[str, Any]]:
-    """The signature of what remains above the noise after the fit (empty when nothing does)."""
-    if not np.any(after.used):
-        return []
-    ratio = np.where(after.used[:, None], after.energy_ratio, np.nan)
-    deviation = np.abs(ratio - 1.0)
-    typical = float(np.nanmedian(deviation)) if np.isfinite(deviation).any() else 0.0
-    lenslet_dev = np.nanmean(deviation, axis=0)
-    flagged = [int(j) for j in np.flatnonzero(lenslet_dev > max(3.0 * typical, 0.02))]
-    image_excess = np.where(after.used, after.chi2, np.nan)
-    worst = image_excess > np.nanmedian(image_excess) * 2.0
-    field = np.hypot(after.positions_mm[:, 0], after.positions_mm[:, 1])
-    residual_energy = float(np.sum(np.abs(after.residual_counts[after.used])))
-    signal = after.model_counts[after.used] - after.registration.dark_level
-    fraction = residual_energy / max(float(np.sum(np.abs(signal))), 1e-30)
-    if after.chi2_total <= CHI2_FLOOR and (noise_known or not flagged):
-        return []  # at the noise floor (with the noise estimated: and no lenslet out of line)
-    if not (noise_known or flagged or worst.any()):
-        return []
-    where = np.flatnonzero(worst) if worst.any() else np.flatnonzero(after.used)
-    depths = sorted({round(float(z), 4) for z in after.positions_mm[where, 2]})
-    field_mm = [round(float(field[where].min()), 3), round(float(field[where].max()), 3)]
-    description = (
-        f"misfit left after the fitted effects (χ² = {after.chi2_total:.2f}): "
-        + (f"lenslets {flagged} deviate in energy by {np.nanmax(lenslet_dev):.1%}; " if flagged else "")
-        + f"largest in {int(worst.sum())} of {int(after.used.sum())} images at field {field_mm[0]}–{field_mm[1]} mm"
-    )
-    return [
-        {
-            "lenslets": flagged,
-            "field_mm": field_mm,
-            "depths_mm": depths,
-            "energy_fraction": round(fraction, 5),
-            "description": description,
-        }
-    ]
-
-
 def corrected_design(design: SystemDesign, attribution: Attribution) -> SystemDesign:
     """``design`` with every fitted effect written into its fields: the optical ones as the tracer
     reads them (:func:`~cm2optics.calibrate.tracer.design_with`), the sensor-side ones as
@@ -194,7 +159,7 @@ def _effects_list(attribution: Attribution) -> list[dict[str, Any]]:
 
 
 def _summary(
-    before: ResidualAnalysis, after: ResidualAnalysis, attribution: Attribution, problem: Problem
+    before: ResidualAnalysis, after: ResidualAnalysis, attribution: Attribution, problem: Problem, pixel_um: float
 ) -> dict[str, Any]:
     """The report's headline keys: effects, NMSE and χ² before and after, what stays unexplained."""
     return {
@@ -203,7 +168,7 @@ def _summary(
         "nmse_after": round(after.nmse_total, 6),
         "chi2_before": round(before.chi2_total, 4),
         "chi2_after": round(after.chi2_total, 4),
-        "unexplained": _unexplained(after, problem.noise_known),
+        "unexplained": describe_unexplained(after, pixel_um),
         "noise_model": "camera gain from scan.yaml" if problem.noise_known else "gain estimated from the data",
     }
 
@@ -323,9 +288,17 @@ def calibrate_scan(
         "source": source.describe(),
         "warnings": warnings,
         "corrected_design_hash": corrected.parameter_hash(),
-        **_summary(before, after, attribution, problem),
+        **_summary(before, after, attribution, problem, simulator.pixel_um),
         "fit": _fit_record(subset, attribution, problem),
         "before": before.to_dict(),
         "after": after.to_dict(),
     }
-    return ScanCalibration(document, before, after, attribution, corrected)
+    correction = None
+    if document["unexplained"]:
+        say("fitting the low-rank correction to the unexplained residual (and on held-out positions)")
+        try:
+            correction = fit_correction(after)
+            document["correction"] = {**correction.to_dict(), "held_out": held_out_error(after)}
+        except ValueError as error:  # no focus bright and whole enough
+            document["warnings"].append(f"no low-rank correction: {error}")
+    return ScanCalibration(document, before, after, attribution, corrected, correction)

@@ -70,6 +70,11 @@ def scan(
     residual and field-map figures and report.html into --out. JSON keys include effects,
     nmse_before, nmse_after, chi2_before, chi2_after, unexplained and warnings.
 
+    What the effects leave above the noise is described in unexplained (lenslets, field_mm,
+    depths_mm, energy_fraction, description: a ghost, a position-dependent loss, …) and a
+    non-physical low-rank correction of the foci is fitted to it: JSON key correction
+    (physical: false, its error on positions held out of its fit), lowrank-correction.npz.
+
     Validated on traced 3×3×2 scans (8× binning, shot + read noise): an undeclared 0.5° MLA
     rotation and a lenslet at 60 % transmission are named alone and measured within 0.001,
     a clean scan yields no effect (BENCHMARKS.md, issue 14).
@@ -105,4 +110,9 @@ def scan(
         typer.echo(f"  {effect['name']}: {effect['parameters']} ± {effect['uncertainties']}")
     for item in doc["unexplained"]:
         typer.echo(f"  unexplained: {item['description']}")
+    if "correction" in doc:
+        held = doc["correction"]["held_out"]
+        typer.echo(
+            f"  low-rank correction (non-physical), held-out NMSE {held['nmse_before']:.4g} → {held['nmse_after']:.4g}"
+        )
     typer.echo(f"report: {report}")

@@ -11,6 +11,7 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
+from cm2optics.calibrate.lowrank_correction import LowRankCorrection
 from cm2optics.calibrate.residual import ResidualAnalysis
 from cm2optics.calibrate.scan import ScanCalibration
 from cm2optics.formats.atomic import write_atomic, write_json_atomic
@@ -71,6 +72,40 @@ def _field_maps(before: ResidualAnalysis, after: ResidualAnalysis, path: Path) -
     _save(fig, path)
 
 
+def _patterns(correction: LowRankCorrection, path: Path) -> None:
+    """The correction's convolution kernels, one panel each."""
+    fig = Figure(figsize=(2.6 * len(correction.kernels), 2.6))
+    half = correction.kernels.shape[-1] // 2
+    for k, pattern in enumerate(correction.kernels):
+        ax = fig.add_subplot(1, len(correction.kernels), k + 1)
+        limit = float(np.abs(pattern).max()) or 1.0
+        extent = (-half - 0.5, half + 0.5, half + 0.5, -half - 0.5)
+        # flipped: each pixel shows where the kernel moves a focus's light (row, col px)
+        ax.imshow(pattern[::-1, ::-1], cmap="RdBu_r", vmin=-limit, vmax=limit, extent=extent)
+        ax.set_title(f"kernel {k + 1} ({correction.explained_share[k]:.0%} of the residual)", fontsize=9)
+        ax.set_xlabel("light moved by (col px)", fontsize=8)
+    fig.tight_layout()
+    _save(fig, path)
+
+
+def _correction_section(report: Report, result: ScanCalibration, folder: Path) -> None:
+    """The low-rank correction, labelled non-physical, with its held-out error."""
+    correction, summary = result.correction, result.document["correction"]
+    correction.save(folder / "lowrank-correction.npz")
+    _patterns(correction, folder / "correction_patterns.png")
+    held = summary["held_out"]
+    report.heading("Low-rank correction (non-physical)")
+    report.paragraph(
+        f"{summary['label']}. Rank {summary['rank']}: {summary['kernel_px']} × {summary['kernel_px']}-px convolution "
+        f"kernels acting on every model focus, weights interpolated over the positions; saved as "
+        f"lowrank-correction.npz. On positions held "
+        f"out of its fit ({held['method']}; {held['images']} images): NMSE {held['nmse_before']:.4g} → "
+        f"{held['nmse_after']:.4g} (noise floor {held['nmse_noise_floor']:.4g}), χ² {held['chi2_before']:.3g} → "
+        f"{held['chi2_after']:.3g}."
+    )
+    report.figure("correction_patterns.png", "The correction's kernels (the share of the residual each removes)")
+
+
 def write_calibration_report(result: ScanCalibration, folder: str | Path) -> Path:
     """Write ``calibration.json``, ``corrected-design.yaml``, the figures and ``report.html``/``.md``
     into ``folder``; returns the HTML report's path."""
@@ -102,4 +137,6 @@ def write_calibration_report(result: ScanCalibration, folder: str | Path) -> Pat
         report.paragraph("None: the corrected model explains the data to the noise.")
     report.figure("residual_montage.png", "Data and residuals before and after, images with the largest misfit")
     report.figure("field_maps.png", "Energy ratio and centroid error against field position, before and after")
+    if result.correction is not None:
+        _correction_section(report, result, folder)
     return report.write(folder)

@@ -1,0 +1,165 @@
+"""What the fitted effects leave unexplained: the signature of a structured residual.
+
+After the attribution, every focus of every image is tested against the noise model: its patch
+of the residual (2·half + 1 px square around the model focus) has χ² = Σ r²/σ² over n pixels;
+a focus is *flagged* when that χ² exceeds n by more than :data:`Z_FLAG` standard deviations
+(√(2n)) and its reduced χ² exceeds :data:`REDUCED_FLAG`; a lenslet counts when at least
+:data:`MIN_FOCI` of its foci are flagged. Clean data flag nothing.
+
+Flagged foci are grouped: when most lenslets are flagged in most images the residual is common
+to all foci (one entry); otherwise each flagged lenslet is one entry. Each entry says where
+(``lenslets``, the field radius range ``field_mm`` and ``depths_mm`` of its flagged images),
+how much (``energy_fraction``: Σ|residual| over its flagged patches / the model's signal in
+those patches) and what shape (``description``), read from the entry's mean residual patch
+relative to its foci's energy: a displaced copy of the foci (light outside the focus with its
+own centroid, offset and width), or foci dimmed by a share that changes with the position (a
+transmission loss that no constant per-lenslet transmission explains), or neither.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from cm2optics.calibrate.features import focus_patches
+from cm2optics.calibrate.residual import ResidualAnalysis
+
+__all__ = ["PATCH_HALF_PX", "describe_unexplained", "flagged_foci"]
+
+#: Half-size of the residual patch around each focus, px (33 × 33 px: a focus defocused by
+#: 0.5 mm spreads over ≈ 20 px at 8× binning; the lenslet pitch is ≈ 80 px there).
+PATCH_HALF_PX = 16
+#: A focus is flagged when its patch χ² exceeds its pixel count by this many standard deviations…
+Z_FLAG = 8.0
+#: …and its reduced χ² exceeds this.
+REDUCED_FLAG = 1.5
+#: A lenslet flagged in fewer foci than this is no signature: one focus at the field's edge can
+#: hold the model's own local error (a corner focus after a fitted 0.5° rotation, traced scan).
+MIN_FOCI = 2
+#: Largest ghost offset sought, px.
+GHOST_REACH_PX = 8
+#: A displaced copy is named when it explains this share of the mean residual patch…
+GHOST_EXPLAINS = 0.6
+#: …and this much more than a change of the focus's energy alone.
+GHOST_GAIN = 0.3
+
+
+def flagged_foci(after: ResidualAnalysis, half: int = PATCH_HALF_PX) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(N, J) flagged foci (module docstring), and the residual and model-signal patches
+    (N, J, 2·half + 1, 2·half + 1) in counts."""
+    model_signal = after.model_counts - after.registration.dark_level
+    centres = after.model.centroid_px
+    residual, inside = focus_patches(after.residual_counts, centres, half)
+    model, _ = focus_patches(model_signal, centres, half)
+    variance = after.noise.variance(model)
+    pixels = float((2 * half + 1) ** 2)
+    chi2 = np.sum(residual**2 / variance, axis=(-2, -1))
+    z = (chi2 - pixels) / np.sqrt(2.0 * pixels)
+    flagged = after.used[:, None] & inside & (z > Z_FLAG) & (chi2 / pixels > REDUCED_FLAG)
+    return flagged, residual, model
+
+
+def describe_unexplained(after: ResidualAnalysis, pixel_um: float, half: int = PATCH_HALF_PX) -> list[dict[str, Any]]:
+    """The entries ``{lenslets, field_mm, depths_mm, energy_fraction, description}`` of what
+    remains above the noise after the fit (empty when no focus is flagged); ``pixel_um`` is the
+    binned pixel pitch, µm."""
+    flagged, residual, model = flagged_foci(after, half)
+    if not flagged.any():
+        return []
+    repeated = flagged.sum(axis=0) >= MIN_FOCI
+    flagged = flagged & repeated[None, :]
+    if not flagged.any():
+        return []
+    lenslets = np.flatnonzero(repeated)
+    if len(lenslets) > flagged.shape[1] // 2:
+        groups = [lenslets]
+    else:
+        groups = [np.array([j]) for j in np.flatnonzero(flagged.any(axis=0))]
+    return [_entry(after, flagged, residual, model, group, pixel_um) for group in groups]
+
+
+def _entry(
+    after: ResidualAnalysis,
+    flagged: np.ndarray,
+    residual: np.ndarray,
+    model: np.ndarray,
+    lenslets: np.ndarray,
+    pixel_um: float,
+) -> dict[str, Any]:
+    mask = np.zeros_like(flagged)
+    mask[:, lenslets] = flagged[:, lenslets]
+    where = np.flatnonzero(mask.any(axis=1))
+    field = np.hypot(after.positions_mm[where, 0], after.positions_mm[where, 1])
+    energy = model.sum(axis=(-2, -1))  # (N, J) model focus energy, counts
+    fraction = float(np.abs(residual[mask]).sum() / max(float(np.abs(model[mask]).sum()), 1e-30))
+    shape = _shape(residual[mask], energy[mask], model[mask], pixel_um)
+    # per flagged focus: the relative change of its energy
+    change = residual[mask].sum(axis=(-2, -1)) / np.maximum(energy[mask], 1e-30)
+    misfit = np.where(mask, np.sum(residual**2, axis=(-2, -1)) / np.maximum(np.sum(model**2, axis=(-2, -1)), 1e-30), -1)
+    worst = after.positions_mm[np.unravel_index(np.argmax(misfit), misfit.shape)[0]]
+    count = (
+        f"{int(mask.sum())} foci in {len(where)} of {int(after.used.sum())} images, largest at field "
+        f"{np.hypot(worst[0], worst[1]):.2f} mm: x, y, z = {worst[0]:.3g}, {worst[1]:.3g}, {worst[2]:.3g} mm"
+    )
+    if shape is None:
+        low, high = float(change.min()), float(change.max())
+        description = (
+            f"the foci of lenslet{'s' if len(lenslets) > 1 else ''} {[int(j) for j in lenslets]} change in "
+            f"energy by {low:+.1%} to {high:+.1%} ({count}) while the other positions match: a loss that "
+            f"depends on the source position (e.g. a scratch or dust on a filter in front of the array), "
+            f"not a constant lenslet transmission"
+        )
+    else:
+        description = f"{shape} ({count})"
+    return {
+        "lenslets": [int(j) for j in lenslets],
+        "field_mm": [round(float(field.min()), 3), round(float(field.max()), 3)],
+        "depths_mm": sorted({round(float(z), 4) for z in after.positions_mm[where, 2]}),
+        "energy_fraction": round(fraction, 5),
+        "description": description,
+    }
+
+
+def _shape(residual: np.ndarray, energy: np.ndarray, model: np.ndarray, pixel_um: float) -> str | None:
+    """A displaced copy of the foci read from the mean residual patch R relative to the foci's
+    energy (residual, model: (F, w, w) counts; energy (F,)): R is fitted by a·M + b·M shifted
+    by d (M the mean model focus) for every integer d within :data:`GHOST_REACH_PX`; the best d
+    is named when it explains :data:`GHOST_EXPLAINS` of R and :data:`GHOST_GAIN` more than a·M
+    alone (a change of energy). None otherwise."""
+    relative = residual.sum(axis=0) / energy.sum()
+    focus = model.sum(axis=0) / energy.sum()
+    total = float(np.sum(relative**2))
+    if total <= 0:
+        return None
+    alone = float(np.sum(relative * focus)) ** 2 / max(float(np.sum(focus**2)), 1e-30)
+    best = (0.0, 0.0, (0, 0))
+    reach = min(GHOST_REACH_PX, relative.shape[0] // 2)
+    for dr in range(-reach, reach + 1):
+        for dc in range(-reach, reach + 1):
+            if (dr, dc) == (0, 0):
+                continue
+            moved = _moved(focus, dr, dc)
+            basis = np.stack([focus.ravel(), moved.ravel()], axis=1)
+            coefficients, *_ = np.linalg.lstsq(basis, relative.ravel(), rcond=None)
+            explained = total - float(np.sum((relative.ravel() - basis @ coefficients) ** 2))
+            if coefficients[1] > 0 and explained > best[0]:
+                best = (explained, float(coefficients[1]), (dr, dc))
+    explained, share, (dr, dc) = best
+    if explained < GHOST_EXPLAINS * total or explained - alone < GHOST_GAIN * total:
+        return None
+    return (
+        f"a displaced copy of the foci (a ghost): {share:.1%} of each focus's energy at ({dr:+d}, {dc:+d}) px "
+        f"(row, col; {np.hypot(dr, dc) * pixel_um:.0f} µm on the sensor) from it, explaining {explained / total:.0%} "
+        f"of the mean residual around the foci"
+    )
+
+
+def _moved(patch: np.ndarray, dr: int, dc: int) -> np.ndarray:
+    """``patch`` moved by (dr, dc) px, zeros shifted in."""
+    out = np.zeros_like(patch)
+    h, w = patch.shape
+    out[max(dr, 0) : h + min(dr, 0), max(dc, 0) : w + min(dc, 0)] = patch[
+        max(-dr, 0) : h + min(-dr, 0), max(-dc, 0) : w + min(-dc, 0)
+    ]
+    return out
