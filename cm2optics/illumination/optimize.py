@@ -102,7 +102,9 @@ def candidate_collimator(design: SystemDesign, values: dict[str, float], segment
     candidate = design.with_changes(_changes(values))
     profile = collimator_profile(candidate)
     mesh = CollimatorMesh(
-        f"{design.name} (optimised)", revolve_profile(profile, segments), candidate.collimator.material
+        f"{design.name} (optimised)",
+        revolve_profile(profile, segments, candidate.collimator.lens_freeform_um),
+        candidate.collimator.material,
     )
     return candidate, mesh, profile
 
