@@ -238,6 +238,22 @@ def optimize(
             "enter the imaging tower are infeasible, and the chosen design passes the CAD interference check.",
         ),
     ] = False,
+    freeform: Annotated[
+        bool,
+        typer.Option(
+            "--freeform",
+            help="Sweep the lens's Zernike terms too (collimator.lens_freeform_um, Noll 3, 4, 6, 7, 11, ±15 µm): "
+            "the lens departs from revolution.",
+        ),
+    ] = False,
+    fixed_profile: Annotated[
+        bool,
+        typer.Option(
+            "--fixed-profile",
+            help="Keep the design's collimator profile: sweep only the placement (--free-aim) and/or the "
+            "freeform terms (--freeform) of the design given.",
+        ),
+    ] = False,
     led_profile: Annotated[
         Path | None, typer.Option("--led-profile", help="LED angular profile CSV; default Lambertian.")
     ] = None,
@@ -273,6 +289,8 @@ def optimize(
 
     files = (led_profile, led_spectrum, filter_table)
     _check_optimize_options(max_cv, rays, samples, rounds, workers, files)
+    if fixed_profile and not (free_aim or freeform):
+        raise UserError("--fixed-profile leaves nothing to sweep: add --free-aim and/or --freeform")
     design = load_preset(preset)
     check_dask_address(dask_address)
     output_folder(out_dir, "illum optimize", inputs=[preset, *[f for f in files if f]], overwrite=overwrite)
@@ -287,6 +305,8 @@ def optimize(
         show_progress=not as_json,
         free_aim=free_aim,
         inputs=inputs,
+        freeform=freeform,
+        fixed_profile=fixed_profile,
     )
     summary = {k: v for k, v in result.items() if k != "candidates"}  # every candidate is in sweep.json
     if as_json:

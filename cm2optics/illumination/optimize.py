@@ -70,22 +70,45 @@ AIM_PARAMETERS: dict[str, tuple[float, float]] = {
     "led_array.aim_mm": (-2.0, 3.5),
     "led_array.azimuth_deg": (0.0, 45.0),
 }
+#: The lens's Zernike terms (:attr:`cm2optics.design.Collimator.lens_freeform_um`, µm), swept with
+#: ``freeform``: Noll 3 (tilt), 4 (defocus), 6 (astigmatism), 7 (coma), 11 (spherical) — the
+#: terms that keep each unit's mirror symmetry about its plane of tilt (its local y–z plane).
+FREEFORM_TERMS = (3, 4, 6, 7, 11)
+FREEFORM_PARAMETERS: dict[str, tuple[float, float]] = {
+    f"collimator.lens_freeform_um[{j}]": (-15.0, 15.0) for j in FREEFORM_TERMS
+}
 #: Best candidates traced again with 4× the rays before one is chosen.
 CONFIRMED = 4
 #: Segments per turn of the revolved mesh in the sweep (the written STL uses 256).
 SWEEP_SEGMENTS = 128
 
 
-def search_box(free_aim: bool) -> dict[str, tuple[float, float]]:
-    """The swept parameters and their ranges: the collimator's, and the units' placement with ``free_aim``."""
-    return {**PARAMETERS, **(AIM_PARAMETERS if free_aim else {})}
+def search_box(free_aim: bool, freeform: bool = False, fixed_profile: bool = False) -> dict[str, tuple[float, float]]:
+    """The swept parameters and their ranges: the collimator's profile (unless ``fixed_profile``),
+    the units' placement with ``free_aim``, the lens's Zernike terms with ``freeform``."""
+    return {
+        **({} if fixed_profile else PARAMETERS),
+        **(AIM_PARAMETERS if free_aim else {}),
+        **(FREEFORM_PARAMETERS if freeform else {}),
+    }
 
 
-def _changes(values: dict[str, float]) -> dict[str, Any]:
-    """The design changes of a candidate: its values, the TIR sub-beam crossing the axis, and
+def _changes(values: dict[str, float], design: SystemDesign) -> dict[str, Any]:
+    """The design changes of a candidate of ``design``: its values (Zernike terms merged into the
+    design's own list), and when the profile is swept the TIR sub-beam crossing the axis and
     the excitation filter kept on the collimator's exit face."""
-    changes: dict[str, Any] = {k: float(v) for k, v in values.items()}
-    changes["collimator.tir_crossing"] = True
+    changes: dict[str, Any] = {}
+    terms = list(design.collimator.lens_freeform_um) if design.collimator is not None else []
+    for name, value in values.items():
+        if name.startswith("collimator.lens_freeform_um["):
+            j = int(name[len("collimator.lens_freeform_um[") : -1])
+            terms += [0.0] * (j - len(terms))
+            terms[j - 1] = float(value)
+            changes["collimator.lens_freeform_um"] = terms
+        else:
+            changes[name] = float(value)
+    if any(name in values for name in PARAMETERS):
+        changes["collimator.tir_crossing"] = True
     gap = changes.get("collimator.led_gap_mm")
     height = changes.get("collimator.height_mm")
     if gap is not None and height is not None:
@@ -99,7 +122,7 @@ def candidate_collimator(design: SystemDesign, values: dict[str, float], segment
     from cm2optics.illumination.revolve import revolve_profile
     from cm2optics.optics.collimator import collimator_profile
 
-    candidate = design.with_changes(_changes(values))
+    candidate = design.with_changes(_changes(values, design))
     profile = collimator_profile(candidate)
     mesh = CollimatorMesh(
         f"{design.name} (optimised)",
@@ -225,6 +248,8 @@ def optimize_collimator(
     show_progress: bool = True,
     free_aim: bool = False,
     inputs: tuple[str | None, str | None, str | None] = (None, None, None),
+    freeform: bool = False,
+    fixed_profile: bool = False,
 ) -> dict[str, Any]:
     """Run the sweep (see the module docstring) and write ``design.yaml``, ``collimator.stl``
     and ``sweep.json`` into ``out_dir``; returns the summary (also ``result.json``).
@@ -234,6 +259,9 @@ def optimize_collimator(
     scheduler, or None for a local cluster of ``workers`` processes. seed: sweep and trace seed.
     free_aim: sweep the units' tilt, offset, aim point and azimuth too (:data:`AIM_PARAMETERS`);
     the chosen design is then checked with the CAD assembly's interference check.
+    freeform: sweep the lens's Zernike terms too (:data:`FREEFORM_PARAMETERS`).
+    fixed_profile: keep the design's profile (:data:`PARAMETERS` not swept): refine its
+        placement and/or freeform terms.
     inputs: paths of the LED's angular profile, spectrum and the excitation filter's coating
     table (each None: the design's model), used by every trace and by the bounds.
     """
@@ -247,7 +275,9 @@ def optimize_collimator(
     candidates: list[dict[str, Any]] = []
     start = time.perf_counter()
     try:
-        box = search_box(free_aim)
+        box = search_box(free_aim, freeform, fixed_profile)
+        if not box:
+            raise ValueError("nothing to sweep: a fixed profile needs free aim and/or freeform terms")
         _sweep(client, base, box, candidates, rays, max_cv, samples, rounds, seed, threads, show_progress, inputs)
         feasible = [c for c in candidates if c["feasible"]]
         meeting = [c for c in feasible if c["meets_uniformity"]]
@@ -259,7 +289,7 @@ def optimize_collimator(
         if cluster is not None:
             cluster.close()
 
-    improved = design.with_changes({**_changes(best["parameters"]), "name": f"{design.name}-optimised"})
+    improved = design.with_changes({**_changes(best["parameters"], design), "name": f"{design.name}-optimised"})
     out_dir = Path(out_dir)
     stl_path, checks = _export(improved, out_dir)
     improved.save(out_dir / "design.yaml")
@@ -273,6 +303,8 @@ def optimize_collimator(
         "rays": 4 * rays,
         "printability": checks,
         "free_aim": free_aim,
+        "freeform": freeform,
+        "fixed_profile": fixed_profile,
         "assembly_interferences": assembly,
         **_bounds(improved, max_cv, inputs, free_aim),
         "candidates_traced": len(candidates),
@@ -396,7 +428,7 @@ def _confirm_finalists(
         return finalists[order[0]], confirmations[order[0]], None
     base_design = design_from_dict(base)
     for i in order:
-        clashes = aim_interferences(base_design.with_changes(_changes(finalists[i]["parameters"])))
+        clashes = aim_interferences(base_design.with_changes(_changes(finalists[i]["parameters"], base_design)))
         if not clashes:
             break
     return finalists[i], confirmations[i], clashes

@@ -129,3 +129,18 @@ def test_lens_tilt_term_deflects_the_beam_by_the_closed_form_angle(v2):
     deflection = math.atan2(-directions["tilted"][0], directions["tilted"][2])
     assert math.degrees(deflection) == pytest.approx(math.degrees(gamma), abs=0.01)
     assert abs(directions["tilted"][1]) < 1e-3
+
+
+def test_freeform_sweep_candidates_carry_their_zernike_terms(v2):
+    from cm2optics.illumination.optimize import AIM_PARAMETERS, FREEFORM_PARAMETERS, candidate_collimator, search_box
+
+    assert search_box(True, freeform=True, fixed_profile=True) == AIM_PARAMETERS | FREEFORM_PARAMETERS
+    base = v2.with_changes({"collimator.lens_freeform_um": [0.0, 0.0, 0.0, 0.0, 1.5]})
+    values = {"collimator.lens_freeform_um[3]": 4.0, "collimator.lens_freeform_um[7]": -2.0}
+    design, mesh, profile = candidate_collimator(base, values)
+    assert design.collimator.lens_freeform_um == (0.0, 0.0, 4.0, 0.0, 1.5, 0.0, -2.0)
+    assert design.collimator.tir_crossing == v2.collimator.tir_crossing  # the profile is untouched
+    revolved = revolve_profile(profile, 128)
+    moved = np.linalg.norm(mesh.mesh.vertices - revolved.vertices, axis=1) > 1e-9
+    r = np.hypot(*revolved.vertices[moved, :2].T)
+    assert moved.any() and np.all(r <= profile.cavity_radius_mm + 1e-6)  # only the lens and the cavity wall
