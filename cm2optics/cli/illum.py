@@ -273,8 +273,9 @@ def optimize(
     """Search the collimator's parameters for the largest delivered fraction whose array
     uniformity (CV inside the circle) is ≤ --max-cv, as a parallel sweep on Dask, and write
     the best design (`design.yaml`, which rebuilds the part), its CAD collimator
-    (`collimator.stl`, checked for printing: watertight, walls ≥ mechanics.min_wall_mm) and every
-    candidate (`sweep.json`). Swept: lens angle, cavity radius, LED gap, entry wall, height,
+    (`collimator.stl` and `.step`, the STL checked for printing: watertight, walls ≥
+    mechanics.min_wall_mm), that part's own trace (`built_part`, maps in `irradiance.png`) and
+    every candidate (`sweep.json`). Swept: lens angle, cavity radius, LED gap, entry wall, height,
     and the two sub-beams' output spreads and mapping exponents (collimator.lens_spread_deg …;
     zero spreads = the collimating cm2-v2 architecture); with --free-aim also the units' tilt,
     offset, aim point and azimuth (led_array.*), units that would enter the imaging tower being

@@ -25,9 +25,11 @@ tool here.
 The :data:`CONFIRMED` best candidates meeting the constraint (else the best ranked) are traced
 again with 4× the rays, and the one delivering most whose measured CV — noise included — is
 ≤ max_cv there is chosen (else the first); its figures in the result come from that run. ``design.yaml`` holds the improved
-design; ``collimator.stl`` is the CAD part built from it (:mod:`cm2optics.cad.collimator`),
-checked for printing with :func:`cm2optics.cad.mesh_checks.check_mesh` (watertight,
-consistently wound, thinnest wall ≥ ``mechanics.min_wall_mm``).
+design; ``collimator.stl`` and ``collimator.step`` are the CAD part built from it
+(:mod:`cm2optics.cad.collimator`), the STL checked for printing with
+:func:`cm2optics.cad.mesh_checks.check_mesh` (watertight, consistently wound, thinnest wall ≥
+``mechanics.min_wall_mm``); that part itself is traced once more (``built_part`` in the result,
+its irradiance maps in ``irradiance.png``).
 
 The étendue bound and the uniform-beam bound (:mod:`.bounds`) are reported beside the result,
 and with ``free_aim`` the bound of re-aimed units with the finite LED (:func:`.bounds.free_aim_bound`).
@@ -251,8 +253,9 @@ def optimize_collimator(
     freeform: bool = False,
     fixed_profile: bool = False,
 ) -> dict[str, Any]:
-    """Run the sweep (see the module docstring) and write ``design.yaml``, ``collimator.stl``
-    and ``sweep.json`` into ``out_dir``; returns the summary (also ``result.json``).
+    """Run the sweep (see the module docstring) and write ``design.yaml``, ``collimator.stl``,
+    ``collimator.step``, ``irradiance.png`` and ``sweep.json`` into ``out_dir``; returns the
+    summary (also ``result.json``).
 
     rays: rays per candidate (all LEDs). max_cv: uniformity constraint (0–1). samples:
     candidates of the first sweep. rounds: refinement sweeps. dask_address: an existing
@@ -293,9 +296,12 @@ def optimize_collimator(
     out_dir = Path(out_dir)
     stl_path, checks = _export(improved, out_dir)
     improved.save(out_dir / "design.yaml")
+    built = _trace_built_part(improved, out_dir, 4 * rays, seed + 2, inputs)
     result = {
         "design": str(out_dir / "design.yaml"),
         "stl": str(stl_path),
+        "step": str(out_dir / "collimator.step"),
+        "built_part": built,
         "parameters": best["parameters"],
         "meets_uniformity": bool(confirm.get("feasible") and confirm["uniformity_cv"] <= max_cv),
         "max_cv": max_cv,
@@ -434,8 +440,36 @@ def _confirm_finalists(
     return finalists[i], confirmations[i], clashes
 
 
+def _trace_built_part(
+    design: SystemDesign, out_dir: Path, rays: int, seed: int, inputs: tuple[str | None, str | None, str | None]
+) -> dict[str, Any]:
+    """Trace the chosen design's CAD part (the exported solid, not the sweep's revolved mesh)
+    with the run's inputs, write its irradiance maps (``irradiance.png``) and return its figures."""
+    from cm2optics.illumination.excitation import design_filter_transmission
+    from cm2optics.illumination.geometry import build_scene, collimator_from_design
+    from cm2optics.illumination.metrics import figures_of_merit, write_maps_png
+    from cm2optics.illumination.source import led_source
+    from cm2optics.illumination.tracer import trace
+
+    profile, spectrum, table = _inputs(*inputs)
+    scene = build_scene(design, collimator_from_design(design))
+    transmission = table if table is not None else design_filter_transmission(design)
+    record = trace(scene, led_source(design, profile, spectrum), rays, transmission=transmission, seed=seed)
+    figures = figures_of_merit(record, scene)
+    maps = write_maps_png(figures, out_dir / "irradiance.png")
+    return {
+        "maps": str(maps),
+        "rays": rays,
+        "delivered_fraction": figures.delivered_fraction.value,
+        "delivered_fraction_stderr": figures.delivered_fraction.stderr,
+        "uniformity_cv": figures.uniformity_cv.value,
+        "uniformity_cv_noise": figures.uniformity_cv_noise,
+    }
+
+
 def _export(design: SystemDesign, out_dir: Path) -> tuple[Path, dict[str, Any]]:
-    """Write the design's CAD collimator as STL and check it for printing."""
+    """Write the design's CAD collimator as STL and STEP and check the STL for printing."""
+    import cadquery as cq
     import trimesh
 
     from cm2optics.cad.collimator import build_collimator
@@ -444,8 +478,10 @@ def _export(design: SystemDesign, out_dir: Path) -> tuple[Path, dict[str, Any]]:
     from cm2optics.formats.atomic import write_atomic
 
     path = out_dir / "collimator.stl"
-    solid = build_collimator(design).val()
+    part = build_collimator(design)
+    solid = part.val()
     write_atomic(path, lambda tmp: export_stl(solid, tmp, DEFAULT_TOLERANCE_UM / 1000.0))
+    write_atomic(out_dir / "collimator.step", lambda tmp: cq.exporters.export(part, str(tmp), exportType="STEP"))
     report = check_mesh(trimesh.load_mesh(path, force="mesh"))
     min_wall = design.mechanics.min_wall_mm
     checks = {

@@ -144,6 +144,8 @@ def test_optimize_writes_a_printable_design(tmp_path):
         data["parameters"]["collimator.lens_half_angle_deg"], rel=1e-4
     )
     assert (tmp_path / "collimator.stl").is_file() and (tmp_path / "sweep.json").is_file()
+    assert (tmp_path / "collimator.step").stat().st_size > 0 and (tmp_path / "irradiance.png").is_file()
+    assert 0 < data["built_part"]["delivered_fraction"] < 1
     assert design.collimator.lens_spread_deg == pytest.approx(
         data["parameters"]["collimator.lens_spread_deg"], rel=1e-4
     )
