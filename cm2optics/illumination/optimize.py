@@ -312,6 +312,7 @@ def optimize_collimator(
         "freeform": freeform,
         "fixed_profile": fixed_profile,
         "assembly_interferences": assembly,
+        "base_plate_min_wall_mm": best.get("base_plate_min_wall_mm"),
         **_bounds(improved, max_cv, inputs, free_aim),
         "candidates_traced": len(candidates),
         "candidates_feasible": len(feasible),
@@ -411,7 +412,9 @@ def _confirm_finalists(
     """Re-trace the best ``CONFIRMED`` candidates with 4 × ``rays``; returns the chosen candidate
     (the most light among those confirmed uniform, else the first), its confirmation and, with
     ``check_assembly``, the CAD assembly's interferences of the chosen design (the first of the
-    confirmed ones, in order of light, that has none; else the last one checked) — None without."""
+    confirmed ones, in order of light, that has none; else the last one checked) — None without.
+    With ``check_assembly`` the finalists are the best candidates whose base plate can be printed
+    (:func:`base_plate_wall_mm` ≥ ``mechanics.min_wall_mm``; the best one if none can)."""
     from cm2optics.cad.assembly import aim_interferences
 
     pool = meeting or feasible
@@ -419,6 +422,17 @@ def _confirm_finalists(
         raise ValueError("no candidate could be built: every parameter set was rejected by the profile construction")
     ranked = sorted(pool, key=lambda c: c["delivered_fraction"] if meeting else c["score"], reverse=True)
     finalists = ranked[:CONFIRMED]
+    if check_assembly:  # placements whose base plate can be printed, best first (else the best, to report)
+        base_design = design_from_dict(base)
+        printable = []
+        for candidate in ranked:
+            if len(printable) == CONFIRMED:
+                break
+            wall = base_plate_wall_mm(base_design.with_changes(_changes(candidate["parameters"], base_design)))
+            candidate["base_plate_min_wall_mm"] = round(wall, 4)
+            if wall >= base_design.mechanics.min_wall_mm - 1e-6:
+                printable.append(candidate)
+        finalists = printable or ranked[:1]
     confirmations = [
         f.result()
         for f in [
@@ -432,12 +446,28 @@ def _confirm_finalists(
     order = sorted(passing, key=lambda i: confirmations[i]["delivered_fraction"], reverse=True) or [0]
     if not check_assembly:
         return finalists[order[0]], confirmations[order[0]], None
-    base_design = design_from_dict(base)
     for i in order:
         clashes = aim_interferences(base_design.with_changes(_changes(finalists[i]["parameters"], base_design)))
         if not clashes:
             break
     return finalists[i], confirmations[i], clashes
+
+
+def base_plate_wall_mm(design: SystemDesign) -> float:
+    """Thinnest wall of ``design``'s base plate (mm, :func:`cm2optics.cad.mesh_checks.check_mesh`
+    on its STL): the units' placement moves its sockets, and some placements leave slivers."""
+    import tempfile
+
+    import trimesh
+
+    from cm2optics.cad.base_plate import build_base_plate
+    from cm2optics.cad.mesh_checks import check_mesh
+    from cm2optics.cad.tessellate import DEFAULT_TOLERANCE_UM, export_stl
+
+    with tempfile.TemporaryDirectory() as folder:
+        path = Path(folder) / "base_plate.stl"
+        export_stl(build_base_plate(design).val(), path, DEFAULT_TOLERANCE_UM / 1000.0)
+        return check_mesh(trimesh.load_mesh(path, force="mesh")).min_wall_mm
 
 
 def _trace_built_part(
