@@ -42,6 +42,19 @@ illum_app = typer.Typer(
 )
 
 
+#: The inputs of ``optimize`` and ``robustness`` (``run`` words them at more length).
+LedProfileOption = Annotated[
+    Path | None, typer.Option("--led-profile", help="LED angular profile CSV; default Lambertian.")
+]
+LedSpectrumOption = Annotated[
+    Path | None, typer.Option("--led-spectrum", help="LED spectrum CSV; default: the spectra library's model.")
+]
+FilterTableOption = Annotated[
+    Path | None,
+    typer.Option("--filter-table", help="Excitation filter angle table; default: the model of excitation_filter."),
+]
+
+
 def _format(estimate: Any, percent: bool = False, digits: int = 3) -> str:
     value, stderr = estimate.value, estimate.stderr
     if not math.isfinite(value):
@@ -254,16 +267,9 @@ def optimize(
             "freeform terms (--freeform) of the design given.",
         ),
     ] = False,
-    led_profile: Annotated[
-        Path | None, typer.Option("--led-profile", help="LED angular profile CSV; default Lambertian.")
-    ] = None,
-    led_spectrum: Annotated[
-        Path | None, typer.Option("--led-spectrum", help="LED spectrum CSV; default: the spectra library's model.")
-    ] = None,
-    filter_table: Annotated[
-        Path | None,
-        typer.Option("--filter-table", help="Excitation filter angle table; default: the model of excitation_filter."),
-    ] = None,
+    led_profile: LedProfileOption = None,
+    led_spectrum: LedSpectrumOption = None,
+    filter_table: FilterTableOption = None,
     out_dir: Annotated[
         Path, typer.Option("--out", "-o", help="Folder for the improved design YAML, its STL and the sweep table.")
     ] = Path("out/illum-opt"),
@@ -350,16 +356,9 @@ def robustness(
         float, typer.Option("--surface-rms-um", help="Printer surface error of the collimator, µm RMS.")
     ] = 2.0,
     max_cv: Annotated[float, typer.Option("--max-cv", help="Uniformity limit counted in the report (0–1).")] = 0.10,
-    led_profile: Annotated[
-        Path | None, typer.Option("--led-profile", help="LED angular profile CSV; default Lambertian.")
-    ] = None,
-    led_spectrum: Annotated[
-        Path | None, typer.Option("--led-spectrum", help="LED spectrum CSV; default: the spectra library's model.")
-    ] = None,
-    filter_table: Annotated[
-        Path | None,
-        typer.Option("--filter-table", help="Excitation filter angle table; default: the model of excitation_filter."),
-    ] = None,
+    led_profile: LedProfileOption = None,
+    led_spectrum: LedSpectrumOption = None,
+    filter_table: FilterTableOption = None,
     seed: Annotated[int, typer.Option("--seed", help="Seed of the drawn errors and of the traces.")] = 0,
     out_dir: Annotated[Path, typer.Option("--out", "-o", help="Folder for robustness.json and robustness.png.")] = Path(
         "out/illum-robustness"
