@@ -292,7 +292,8 @@ def optimize_collimator(
         if cluster is not None:
             cluster.close()
 
-    improved = design.with_changes({**_changes(best["parameters"], design), "name": f"{design.name}-optimised"})
+    name = design.name if design.name.endswith("-optimised") else f"{design.name}-optimised"  # refining one: once
+    improved = design.with_changes({**_changes(best["parameters"], design), "name": name})
     out_dir = Path(out_dir)
     stl_path, checks = _export(improved, out_dir)
     improved.save(out_dir / "design.yaml")
