@@ -325,7 +325,12 @@ def optimize(
         f"best: delivered {summary['delivered_fraction']:.1%} ± {summary['delivered_fraction_stderr']:.2%}, "
         f"CV {summary['uniformity_cv']:.1%} ({verdict} CV ≤ {max_cv:.0%}); étendue/filter bound "
         f"{summary['etendue_bound']['delivered_bound']:.1%}; best symmetric beam at this CV "
-        f"{summary['uniform_beam_bound']['delivered_bound']:.1%}; printable: {summary['printability']['printable']}"
+        f"{summary['uniform_beam_bound']['delivered_bound']:.1%}; collimator printable: {summary['printability']['printable']}"
+        + (
+            ""
+            if summary["base_plate_printable"] is None
+            else f"; base plate printable: {summary['base_plate_printable']}"
+        )
     )
 
 

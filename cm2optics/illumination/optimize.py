@@ -314,6 +314,9 @@ def optimize_collimator(
         "fixed_profile": fixed_profile,
         "assembly_interferences": assembly,
         "base_plate_min_wall_mm": best.get("base_plate_min_wall_mm"),
+        "base_plate_printable": None
+        if "base_plate_min_wall_mm" not in best
+        else bool(best["base_plate_min_wall_mm"] >= improved.mechanics.min_wall_mm - 1e-6),
         **_bounds(improved, max_cv, inputs, free_aim),
         "candidates_traced": len(candidates),
         "candidates_feasible": len(feasible),
