@@ -9,6 +9,11 @@ The lens is revolved from ``r = ε`` and closed by a flat disc of radius ε at i
 ε chosen so that the flat departs from the hyperbola by ``VERTEX_FLAT_SAG_MM`` (≈ 6 µm radius
 for the default design): a curved face revolved from the axis has a pole there, which
 OpenCascade tessellates into a degenerate triangle and the exported STL is then not closed.
+
+A freeform lens (``collimator.lens_freeform_um``, :mod:`cm2optics.optics.freeform`): the revolved
+solid is tessellated with chord tolerance ``FREEFORM_TOLERANCE_MM``, its lens and cavity-wall
+vertices are moved by the sag, and the triangles are joined back into one faceted solid — the
+surface the STL, the STEP file and the tracer all carry.
 """
 
 from __future__ import annotations
@@ -22,6 +27,7 @@ import trimesh
 
 from cm2optics.design import SystemDesign
 from cm2optics.optics.collimator import CollimatorProfile, collimator_profile
+from cm2optics.optics.freeform import displace_lens
 
 SPLINE_POINTS = 41
 """Points of the computed curves that each CAD spline passes through."""
@@ -29,6 +35,9 @@ SPLINE_POINTS = 41
 VERTEX_FLAT_SAG_MM = 1e-4
 """Largest departure of the lens's vertex flat from the hyperbola, mm (0.1 µm: below any
 tessellation or printing tolerance)."""
+
+FREEFORM_TOLERANCE_MM = 0.0005
+"""Chord tolerance of the revolved solid's tessellation that a freeform sag displaces, mm."""
 
 
 def _spline_points(points: np.ndarray) -> list[tuple[float, float]]:
@@ -77,8 +86,17 @@ def _section(profile: CollimatorProfile) -> cq.Workplane:
 
 
 def build_collimator(design: SystemDesign) -> cq.Workplane:
-    """One solid in the LED frame: the revolved optical body fused with the square flange."""
+    """One solid in the LED frame: the revolved optical body fused with the square flange,
+    made faceted freeform when the design's lens has a Zernike sag."""
     profile = collimator_profile(design)
+    revolved = _revolved_collimator(profile)
+    if not design.collimator.is_freeform:
+        return revolved
+    return _freeform_collimator(revolved, profile, design.collimator.lens_freeform_um)
+
+
+def _revolved_collimator(profile: CollimatorProfile) -> cq.Workplane:
+    """The revolved optical body fused with the square flange (LED frame)."""
     body = _section(profile).revolve(360.0, (0.0, 0.0, 0.0), (0.0, 1.0, 0.0))
     side = profile.footprint_mm
     flange = (
@@ -91,6 +109,47 @@ def build_collimator(design: SystemDesign) -> cq.Workplane:
     if len(solids) != 1:
         raise RuntimeError(f"the collimator must be one solid, got {len(solids)}")
     return cq.Workplane("XY").add(solids[0])
+
+
+def _freeform_collimator(
+    revolved: cq.Workplane, profile: CollimatorProfile, coefficients_um: tuple[float, ...]
+) -> cq.Workplane:
+    """The revolved solid's tessellation with the lens sag of ``coefficients_um`` (µm), as one
+    faceted solid: each vertex and edge made once and shared by its triangles, each triangle a
+    planar face turned outwards, the shell closed into a solid."""
+    from OCP.BRep import BRep_Builder
+    from OCP.BRepBuilderAPI import (
+        BRepBuilderAPI_MakeEdge,
+        BRepBuilderAPI_MakeFace,
+        BRepBuilderAPI_MakeSolid,
+        BRepBuilderAPI_MakeVertex,
+        BRepBuilderAPI_MakeWire,
+    )
+    from OCP.gp import gp_Pnt
+    from OCP.TopoDS import TopoDS_Shell
+
+    from cm2optics.cad.tessellate import export_stl
+
+    with tempfile.TemporaryDirectory() as folder:
+        path = Path(folder) / "revolved.stl"
+        export_stl(revolved.val(), path, FREEFORM_TOLERANCE_MM)
+        mesh = trimesh.load_mesh(path, force="mesh")
+    mesh = trimesh.Trimesh(displace_lens(np.asarray(mesh.vertices), profile, coefficients_um), mesh.faces)
+    if not (mesh.is_watertight and mesh.is_winding_consistent and mesh.volume > 0):
+        raise RuntimeError("the freeform collimator's displaced tessellation is not a closed solid")
+    vertices = [BRepBuilderAPI_MakeVertex(gp_Pnt(*map(float, p))).Vertex() for p in mesh.vertices]
+    edges = [BRepBuilderAPI_MakeEdge(vertices[a], vertices[b]).Edge() for a, b in mesh.edges_unique]
+    builder, shell = BRep_Builder(), TopoDS_Shell()
+    builder.MakeShell(shell)
+    for (e0, e1, e2), normal in zip(mesh.faces_unique_edges, mesh.face_normals, strict=True):
+        face = BRepBuilderAPI_MakeFace(BRepBuilderAPI_MakeWire(edges[e0], edges[e1], edges[e2]).Wire(), True).Face()
+        if cq.Face(face).normalAt().toTuple() @ normal < 0:
+            face.Reverse()
+        builder.Add(shell, face)
+    solid = cq.Solid(BRepBuilderAPI_MakeSolid(shell).Solid())
+    if abs(solid.Volume() - mesh.volume) > 1e-6 * mesh.volume:
+        raise RuntimeError("the freeform collimator's faces do not close into the mesh's solid")
+    return cq.Workplane("XY").add(solid)
 
 
 def _mesh_summary(mesh: trimesh.Trimesh, light_axis: np.ndarray) -> dict[str, object]:

@@ -42,6 +42,19 @@ illum_app = typer.Typer(
 )
 
 
+#: The inputs of ``optimize`` and ``robustness`` (``run`` words them at more length).
+LedProfileOption = Annotated[
+    Path | None, typer.Option("--led-profile", help="LED angular profile CSV; default Lambertian.")
+]
+LedSpectrumOption = Annotated[
+    Path | None, typer.Option("--led-spectrum", help="LED spectrum CSV; default: the spectra library's model.")
+]
+FilterTableOption = Annotated[
+    Path | None,
+    typer.Option("--filter-table", help="Excitation filter angle table; default: the model of excitation_filter."),
+]
+
+
 def _format(estimate: Any, percent: bool = False, digits: int = 3) -> str:
     value, stderr = estimate.value, estimate.stderr
     if not math.isfinite(value):
@@ -238,16 +251,25 @@ def optimize(
             "enter the imaging tower are infeasible, and the chosen design passes the CAD interference check.",
         ),
     ] = False,
-    led_profile: Annotated[
-        Path | None, typer.Option("--led-profile", help="LED angular profile CSV; default Lambertian.")
-    ] = None,
-    led_spectrum: Annotated[
-        Path | None, typer.Option("--led-spectrum", help="LED spectrum CSV; default: the spectra library's model.")
-    ] = None,
-    filter_table: Annotated[
-        Path | None,
-        typer.Option("--filter-table", help="Excitation filter angle table; default: the model of excitation_filter."),
-    ] = None,
+    freeform: Annotated[
+        bool,
+        typer.Option(
+            "--freeform",
+            help="Sweep the lens's Zernike terms too (collimator.lens_freeform_um, Noll 3, 4, 6, 7, 11, ±15 µm): "
+            "the lens departs from revolution.",
+        ),
+    ] = False,
+    fixed_profile: Annotated[
+        bool,
+        typer.Option(
+            "--fixed-profile",
+            help="Keep the design's collimator profile: sweep only the placement (--free-aim) and/or the "
+            "freeform terms (--freeform) of the design given.",
+        ),
+    ] = False,
+    led_profile: LedProfileOption = None,
+    led_spectrum: LedSpectrumOption = None,
+    filter_table: FilterTableOption = None,
     out_dir: Annotated[
         Path, typer.Option("--out", "-o", help="Folder for the improved design YAML, its STL and the sweep table.")
     ] = Path("out/illum-opt"),
@@ -257,8 +279,9 @@ def optimize(
     """Search the collimator's parameters for the largest delivered fraction whose array
     uniformity (CV inside the circle) is ≤ --max-cv, as a parallel sweep on Dask, and write
     the best design (`design.yaml`, which rebuilds the part), its CAD collimator
-    (`collimator.stl`, checked for printing: watertight, walls ≥ mechanics.min_wall_mm) and every
-    candidate (`sweep.json`). Swept: lens angle, cavity radius, LED gap, entry wall, height,
+    (`collimator.stl` and `.step`, the STL checked for printing: watertight, walls ≥
+    mechanics.min_wall_mm), that part's own trace (`built_part`, maps in `irradiance.png`) and
+    every candidate (`sweep.json`). Swept: lens angle, cavity radius, LED gap, entry wall, height,
     and the two sub-beams' output spreads and mapping exponents (collimator.lens_spread_deg …;
     zero spreads = the collimating cm2-v2 architecture); with --free-aim also the units' tilt,
     offset, aim point and azimuth (led_array.*), units that would enter the imaging tower being
@@ -273,6 +296,8 @@ def optimize(
 
     files = (led_profile, led_spectrum, filter_table)
     _check_optimize_options(max_cv, rays, samples, rounds, workers, files)
+    if fixed_profile and not (free_aim or freeform):
+        raise UserError("--fixed-profile leaves nothing to sweep: add --free-aim and/or --freeform")
     design = load_preset(preset)
     check_dask_address(dask_address)
     output_folder(out_dir, "illum optimize", inputs=[preset, *[f for f in files if f]], overwrite=overwrite)
@@ -287,6 +312,8 @@ def optimize(
         show_progress=not as_json,
         free_aim=free_aim,
         inputs=inputs,
+        freeform=freeform,
+        fixed_profile=fixed_profile,
     )
     summary = {k: v for k, v in result.items() if k != "candidates"}  # every candidate is in sweep.json
     if as_json:
@@ -298,5 +325,123 @@ def optimize(
         f"best: delivered {summary['delivered_fraction']:.1%} ± {summary['delivered_fraction_stderr']:.2%}, "
         f"CV {summary['uniformity_cv']:.1%} ({verdict} CV ≤ {max_cv:.0%}); étendue/filter bound "
         f"{summary['etendue_bound']['delivered_bound']:.1%}; best symmetric beam at this CV "
-        f"{summary['uniform_beam_bound']['delivered_bound']:.1%}; printable: {summary['printability']['printable']}"
+        f"{summary['uniform_beam_bound']['delivered_bound']:.1%}; collimator printable: {summary['printability']['printable']}"
+        + (
+            ""
+            if summary["base_plate_printable"] is None
+            else f"; base plate printable: {summary['base_plate_printable']}"
+        )
     )
+
+
+@illum_app.command("robustness")
+@user_errors
+def robustness(
+    preset: PresetOption = "cm2-v2",
+    collimator: Annotated[
+        Path | None,
+        typer.Option("--collimator", help="A collimator STL (mm) to study instead of the design's own CAD part."),
+    ] = None,
+    led_position: Annotated[
+        str | None,
+        typer.Option("--led-position", help="Centre of the LED's emitting surface in the STL's frame, X,Y,Z mm."),
+    ] = None,
+    led_axis: Annotated[
+        str | None, typer.Option("--led-axis", help="Direction the LED emits in, in the STL's frame, X,Y,Z.")
+    ] = None,
+    samples: Annotated[int, typer.Option("--samples", help="Monte Carlo samples (≥ 2).")] = 32,
+    rays: Annotated[int, typer.Option("--rays", "-n", help="LED rays per sample, split over the LEDs.")] = 200_000,
+    led_placement_um: Annotated[
+        float, typer.Option("--led-placement-um", help="LED centre placement error, ± µm in each of x and y.")
+    ] = 50.0,
+    unit_tilt_deg: Annotated[
+        float, typer.Option("--unit-tilt-deg", help="Unit tilt error about each of its x and y axes, ± degrees.")
+    ] = 1.0,
+    surface_rms_um: Annotated[
+        float, typer.Option("--surface-rms-um", help="Printer surface error of the collimator, µm RMS.")
+    ] = 2.0,
+    max_cv: Annotated[float, typer.Option("--max-cv", help="Uniformity limit counted in the report (0–1).")] = 0.10,
+    led_profile: LedProfileOption = None,
+    led_spectrum: LedSpectrumOption = None,
+    filter_table: FilterTableOption = None,
+    seed: Annotated[int, typer.Option("--seed", help="Seed of the drawn errors and of the traces.")] = 0,
+    out_dir: Annotated[Path, typer.Option("--out", "-o", help="Folder for robustness.json and robustness.png.")] = Path(
+        "out/illum-robustness"
+    ),
+    overwrite: OverwriteOption = False,
+    as_json: JsonOption = False,
+) -> None:
+    """Monte Carlo of the built design under manufacturing and assembly errors: every LED moved
+    in its plane (± --led-placement-um), every unit tilted (± --unit-tilt-deg about two axes),
+    every collimator's surface moved by a smooth random field of --surface-rms-um RMS (its exit
+    face kept), each drawn independently per unit and sample. Reports the as-designed figures
+    and the delivered fraction and CV as mean ± sd over the samples (every sample traces the
+    same LED rays; the CV also without each trace's Monte Carlo noise floor), and the share
+    of samples within --max-cv. The same seed gives the same
+    numbers. --json prints the report (robustness.json) without per-sample rows.
+    """
+    import numpy as np
+
+    from cm2optics.design import load_preset
+    from cm2optics.formats.atomic import write_json_atomic
+    from cm2optics.illumination.compare import setup_from_options, stl_collimator
+    from cm2optics.illumination.geometry import build_scene, collimator_from_design
+    from cm2optics.illumination.robustness import Tolerances, robustness_study, write_robustness_png
+    from cm2optics.optics.backend import mitsuba
+    from cm2optics.progress import progress_bar
+
+    if samples < 2 or samples > 10_000:
+        raise UserError(f"--samples = {samples}: must lie within 2–10000")
+    if rays < 1000 or rays > 100_000_000:
+        raise UserError(f"--rays = {rays}: must lie within 1000–100000000")
+    if not 0 < max_cv < 1:
+        raise UserError(f"--max-cv = {max_cv}: must lie within 0–1")
+    try:
+        tolerances = Tolerances(1e-3 * led_placement_um, unit_tilt_deg, surface_rms_um)
+    except ValueError as error:
+        raise UserError(f"tolerances: {error}") from None
+    files = (collimator, led_profile, led_spectrum, filter_table)
+    for path in files:
+        if path is not None and not path.is_file():
+            raise UserError(f"{path}: no such file")
+    design = load_preset(preset)
+    if collimator is None and (led_position is not None or led_axis is not None):
+        raise UserError("--led-position/--led-axis place the LED in an STL: give the STL with --collimator")
+    check_output(out_dir, command="illum robustness", kind="folder", inputs=[preset, *files], overwrite=overwrite)
+    vector = {"n": 3, "example": "0,0,1"}
+    if collimator is not None:
+        position = parse_float_list(led_position, name="--led-position", **vector) or (0.0, 0.0, 0.0)
+        axis = parse_float_list(led_axis, name="--led-axis", **vector) or (0.0, 0.0, 1.0)
+        part = stl_collimator(design, collimator, np.array(position, float), np.array(axis, float))
+    elif design.collimator is None:
+        raise UserError(f"design {design.name!r} has no collimator: give one with --collimator")
+    else:
+        part = collimator_from_design(design)
+    setup = setup_from_options(
+        design, led_profile=led_profile, led_spectrum=led_spectrum, filter_table=filter_table, rays=rays, seed=seed
+    )
+    try:
+        scene = build_scene(design, part)
+    except ValueError as error:
+        raise UserError(str(error)) from None
+    output_folder(out_dir, "illum robustness", inputs=[preset, *files], overwrite=overwrite)
+    mitsuba()
+    with progress_bar("[bold]robustness[/] {task.description}", enabled=not as_json) as bar:
+        task = bar.add_task(part.label, total=samples + 1)
+        study = robustness_study(scene, setup, tolerances, samples, seed, lambda: bar.advance(task), max_cv)
+    study["setup"] = {"preset": design.name, "parameter_hash": design.parameter_hash(), **setup.notes}
+    write_json_atomic(out_dir / "robustness.json", study)
+    write_robustness_png(study, out_dir / "robustness.png")
+    summary = {k: v for k, v in study.items() if k != "per_sample"}
+    if as_json:
+        print(json.dumps(summary, indent=2, ensure_ascii=False))
+        return
+    nominal, delivered, cv = study["nominal"], study["delivered_fraction"], study["uniformity_cv_corrected"]
+    out.print(
+        f"{part.label}: as designed delivered {nominal['delivered_fraction']:.3f} ± "
+        f"{nominal['delivered_fraction_stderr']:.3f}, CV {nominal['uniformity_cv_corrected']:.1%}; under errors "
+        f"({samples} samples) delivered {delivered['mean']:.3f} ± {delivered['sd']:.3f}, CV {cv['mean']:.1%} ± "
+        f"{cv['sd']:.1%}; {study['share_within_max_cv']:.0%} of samples at CV ≤ {max_cv:.0%} (CVs without "
+        "their Monte Carlo noise floor)"
+    )
+    out.print(f"robustness.json and robustness.png in {out_dir}")

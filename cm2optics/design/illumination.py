@@ -61,6 +61,10 @@ class Collimator:
     tir_crossing: the TIR sub-beam crosses the axis rather than spreading outwards.
     lens_exponent, tir_exponent: exponent γ of each sub-beam's ray mapping tan ψ ∝ F^γ (F the
         sub-beam's flux fraction): 0.5 lights a disc uniformly, smaller pushes power outwards.
+    lens_freeform_um: Zernike coefficients c_1, c_2, … (Noll's order and unit-RMS
+        normalisation, over the cavity radius) of a sag added to the lens, µm: the lens departs
+        from revolution (:mod:`cm2optics.optics.freeform`); empty (the default, left out of the
+        YAML) or all zero: the revolved part.
     """
 
     material: Material
@@ -76,6 +80,12 @@ class Collimator:
     tir_crossing: bool
     lens_exponent: float
     tir_exponent: float
+    lens_freeform_um: tuple[float, ...] = ()
+
+    @property
+    def is_freeform(self) -> bool:
+        """Whether the lens departs from revolution (a non-zero Zernike coefficient)."""
+        return any(c != 0.0 for c in self.lens_freeform_um)
 
     @property
     def collimates(self) -> bool:
@@ -99,6 +109,12 @@ class Collimator:
         in_range(self, "tir_spread_deg", 0.0, 40.0, "°")
         in_range(self, "lens_exponent", 0.1, 1.0)
         in_range(self, "tir_exponent", 0.1, 1.0)
+        check(
+            "lens_freeform_um",
+            list(self.lens_freeform_um),
+            len(self.lens_freeform_um) <= 28 and all(abs(c) <= 200.0 for c in self.lens_freeform_um),
+            "at most 28 Zernike coefficients (Noll j = 1–28), each within ±200 µm",
+        )
 
 
 @dataclass(frozen=True)

@@ -247,6 +247,8 @@ class SystemDesign:
         data = to_plain(self)
         if data["led_array"]["aim_mm"] == 0.0:  # the default aim (the field's centre) keeps old files and hashes
             del data["led_array"]["aim_mm"]
+        if self.collimator is not None and not self.collimator.is_freeform:
+            del data["collimator"]["lens_freeform_um"]  # a revolved lens keeps old files and hashes
         changed = self.as_built.changed()
         if changed:
             data["as_built"] = changed

@@ -25,9 +25,11 @@ tool here.
 The :data:`CONFIRMED` best candidates meeting the constraint (else the best ranked) are traced
 again with 4× the rays, and the one delivering most whose measured CV — noise included — is
 ≤ max_cv there is chosen (else the first); its figures in the result come from that run. ``design.yaml`` holds the improved
-design; ``collimator.stl`` is the CAD part built from it (:mod:`cm2optics.cad.collimator`),
-checked for printing with :func:`cm2optics.cad.mesh_checks.check_mesh` (watertight,
-consistently wound, thinnest wall ≥ ``mechanics.min_wall_mm``).
+design; ``collimator.stl`` and ``collimator.step`` are the CAD part built from it
+(:mod:`cm2optics.cad.collimator`), the STL checked for printing with
+:func:`cm2optics.cad.mesh_checks.check_mesh` (watertight, consistently wound, thinnest wall ≥
+``mechanics.min_wall_mm``); that part itself is traced once more (``built_part`` in the result,
+its irradiance maps in ``irradiance.png``).
 
 The étendue bound and the uniform-beam bound (:mod:`.bounds`) are reported beside the result,
 and with ``free_aim`` the bound of re-aimed units with the finite LED (:func:`.bounds.free_aim_bound`).
@@ -70,22 +72,45 @@ AIM_PARAMETERS: dict[str, tuple[float, float]] = {
     "led_array.aim_mm": (-2.0, 3.5),
     "led_array.azimuth_deg": (0.0, 45.0),
 }
+#: The lens's Zernike terms (:attr:`cm2optics.design.Collimator.lens_freeform_um`, µm), swept with
+#: ``freeform``: Noll 3 (tilt), 4 (defocus), 6 (astigmatism), 7 (coma), 11 (spherical) — the
+#: terms that keep each unit's mirror symmetry about its plane of tilt (its local y–z plane).
+FREEFORM_TERMS = (3, 4, 6, 7, 11)
+FREEFORM_PARAMETERS: dict[str, tuple[float, float]] = {
+    f"collimator.lens_freeform_um[{j}]": (-15.0, 15.0) for j in FREEFORM_TERMS
+}
 #: Best candidates traced again with 4× the rays before one is chosen.
 CONFIRMED = 4
 #: Segments per turn of the revolved mesh in the sweep (the written STL uses 256).
 SWEEP_SEGMENTS = 128
 
 
-def search_box(free_aim: bool) -> dict[str, tuple[float, float]]:
-    """The swept parameters and their ranges: the collimator's, and the units' placement with ``free_aim``."""
-    return {**PARAMETERS, **(AIM_PARAMETERS if free_aim else {})}
+def search_box(free_aim: bool, freeform: bool = False, fixed_profile: bool = False) -> dict[str, tuple[float, float]]:
+    """The swept parameters and their ranges: the collimator's profile (unless ``fixed_profile``),
+    the units' placement with ``free_aim``, the lens's Zernike terms with ``freeform``."""
+    return {
+        **({} if fixed_profile else PARAMETERS),
+        **(AIM_PARAMETERS if free_aim else {}),
+        **(FREEFORM_PARAMETERS if freeform else {}),
+    }
 
 
-def _changes(values: dict[str, float]) -> dict[str, Any]:
-    """The design changes of a candidate: its values, the TIR sub-beam crossing the axis, and
+def _changes(values: dict[str, float], design: SystemDesign) -> dict[str, Any]:
+    """The design changes of a candidate of ``design``: its values (Zernike terms merged into the
+    design's own list), and when the profile is swept the TIR sub-beam crossing the axis and
     the excitation filter kept on the collimator's exit face."""
-    changes: dict[str, Any] = {k: float(v) for k, v in values.items()}
-    changes["collimator.tir_crossing"] = True
+    changes: dict[str, Any] = {}
+    terms = list(design.collimator.lens_freeform_um) if design.collimator is not None else []
+    for name, value in values.items():
+        if name.startswith("collimator.lens_freeform_um["):
+            j = int(name[len("collimator.lens_freeform_um[") : -1])
+            terms += [0.0] * (j - len(terms))
+            terms[j - 1] = float(value)
+            changes["collimator.lens_freeform_um"] = terms
+        else:
+            changes[name] = float(value)
+    if any(name in values for name in PARAMETERS):
+        changes["collimator.tir_crossing"] = True
     gap = changes.get("collimator.led_gap_mm")
     height = changes.get("collimator.height_mm")
     if gap is not None and height is not None:
@@ -99,10 +124,12 @@ def candidate_collimator(design: SystemDesign, values: dict[str, float], segment
     from cm2optics.illumination.revolve import revolve_profile
     from cm2optics.optics.collimator import collimator_profile
 
-    candidate = design.with_changes(_changes(values))
+    candidate = design.with_changes(_changes(values, design))
     profile = collimator_profile(candidate)
     mesh = CollimatorMesh(
-        f"{design.name} (optimised)", revolve_profile(profile, segments), candidate.collimator.material
+        f"{design.name} (optimised)",
+        revolve_profile(profile, segments, candidate.collimator.lens_freeform_um),
+        candidate.collimator.material,
     )
     return candidate, mesh, profile
 
@@ -223,15 +250,21 @@ def optimize_collimator(
     show_progress: bool = True,
     free_aim: bool = False,
     inputs: tuple[str | None, str | None, str | None] = (None, None, None),
+    freeform: bool = False,
+    fixed_profile: bool = False,
 ) -> dict[str, Any]:
-    """Run the sweep (see the module docstring) and write ``design.yaml``, ``collimator.stl``
-    and ``sweep.json`` into ``out_dir``; returns the summary (also ``result.json``).
+    """Run the sweep (see the module docstring) and write ``design.yaml``, ``collimator.stl``,
+    ``collimator.step``, ``irradiance.png`` and ``sweep.json`` into ``out_dir``; returns the
+    summary (also ``result.json``).
 
     rays: rays per candidate (all LEDs). max_cv: uniformity constraint (0–1). samples:
     candidates of the first sweep. rounds: refinement sweeps. dask_address: an existing
     scheduler, or None for a local cluster of ``workers`` processes. seed: sweep and trace seed.
     free_aim: sweep the units' tilt, offset, aim point and azimuth too (:data:`AIM_PARAMETERS`);
     the chosen design is then checked with the CAD assembly's interference check.
+    freeform: sweep the lens's Zernike terms too (:data:`FREEFORM_PARAMETERS`).
+    fixed_profile: keep the design's profile (:data:`PARAMETERS` not swept): refine its
+        placement and/or freeform terms.
     inputs: paths of the LED's angular profile, spectrum and the excitation filter's coating
     table (each None: the design's model), used by every trace and by the bounds.
     """
@@ -245,7 +278,9 @@ def optimize_collimator(
     candidates: list[dict[str, Any]] = []
     start = time.perf_counter()
     try:
-        box = search_box(free_aim)
+        box = search_box(free_aim, freeform, fixed_profile)
+        if not box:
+            raise ValueError("nothing to sweep: a fixed profile needs free aim and/or freeform terms")
         _sweep(client, base, box, candidates, rays, max_cv, samples, rounds, seed, threads, show_progress, inputs)
         feasible = [c for c in candidates if c["feasible"]]
         meeting = [c for c in feasible if c["meets_uniformity"]]
@@ -257,13 +292,17 @@ def optimize_collimator(
         if cluster is not None:
             cluster.close()
 
-    improved = design.with_changes({**_changes(best["parameters"]), "name": f"{design.name}-optimised"})
+    name = design.name if design.name.endswith("-optimised") else f"{design.name}-optimised"  # refining one: once
+    improved = design.with_changes({**_changes(best["parameters"], design), "name": name})
     out_dir = Path(out_dir)
     stl_path, checks = _export(improved, out_dir)
     improved.save(out_dir / "design.yaml")
+    built = _trace_built_part(improved, out_dir, 4 * rays, seed + 2, inputs)
     result = {
         "design": str(out_dir / "design.yaml"),
         "stl": str(stl_path),
+        "step": str(out_dir / "collimator.step"),
+        "built_part": built,
         "parameters": best["parameters"],
         "meets_uniformity": bool(confirm.get("feasible") and confirm["uniformity_cv"] <= max_cv),
         "max_cv": max_cv,
@@ -271,7 +310,13 @@ def optimize_collimator(
         "rays": 4 * rays,
         "printability": checks,
         "free_aim": free_aim,
+        "freeform": freeform,
+        "fixed_profile": fixed_profile,
         "assembly_interferences": assembly,
+        "base_plate_min_wall_mm": best.get("base_plate_min_wall_mm"),
+        "base_plate_printable": None
+        if "base_plate_min_wall_mm" not in best
+        else bool(best["base_plate_min_wall_mm"] >= improved.mechanics.min_wall_mm - 1e-6),
         **_bounds(improved, max_cv, inputs, free_aim),
         "candidates_traced": len(candidates),
         "candidates_feasible": len(feasible),
@@ -371,7 +416,9 @@ def _confirm_finalists(
     """Re-trace the best ``CONFIRMED`` candidates with 4 × ``rays``; returns the chosen candidate
     (the most light among those confirmed uniform, else the first), its confirmation and, with
     ``check_assembly``, the CAD assembly's interferences of the chosen design (the first of the
-    confirmed ones, in order of light, that has none; else the last one checked) — None without."""
+    confirmed ones, in order of light, that has none; else the last one checked) — None without.
+    With ``check_assembly`` the finalists are the best candidates whose base plate can be printed
+    (:func:`base_plate_wall_mm` ≥ ``mechanics.min_wall_mm``; the best one if none can)."""
     from cm2optics.cad.assembly import aim_interferences
 
     pool = meeting or feasible
@@ -379,6 +426,17 @@ def _confirm_finalists(
         raise ValueError("no candidate could be built: every parameter set was rejected by the profile construction")
     ranked = sorted(pool, key=lambda c: c["delivered_fraction"] if meeting else c["score"], reverse=True)
     finalists = ranked[:CONFIRMED]
+    if check_assembly:  # placements whose base plate can be printed, best first (else the best, to report)
+        base_design = design_from_dict(base)
+        printable = []
+        for candidate in ranked:
+            if len(printable) == CONFIRMED:
+                break
+            wall = base_plate_wall_mm(base_design.with_changes(_changes(candidate["parameters"], base_design)))
+            candidate["base_plate_min_wall_mm"] = round(wall, 4)
+            if wall >= base_design.mechanics.min_wall_mm - 1e-6:
+                printable.append(candidate)
+        finalists = printable or ranked[:1]
     confirmations = [
         f.result()
         for f in [
@@ -392,16 +450,60 @@ def _confirm_finalists(
     order = sorted(passing, key=lambda i: confirmations[i]["delivered_fraction"], reverse=True) or [0]
     if not check_assembly:
         return finalists[order[0]], confirmations[order[0]], None
-    base_design = design_from_dict(base)
     for i in order:
-        clashes = aim_interferences(base_design.with_changes(_changes(finalists[i]["parameters"])))
+        clashes = aim_interferences(base_design.with_changes(_changes(finalists[i]["parameters"], base_design)))
         if not clashes:
             break
     return finalists[i], confirmations[i], clashes
 
 
+def base_plate_wall_mm(design: SystemDesign) -> float:
+    """Thinnest wall of ``design``'s base plate (mm, :func:`cm2optics.cad.mesh_checks.check_mesh`
+    on its STL): the units' placement moves its sockets, and some placements leave slivers."""
+    import tempfile
+
+    import trimesh
+
+    from cm2optics.cad.base_plate import build_base_plate
+    from cm2optics.cad.mesh_checks import check_mesh
+    from cm2optics.cad.tessellate import DEFAULT_TOLERANCE_UM, export_stl
+
+    with tempfile.TemporaryDirectory() as folder:
+        path = Path(folder) / "base_plate.stl"
+        export_stl(build_base_plate(design).val(), path, DEFAULT_TOLERANCE_UM / 1000.0)
+        return check_mesh(trimesh.load_mesh(path, force="mesh")).min_wall_mm
+
+
+def _trace_built_part(
+    design: SystemDesign, out_dir: Path, rays: int, seed: int, inputs: tuple[str | None, str | None, str | None]
+) -> dict[str, Any]:
+    """Trace the chosen design's CAD part (the exported solid, not the sweep's revolved mesh)
+    with the run's inputs, write its irradiance maps (``irradiance.png``) and return its figures."""
+    from cm2optics.illumination.excitation import design_filter_transmission
+    from cm2optics.illumination.geometry import build_scene, collimator_from_design
+    from cm2optics.illumination.metrics import figures_of_merit, write_maps_png
+    from cm2optics.illumination.source import led_source
+    from cm2optics.illumination.tracer import trace
+
+    profile, spectrum, table = _inputs(*inputs)
+    scene = build_scene(design, collimator_from_design(design))
+    transmission = table if table is not None else design_filter_transmission(design)
+    record = trace(scene, led_source(design, profile, spectrum), rays, transmission=transmission, seed=seed)
+    figures = figures_of_merit(record, scene)
+    maps = write_maps_png(figures, out_dir / "irradiance.png")
+    return {
+        "maps": str(maps),
+        "rays": rays,
+        "delivered_fraction": figures.delivered_fraction.value,
+        "delivered_fraction_stderr": figures.delivered_fraction.stderr,
+        "uniformity_cv": figures.uniformity_cv.value,
+        "uniformity_cv_noise": figures.uniformity_cv_noise,
+    }
+
+
 def _export(design: SystemDesign, out_dir: Path) -> tuple[Path, dict[str, Any]]:
-    """Write the design's CAD collimator as STL and check it for printing."""
+    """Write the design's CAD collimator as STL and STEP and check the STL for printing."""
+    import cadquery as cq
     import trimesh
 
     from cm2optics.cad.collimator import build_collimator
@@ -410,8 +512,10 @@ def _export(design: SystemDesign, out_dir: Path) -> tuple[Path, dict[str, Any]]:
     from cm2optics.formats.atomic import write_atomic
 
     path = out_dir / "collimator.stl"
-    solid = build_collimator(design).val()
+    part = build_collimator(design)
+    solid = part.val()
     write_atomic(path, lambda tmp: export_stl(solid, tmp, DEFAULT_TOLERANCE_UM / 1000.0))
+    write_atomic(out_dir / "collimator.step", lambda tmp: cq.exporters.export(part, str(tmp), exportType="STEP"))
     report = check_mesh(trimesh.load_mesh(path, force="mesh"))
     min_wall = design.mechanics.min_wall_mm
     checks = {

@@ -1,5 +1,7 @@
 """A collimator's section swept into a watertight triangle mesh, without CAD: for tracing,
-design sweeps and STL export of candidates (the CAD part comes from :mod:`cm2optics.cad.collimator`)."""
+design sweeps and STL export of candidates (the CAD part comes from :mod:`cm2optics.cad.collimator`).
+A freeform lens sag (:mod:`cm2optics.optics.freeform`) is applied to the swept vertices, as the
+CAD part applies it to its tessellation."""
 
 from __future__ import annotations
 
@@ -7,6 +9,7 @@ import numpy as np
 import trimesh
 
 from cm2optics.optics.collimator import CollimatorProfile
+from cm2optics.optics.freeform import displace_lens
 
 __all__ = ["revolve_profile"]
 
@@ -17,11 +20,13 @@ def _square_ring(half: float, z: float, angles: np.ndarray) -> np.ndarray:
     return np.column_stack([k * c, k * s, np.full_like(angles, z)])
 
 
-def revolve_profile(profile: CollimatorProfile, segments: int = 256) -> trimesh.Trimesh:
+def revolve_profile(
+    profile: CollimatorProfile, segments: int = 256, lens_freeform_um: tuple[float, ...] = ()
+) -> trimesh.Trimesh:
     """A watertight mesh of the collimator: the section's rings swept about the axis
     (``segments`` per turn, a multiple of 8 so that the flange's corners are vertices), from the
     exit face's centre round the flange, down the outer wall, in through the cavity to the
-    lens vertex. Outward normals."""
+    lens vertex, with the lens sag of Zernike coefficients ``lens_freeform_um`` (µm). Outward normals."""
     if segments % 8:
         raise ValueError(f"segments = {segments}: must be a multiple of 8")
     angles = 2 * np.pi * np.arange(segments) / segments
@@ -62,7 +67,10 @@ def revolve_profile(profile: CollimatorProfile, segments: int = 256) -> trimesh.
         else:
             faces.append(np.column_stack([a0 + k, b0 + k, b0 + k1]))
             faces.append(np.column_stack([a0 + k, b0 + k1, a0 + k1]))
-    mesh = trimesh.Trimesh(np.vstack(vertices), np.vstack(faces), process=True)
+    points = np.vstack(vertices)
+    if any(c != 0.0 for c in lens_freeform_um):
+        points = displace_lens(points, profile, lens_freeform_um)
+    mesh = trimesh.Trimesh(points, np.vstack(faces), process=True)
     if mesh.volume < 0:
         mesh.invert()
     return mesh

@@ -105,6 +105,7 @@ FOLDER_WRITERS = {
     "spectra report": ["spectra", "report", "--out"],
     "illum run": ["illum", "run", "--rays", "1000", "--out"],
     "illum optimize": ["illum", "optimize", "--rays", "1000", "--out"],
+    "illum robustness": ["illum", "robustness", "--samples", "2", "--rays", "1000", "--out"],
     "psf simulate": ["psf", "simulate", "--grid", "1x1x1", "--binning", "8", "--out"],
     "synth": ["synth", "--model", "{model}", "-n", "1", "--workers", "0", "--size", "scaled", "--out"],
     "evaluate": ["evaluate", "{meas}", "{emitters}", "--out"],
@@ -474,6 +475,15 @@ def _input_cases() -> list[Case]:
         ),
         Case("illum optimize", "option", ["illum", "optimize", "--max-cv", "2", "--out", "{case}/o"], ("--max-cv",)),
         Case("illum optimize", "option", ["illum", "optimize", "--samples", "1", "--out", "{case}/o"], ("--samples",)),
+        Case(
+            "illum robustness", "option", ["illum", "robustness", "--samples", "1", "--out", "{case}/o"], ("--samples",)
+        ),
+        Case(
+            "illum robustness",
+            "option",
+            ["illum", "robustness", "--surface-rms-um", "-1", "--out", "{case}/o"],
+            ("surface_rms_um",),
+        ),
         Case(
             "compare-baselines",
             "option",

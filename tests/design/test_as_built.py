@@ -15,12 +15,15 @@ from cm2optics.design.coerce import to_plain
 
 
 def _hash_without_as_built(design: SystemDesign) -> str:
-    """The parameter hash as it was before the section (and ``led_array.aim_mm``) existed: every
-    part but as_built, and the aim only where it is not the field's centre."""
+    """The parameter hash as it was before the section (and ``led_array.aim_mm``,
+    ``collimator.lens_freeform_um``) existed: every part but as_built, the aim only where it is
+    not the field's centre, the lens's Zernike terms only where one is not zero."""
     data = to_plain(design)
     del data["as_built"]
     if data["led_array"]["aim_mm"] == 0.0:
         del data["led_array"]["aim_mm"]
+    if data["collimator"] is not None and not any(data["collimator"]["lens_freeform_um"]):
+        del data["collimator"]["lens_freeform_um"]
     return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()[:16]
 
 

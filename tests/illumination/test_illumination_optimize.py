@@ -144,6 +144,8 @@ def test_optimize_writes_a_printable_design(tmp_path):
         data["parameters"]["collimator.lens_half_angle_deg"], rel=1e-4
     )
     assert (tmp_path / "collimator.stl").is_file() and (tmp_path / "sweep.json").is_file()
+    assert (tmp_path / "collimator.step").stat().st_size > 0 and (tmp_path / "irradiance.png").is_file()
+    assert 0 < data["built_part"]["delivered_fraction"] < 1
     assert design.collimator.lens_spread_deg == pytest.approx(
         data["parameters"]["collimator.lens_spread_deg"], rel=1e-4
     )
@@ -234,3 +236,20 @@ def test_free_aim_sweeps_the_placement_and_rejects_units_in_the_tower(v2):
     values = {k: getattr(v2.collimator, k.split(".")[1]) for k in PARAMETERS} | {"led_array.aim_mm": -2.0}
     entry = evaluate_candidate(v2.to_dict(), values, 1000, 0, 0.1, threads=1)
     assert entry["feasible"] is False and "imaging tower" in entry["reason"]
+
+
+def test_base_plate_wall_check_rejects_placements_that_leave_slivers(v2):
+    """Units turned ≈ 30° against the tower leave a sliver in the base plate (found by a sweep
+    whose chosen design then failed `cm2 cad export`'s wall check); the preset's placement does not."""
+    from cm2optics.illumination.optimize import base_plate_wall_mm
+
+    assert base_plate_wall_mm(v2) >= v2.mechanics.min_wall_mm
+    turned = v2.with_changes(
+        {
+            "led_array.tilt_deg": 49.75,
+            "led_array.offset_mm": 7.81,
+            "led_array.aim_mm": 1.47,
+            "led_array.azimuth_deg": 29.3,
+        }
+    )
+    assert base_plate_wall_mm(turned) < 0.1

@@ -1,0 +1,84 @@
+"""Freeform departures of the collimator from revolution: a Zernike sag added to its lens.
+
+Pure NumPy, shared by the CAD part (:mod:`cm2optics.cad.collimator`) and the sweep's meshes
+(:mod:`cm2optics.illumination.optimize`), so the tracer reads the same surface the printer gets.
+
+The lens (the cavity's floor) becomes ``z(x, y) = z_lens(r) + S(x, y)`` with
+``S = Σ_j c_j Z_j(ρ, φ)``, ``ρ = r / a`` (``a`` the cavity radius), ``Z_j`` the Zernike
+polynomials in Noll's order and normalisation (unit RMS over the disc: ``Z_2 = 2ρ cos φ`` is a
+tilt about y of slope ``2 c_2 / a``, ``Z_4 = √3 (2ρ² − 1)`` defocus …), ``c_j`` in µm. The cavity
+wall below the lens edge follows with a linear blend, ``δz = S(a, φ) (z − g)/(z_edge − g)``
+(``g`` the entry plane), so the solid stays closed; every other face is untouched.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from cm2optics.optics.collimator import CollimatorProfile
+
+__all__ = ["MAX_TERMS", "displace_lens", "lens_sag_mm", "noll_indices", "zernike"]
+
+#: Most Zernike terms a design may give (Noll j = 1 … 28: up to the 6th radial order).
+MAX_TERMS = 28
+#: Distance within which a vertex counts as lying on the cavity wall, mm.
+_ON_WALL_MM = 1e-5
+
+
+def noll_indices(j: int) -> tuple[int, int]:
+    """Radial order n and signed azimuthal frequency m of Noll's term ``j`` (≥ 1); m > 0 is a
+    cosine term, m < 0 a sine term."""
+    if j < 1:
+        raise ValueError(f"Noll index {j}: must be ≥ 1")
+    n = int((math.isqrt(8 * (j - 1) + 1) - 1) // 2)
+    p = j - n * (n + 1) // 2
+    k = n % 2
+    m = ((p + k) // 2) * 2 - k
+    return n, (m if j % 2 == 0 else -m) if m else 0
+
+
+def zernike(j: int, rho: np.ndarray, phi: np.ndarray) -> np.ndarray:
+    """Noll's ``Z_j(ρ, φ)``, unit RMS over the unit disc (dimensionless)."""
+    n, m = noll_indices(j)
+    am = abs(m)
+    radial = np.zeros_like(rho, dtype=float)
+    for s in range((n - am) // 2 + 1):
+        weight = (-1) ** s * math.factorial(n - s)
+        weight /= math.factorial(s) * math.factorial((n + am) // 2 - s) * math.factorial((n - am) // 2 - s)
+        radial = radial + weight * rho ** (n - 2 * s)
+    if m == 0:
+        return math.sqrt(n + 1) * radial
+    angular = np.cos(am * phi) if m > 0 else np.sin(am * phi)
+    return math.sqrt(2 * (n + 1)) * radial * angular
+
+
+def lens_sag_mm(coefficients_um: tuple[float, ...], x_mm: np.ndarray, y_mm: np.ndarray, radius_mm: float) -> np.ndarray:
+    """The sag ``S(x, y)`` (mm) of Zernike coefficients ``c_1 … c_J`` (µm) over a disc of
+    ``radius_mm``; ρ is clipped at 1 (points on the rim get the rim's sag)."""
+    rho = np.minimum(np.hypot(x_mm, y_mm) / radius_mm, 1.0)
+    phi = np.arctan2(y_mm, x_mm)
+    sag = np.zeros_like(rho, dtype=float)
+    for j, c in enumerate(coefficients_um, start=1):
+        if c != 0.0:
+            sag = sag + 1e-3 * c * zernike(j, rho, phi)
+    return sag
+
+
+def displace_lens(
+    vertices_mm: np.ndarray, profile: CollimatorProfile, coefficients_um: tuple[float, ...]
+) -> np.ndarray:
+    """Vertices (LED frame, mm) of a collimator mesh of ``profile`` with the lens sag of
+    ``coefficients_um`` (µm) applied to the lens and blended down the cavity wall."""
+    v = np.array(vertices_mm, dtype=float)
+    a, g = profile.cavity_radius_mm, profile.entry_z_mm
+    r = np.hypot(v[:, 0], v[:, 1])
+    z = v[:, 2]
+    inside = (z > g + _ON_WALL_MM) & (z < profile.exit_z_mm - _ON_WALL_MM)
+    lens = inside & (r < a - _ON_WALL_MM)
+    wall = (np.abs(r - a) <= _ON_WALL_MM) & (z >= g - _ON_WALL_MM) & (z <= profile.lens_edge_z_mm + _ON_WALL_MM)
+    sag = lens_sag_mm(coefficients_um, v[:, 0], v[:, 1], a)
+    blend = np.clip((z - g) / (profile.lens_edge_z_mm - g), 0.0, 1.0)
+    v[:, 2] += np.where(lens, sag, 0.0) + np.where(wall & ~lens, sag * blend, 0.0)
+    return v
