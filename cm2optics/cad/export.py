@@ -22,7 +22,7 @@ import cm2optics
 from cm2optics.cad.assembly import PartSpec, PlacedPart, fits, interferences, part_specs, place_parts
 from cm2optics.cad.mesh_checks import check_mesh
 from cm2optics.cad.render import render_meshes, render_part
-from cm2optics.cad.tessellate import DEFAULT_TOLERANCE_UM, export_stl
+from cm2optics.cad.tessellate import DEFAULT_TOLERANCE_UM, export_step, export_stl
 from cm2optics.design import SystemDesign
 from cm2optics.formats.atomic import write_json_atomic, write_text_atomic
 
@@ -123,7 +123,7 @@ def _build_part(
     if "stl" not in formats:
         stl.unlink()
     if "step" in formats:
-        cq.exporters.export(workplane, str(folder / f"{spec.name}.step"))
+        export_step(workplane, folder / f"{spec.name}.step")
     return workplane, mesh
 
 

@@ -1,4 +1,4 @@
-"""Tessellating solids into STL with tolerances fine enough for micrometre lens sags."""
+"""Writing solids to files: STL tessellated finely enough for micrometre lens sags, and STEP."""
 
 from __future__ import annotations
 
@@ -20,3 +20,8 @@ def export_stl(shape: cq.Shape, path: Path, tolerance_mm: float) -> None:
     cq.exporters.export(
         cq.Workplane().add(shape), str(path), tolerance=tolerance_mm, angularTolerance=ANGULAR_TOLERANCE_RAD
     )
+
+
+def export_step(part: cq.Workplane, path: Path) -> None:
+    """Write ``part`` as STEP (exact B-rep geometry, no tessellation)."""
+    cq.exporters.export(part, str(path), exportType="STEP")

@@ -503,19 +503,18 @@ def _trace_built_part(
 
 def _export(design: SystemDesign, out_dir: Path) -> tuple[Path, dict[str, Any]]:
     """Write the design's CAD collimator as STL and STEP and check the STL for printing."""
-    import cadquery as cq
     import trimesh
 
     from cm2optics.cad.collimator import build_collimator
     from cm2optics.cad.mesh_checks import check_mesh
-    from cm2optics.cad.tessellate import DEFAULT_TOLERANCE_UM, export_stl
+    from cm2optics.cad.tessellate import DEFAULT_TOLERANCE_UM, export_step, export_stl
     from cm2optics.formats.atomic import write_atomic
 
     path = out_dir / "collimator.stl"
     part = build_collimator(design)
     solid = part.val()
     write_atomic(path, lambda tmp: export_stl(solid, tmp, DEFAULT_TOLERANCE_UM / 1000.0))
-    write_atomic(out_dir / "collimator.step", lambda tmp: cq.exporters.export(part, str(tmp), exportType="STEP"))
+    write_atomic(out_dir / "collimator.step", lambda tmp: export_step(part, tmp))
     report = check_mesh(trimesh.load_mesh(path, force="mesh"))
     min_wall = design.mechanics.min_wall_mm
     checks = {
