@@ -61,11 +61,9 @@ def lenslet_axes(geometry: Geometry, z_mm: np.ndarray) -> np.ndarray:
     singular = np.linalg.svd(rows, compute_uv=False)
     if singular[-1] <= 1e-9 * singular[0]:
         raise ValueError("the magnification does not change with depth: the lenslets' axes cannot be found")
-    out = np.empty((base.shape[1], 2))
-    for j in range(base.shape[1]):
-        solution, *_ = np.linalg.lstsq(rows, -base[:, j].reshape(-1), rcond=None)
-        out[j] = solution[:2]
-    return out
+    right = -np.swapaxes(base, 1, 2).reshape(len(z) * 2, -1)  # (nz·2, J): one column per lenslet
+    solution, *_ = np.linalg.lstsq(rows, right, rcond=None)
+    return solution[:2].T
 
 
 def sensor_azimuth(geometry: Geometry, axis_mm: np.ndarray, x_mm, y_mm, z_mm) -> np.ndarray:

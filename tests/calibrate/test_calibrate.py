@@ -15,15 +15,9 @@ from cm2optics.calibrate.effects import apply_image_effects, leakage_counts, lib
 from cm2optics.calibrate.noise import raw_frames
 from cm2optics.calibrate.residual import CalibrationError, ScanData, analyse_scan
 from cm2optics.calibrate.simulate import AnalyticSimulator
-from cm2optics.lsv.toy import AnalyticCM2
 
 DARK = 100.0
 READ_NOISE = 2.0
-
-
-@pytest.fixture(scope="module")
-def simulator(v2) -> AnalyticSimulator:
-    return AnalyticSimulator(AnalyticCM2.from_design(v2, binning=8, sigma0_um=30.0), spacing_magnification_per_mm=0.5)
 
 
 @pytest.fixture(scope="module")

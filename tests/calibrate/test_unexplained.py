@@ -16,18 +16,11 @@ from scipy.ndimage import gaussian_filter, shift
 from cm2optics.calibrate.lowrank_correction import fit_correction, held_out_error
 from cm2optics.calibrate.noise import raw_frames
 from cm2optics.calibrate.residual import ScanData, analyse_scan
-from cm2optics.calibrate.simulate import AnalyticSimulator
 from cm2optics.calibrate.unexplained import describe_unexplained
-from cm2optics.lsv.toy import AnalyticCM2
 
 DARK = 100.0
 GHOST = {"share": 0.05, "offset_px": (5.0, -3.0), "sigma_px": 1.5}
 SCRATCHED = 2  # the lenslet that loses light
-
-
-@pytest.fixture(scope="module")
-def simulator(v2) -> AnalyticSimulator:
-    return AnalyticSimulator(AnalyticCM2.from_design(v2, binning=8, sigma0_um=30.0), spacing_magnification_per_mm=0.5)
 
 
 @pytest.fixture(scope="module")
