@@ -154,6 +154,15 @@ def build(
             "symmetric lens turn with the field); on; off (blend at a fixed orientation). Needs --refine ≥ 2.",
         ),
     ] = "auto",
+    warp: Annotated[
+        str,
+        typer.Option(
+            "--warp",
+            help="auto: blend neighbouring PSFs by displacement interpolation (each warped about its focus to the "
+            "interpolated focus size and elongation first) if nodes of the scan left out are predicted ≥ 10 % "
+            "better so; on; off (linear blend). Needs --refine ≥ 2.",
+        ),
+    ] = "auto",
     preset: PresetOption = "cm2-v2",
     overwrite: OverwriteOption = False,
     as_json: JsonOption = False,
@@ -165,7 +174,8 @@ def build(
     with the shear undone; truncated SVD into K basis PSFs and coefficients on the calibration grid;
     each lenslet's best-focus surface, along which the coefficients are interpolated between
     lateral nodes (--fixed-depth: at fixed depth, as models without a surface), each lateral
-    neighbour's PSF turned to the source's azimuth where the scan says so (--rotate).
+    neighbour's PSF turned to the source's azimuth where the scan says so (--rotate), and
+    neighbouring PSFs warped to the interpolated focus shape before the blend where it says so (--warp).
     Writes one HDF5 model with its provenance, and a report with the error against K, the first
     basis PSFs and coefficient maps. JSON keys include rank, nmse_calibration, nmse_vs_rank.
     """
@@ -183,6 +193,11 @@ def build(
         raise UserError(f"--rotate = {rotate!r}: must be auto, on or off")
     if turn is True and refine < 2:
         raise UserError("--rotate on needs --refine ≥ 2 (the turned PSFs are blended on the refined grid)")
+    warping = {"auto": None, "on": True, "off": False}.get(warp, "bad")
+    if warping == "bad":
+        raise UserError(f"--warp = {warp!r}: must be auto, on or off")
+    if warping is True and refine < 2:
+        raise UserError("--warp on needs --refine ≥ 2 (the warped PSFs are blended on the refined grid)")
     design = load_preset(preset)
     _check_sizes(scan_dir, patch_px, lateral_um, axial_um or design.volume.axial_step_um)
     model_path, folder = _build_paths(scan_dir, out, report_dir, no_report, preset, overwrite)
@@ -200,6 +215,7 @@ def build(
             focal_surface=focal_surface,
             refine=refine,
             rotate=turn,
+            warp=warping,
         )
     summary = _save_build(result, model_path, None if no_report else folder, oversample)
     if as_json:
@@ -260,6 +276,13 @@ def _build_table(model_path: Path, summary: dict[str, Any]) -> Table:
             f" (nodes left out: NMSE {check['nmse_fixed_orientation']:.3g} fixed, {check['nmse_turned']:.3g} turned)"
         )
     table.add_row("neighbours turned with the azimuth", turned)
+    warped = "yes" if rotation.get("warped") else "no"
+    if check and check.get("nmse_warped") is not None:
+        plain, with_warp = ("turned", "turned_warped") if rotation.get("turned") else ("fixed_orientation", "warped")
+        warped += (
+            f" (nodes left out: NMSE {check[f'nmse_{plain}']:.3g} linear, {check[f'nmse_{with_warp}']:.3g} warped)"
+        )
+    table.add_row("neighbours warped to the interpolated shape", warped)
     return table
 
 

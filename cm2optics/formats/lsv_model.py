@@ -12,7 +12,9 @@ adds the attribute ``rotate_aberrations`` (true: each lateral neighbour's PSF is
 source's azimuth about the lenslet's axis before the blend, :mod:`cm2optics.lsv.rotation`); a
 model without it is written as version 1 or 2, and an older file reads with it false; such a model
 also keeps its turned coefficients, ``interpolation/turned_coefficients`` (J, K, nz, ny', nx'),
-which take minutes to compute at full size. An NPZ file holds the same arrays under the same names
+which take minutes to compute at full size. Version 4 adds the attribute ``warp_shapes`` (true:
+neighbouring PSFs are blended by displacement interpolation, :mod:`cm2optics.lsv.warp`; its
+coefficients are kept in the same array); an older file reads with it false. An NPZ file holds the same arrays under the same names
 (``grid/x_mm`` …) and the attributes as one JSON string ``attrs``.
 
 This module reads and writes the fields as plain arrays (:func:`read_lsv_model`,
@@ -36,7 +38,7 @@ from cm2optics.formats.volume import VolumeGrid
 __all__ = ["FORMAT", "VERSION", "ModelError", "read_lsv_model", "write_lsv_model"]
 
 FORMAT = "cm2optics-lsv"
-VERSION = 3
+VERSION = 4
 #: The focal surface's arrays and their paths in the file (version 2).
 _SURFACE = {"coefficients": "focal_surface/coefficients", "rms_mm": "focal_surface/rms_mm"}
 #: The turned coefficients' path (version 3, with ``rotate_aberrations``).
@@ -72,11 +74,13 @@ def json_default(value: Any) -> Any:
 def _attrs(fields: dict[str, Any]) -> dict[str, Any]:
     surface = fields.get("focal_surface") is not None
     rotate = bool(fields.get("rotate_aberrations", False))
+    warp = bool(fields.get("warp_shapes", False))
     return {
         "format": FORMAT,
-        "version": 3 if rotate else 2 if surface else 1,
+        "version": 4 if warp else 3 if rotate else 2 if surface else 1,
         "refine": int(fields.get("refine", 1)),
         "rotate_aberrations": rotate,
+        "warp_shapes": warp,
         "sensor_shape": [int(v) for v in fields["sensor_shape"]],
         "pixel_um": float(fields["pixel_um"]),
         "scale": float(fields.get("scale", 1.0)),
@@ -95,7 +99,7 @@ def write_lsv_model(path: str | Path, fields: dict[str, Any]) -> Path:
     arrays |= {f"geometry/{k}": np.asarray(v) for k, v in fields["geometry"].items()}
     if fields.get("focal_surface") is not None:
         arrays |= {where: np.asarray(fields["focal_surface"][name]) for name, where in _SURFACE.items()}
-    if attrs["rotate_aberrations"] and fields.get("turned_coefficients") is not None:
+    if (attrs["rotate_aberrations"] or attrs["warp_shapes"]) and fields.get("turned_coefficients") is not None:
         arrays[_TURNED] = np.asarray(fields["turned_coefficients"], np.float32)
 
     def write_h5(tmp: Path) -> None:
@@ -149,6 +153,7 @@ def read_lsv_model(path: str | Path) -> dict[str, Any]:
         fields["oversample"] = int(attrs.get("oversample", 1))
         fields["refine"] = int(attrs.get("refine", 1))
         fields["rotate_aberrations"] = bool(attrs.get("rotate_aberrations", False))
+        fields["warp_shapes"] = bool(attrs.get("warp_shapes", False))
         fields["turned_coefficients"] = arrays.get(_TURNED)
         have = [where in arrays for where in _SURFACE.values()]
         if any(have) and not all(have):

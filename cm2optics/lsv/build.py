@@ -285,41 +285,63 @@ def _focal_surface(
     }
 
 
-#: The turn is kept where it predicts held-out nodes from their lateral neighbours at least this
-#: much better (relative NMSE) than blending them at a fixed orientation.
+#: The turn (the warp) is kept where it predicts held-out nodes from their lateral neighbours at
+#: least this much better (relative NMSE) than blending them at a fixed orientation (without it).
 TURN_GAIN = 0.1
 
 
-def _choose_turn(
-    model: LSVModel, crops: np.ndarray, grid_index: np.ndarray, rotate: bool | None, refine: int, crop_sampling: int
+def _choose_interpolation(
+    model: LSVModel,
+    crops: np.ndarray,
+    grid_index: np.ndarray,
+    rotate: bool | None,
+    warp: bool | None,
+    refine: int,
+    crop_sampling: int,
 ) -> tuple[LSVModel, dict[str, Any]]:
     """The model with its lateral neighbours turned with the azimuth (:mod:`cm2optics.lsv.rotation`)
-    if ``rotate`` is True, or (None) if the scan itself says so: held-out nodes predicted from
-    their lateral neighbours better by :data:`TURN_GAIN` (:func:`~cm2optics.lsv.epsf_validate.turn_check`);
-    returns it and the record for the provenance. ``crop_sampling``: samples per pixel of ``crops``.
-    A geometry whose lenslet axes cannot be found keeps the fixed orientation, with a warning."""
-    try:
-        turn = AzimuthTurn.of_model(model)
-    except ValueError as error:
-        message = f"no turn with the azimuth ({error}): neighbours are blended at a fixed orientation"
-        warnings.warn(message, stacklevel=3)  # at build_model's caller
-        return model, {"fallback": message, "turned": False}
-    # the pivots in the crops' frame: c samples per pixel (the basis may be trimmed, and an estimated
-    # ePSF basis is finer than its whole-pixel crops); the chief ray at pixel h // 2 in both
-    c = crop_sampling
-    crop_px = np.array(crops.shape[-2:]) // c
-    pivots = c * (turn.pivots / model.oversample - np.array(model.patch_shape) // 2 + crop_px // 2)
-    turn = replace(turn, pivots=pivots)
-    record: dict[str, Any] = {"lenslet_axes_mm": turn.lens_axes.round(4).tolist()}
-    if rotate is None:
-        check = turn_check(crops, grid_index, model.axes, model.focal_surface, turn)
+    if ``rotate`` is True, and its neighbours blended by displacement interpolation
+    (:mod:`cm2optics.lsv.warp`) if ``warp`` is True; each (None) if the scan itself says so:
+    held-out nodes predicted from their lateral neighbours better by :data:`TURN_GAIN`
+    (:func:`~cm2optics.lsv.epsf_validate.turn_check`; the warp judged with the turn as chosen);
+    False: never. Returns it and the record for the provenance. ``crop_sampling``: samples per
+    pixel of ``crops``. A geometry whose lenslet axes cannot be found keeps the fixed
+    orientation, with a warning."""
+    record: dict[str, Any] = {}
+    turn = None
+    if rotate is not False:
+        try:
+            turn = AzimuthTurn.of_model(model)
+        except ValueError as error:
+            message = f"no turn with the azimuth ({error}): neighbours are blended at a fixed orientation"
+            warnings.warn(message, stacklevel=3)  # at build_model's caller
+            record["fallback"] = message
+            rotate = False
+    if turn is not None:
+        # the pivots in the crops' frame: c samples per pixel (the basis may be trimmed, and an
+        # estimated ePSF basis is finer than its whole-pixel crops); the chief ray at pixel h // 2 in both
+        c = crop_sampling
+        crop_px = np.array(crops.shape[-2:]) // c
+        pivots = c * (turn.pivots / model.oversample - np.array(model.patch_shape) // 2 + crop_px // 2)
+        turn = replace(turn, pivots=pivots)
+        record["lenslet_axes_mm"] = turn.lens_axes.round(4).tolist()
+    if rotate is None or warp is None:
+        check = turn_check(crops, grid_index, model.axes, model.focal_surface, turn, warp=warp is not False)
         record["leave_one_out"] = check
-        fixed, turned = check["nmse_fixed_orientation"], check["nmse_turned"]
-        rotate = fixed is not None and turned is not None and turned < (1.0 - TURN_GAIN) * fixed
-    record["turned"] = bool(rotate)
-    if not rotate:
+        if rotate is None:
+            rotate = _better(check.get("nmse_turned"), check["nmse_fixed_orientation"])
+        if warp is None:
+            plain, warped = ("turned", "turned_warped") if rotate else ("fixed_orientation", "warped")
+            warp = _better(check.get(f"nmse_{warped}"), check[f"nmse_{plain}"])
+    record["turned"], record["warped"] = bool(rotate), bool(warp)
+    if not (rotate or warp):
         return model, record
-    return replace(model, refine=refine, rotate_aberrations=True), record
+    return replace(model, refine=refine, rotate_aberrations=bool(rotate), warp_shapes=bool(warp)), record
+
+
+def _better(candidate: float | None, reference: float | None) -> bool:
+    """True if ``candidate`` NMSE is below ``reference`` by at least :data:`TURN_GAIN`."""
+    return candidate is not None and reference is not None and candidate < (1.0 - TURN_GAIN) * reference
 
 
 def _warn_rank(rank: int, n_positions: int, model_rank: int) -> None:
@@ -347,6 +369,7 @@ def build_model(
     focal_surface: bool = True,
     refine: int = 2,
     rotate: bool | None = None,
+    warp: bool | None = None,
 ) -> BuildResult:
     """Build an LSV model from the scan folder ``scan_dir`` (see the module docstring).
 
@@ -369,7 +392,10 @@ def build_model(
         grid refined ``refine`` times laterally; False: at fixed depth.
     rotate: turn each lateral neighbour's PSF to the source's azimuth about the lenslet's axis
         before the blend (:mod:`cm2optics.lsv.rotation`; on the grid refined ``refine`` times);
-        None: if held-out nodes of the scan say so (:func:`_choose_turn`); False: never."""
+        None: if held-out nodes of the scan say so (:func:`_choose_interpolation`); False: never.
+    warp: blend neighbouring PSFs by displacement interpolation, each warped to the interpolated
+        focus shape (:mod:`cm2optics.lsv.warp`; on the refined grid); None: if held-out nodes of
+        the scan say so; False: never."""
     axial_um = _check_build_options(oversample, rank, lateral_um, axial_um, design, refine)
     seconds: dict[str, float] = {}
     start = time.perf_counter()
@@ -392,6 +418,7 @@ def build_model(
     options |= {"design": design.name if design is not None else None, "oversample": oversample}
     options |= {"focal_surface": surface is not None, "refine": refine if surface is not None else 1}
     options |= {"rotate": {None: "data decides", True: "on", False: "off"}[rotate]}
+    options |= {"warp": {None: "data decides", True: "on", False: "off"}[warp]}
     provenance = _build_provenance(index, fit, alignment, options, epsf_info) | {"focal_surface": surface_info}
     synthetic = epsf_info.get("source", "").startswith("synthetic")
     model, decomposition = model_from_crops(
@@ -413,12 +440,12 @@ def build_model(
     )
     seconds["svd"] = time.perf_counter() - start
     start = time.perf_counter()
-    if rotate is False or refine < 2:
-        turn_info = {"turned": False}
-        if refine < 2 and rotate is not False:
-            turn_info["fallback"] = "refine 1: a turn needs the refined grid"
+    if (rotate is False and warp is False) or refine < 2:
+        turn_info = {"turned": False, "warped": False}
+        if refine < 2 and not (rotate is False and warp is False):
+            turn_info["fallback"] = "refine 1: a turn or warp needs the refined grid"
     else:
-        model, turn_info = _choose_turn(model, crops, gi, rotate, refine, oversample if synthetic else 1)
+        model, turn_info = _choose_interpolation(model, crops, gi, rotate, warp, refine, oversample if synthetic else 1)
     model.provenance["rotation"] = turn_info
     seconds["rotation"] = time.perf_counter() - start
     if model.rank < rank:

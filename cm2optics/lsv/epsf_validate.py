@@ -25,11 +25,13 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
+import torch
 
 from cm2optics.lsv.decompose import decompose
 from cm2optics.lsv.focal_surface import FocalSurface
 from cm2optics.lsv.interpolate import axis_coordinate, tent_pairs
 from cm2optics.lsv.rotation import AzimuthTurn
+from cm2optics.lsv.warp import displacement_blend
 
 __all__ = ["heldout_nodes", "leave_one_out_pixels", "turn_check"]
 
@@ -87,11 +89,13 @@ def _neighbour_predictions(
     surface: FocalSurface | None,
     turn: AzimuthTurn | None = None,
     which: str = "xyz",
+    warp: bool = False,
 ) -> dict[str, np.ndarray]:
     """Node ``node`` (ix, iy, iz) predicted by linear interpolation between its two neighbours
     along x, y and z (those that exist and are kept); with ``surface`` the lateral neighbours'
     PSFs are taken at the node's defocus from their own best focus; with ``turn`` they are turned
-    to the node's azimuth about each lenslet's axis first (:mod:`cm2optics.lsv.rotation`);
+    to the node's azimuth about each lenslet's axis first (:mod:`cm2optics.lsv.rotation`); with
+    ``warp`` the two are blended by displacement interpolation (:mod:`cm2optics.lsv.warp`);
     ``which``: the axes to predict along."""
     x_n, y_n, z_n = (axes[k][node[k]] for k in range(3))
     predictions = {}
@@ -116,7 +120,12 @@ def _neighbour_predictions(
             continue
         xa, xb, xn = axes[axis][lower[axis]], axes[axis][upper[axis]], axes[axis][node[axis]]
         t = (xn - xa) / (xb - xa)
-        predictions[name] = (1 - t) * ends[0] + t * ends[1]
+        if warp:
+            pair = torch.as_tensor(np.stack(ends, axis=1), dtype=torch.float64)  # (J, 2, h, w)
+            weights = np.broadcast_to([1 - t, t], (len(pair), 2))
+            predictions[name] = displacement_blend(pair, weights).numpy()
+        else:
+            predictions[name] = (1 - t) * ends[0] + t * ends[1]
     return predictions
 
 
@@ -133,6 +142,7 @@ def leave_one_out_pixels(
     basis: np.ndarray | None = None,
     surface: FocalSurface | None = None,
     turn: AzimuthTurn | None = None,
+    warp: bool = False,
 ) -> dict[str, Any]:
     """Held-out NMSE (module docstring) of the node PSFs ``crops`` (N, J, h·S, w·S) registered on
     the chief rays, against ``targets`` (N, J, h+3, w+3): each node's frame whose pixel (1 +
@@ -143,7 +153,8 @@ def leave_one_out_pixels(
     (``z − z_best(x_n, y_n) + z_best(x_a, y_a)``, its axial stack interpolated linearly), as
     :func:`cm2optics.lsv.interpolate.defocus_nodes` does. ``turn``: each lateral neighbour's PSFs
     turned to the node's azimuth about each lenslet's axis before the blend
-    (:class:`~cm2optics.lsv.rotation.AzimuthTurn`)."""
+    (:class:`~cm2optics.lsv.rotation.AzimuthTurn`). ``warp``: neighbours blended by displacement
+    interpolation (:mod:`cm2optics.lsv.warp`)."""
     S = int(oversample)
     N, J = crops.shape[:2]
     keep = np.ones(N, bool)
@@ -169,7 +180,7 @@ def leave_one_out_pixels(
 
     stacks = _Stacks(crops, row_of, keep, np.asarray(axes[2], float))
     for n in held:
-        predictions = _neighbour_predictions(stacks, np.asarray(grid_index[n]), axes, surface, turn)
+        predictions = _neighbour_predictions(stacks, np.asarray(grid_index[n]), axes, surface, turn, warp=warp)
         if not predictions:
             continue
         full = np.mean(list(predictions.values()), axis=0)
@@ -198,30 +209,40 @@ def turn_check(
     grid_index: np.ndarray,
     axes: tuple[np.ndarray, np.ndarray, np.ndarray],
     surface: FocalSurface | None,
-    turn: AzimuthTurn,
+    turn: AzimuthTurn | None,
     *,
+    warp: bool = False,
     n_heldout: int = 24,
     seed: int = 0,
 ) -> dict[str, Any]:
-    """Does turning the lateral neighbours' PSFs with the azimuth predict nodes left out better?
-    For ``n_heldout`` seeded interior nodes, each node's registered crops (N, J, h, w) predicted
-    from its x and y neighbours (the node left out, full rank, along ``surface`` if given) with
-    and without ``turn``; returns the mean NMSE of each against the node's own crops."""
+    """Does turning the lateral neighbours' PSFs with the azimuth (and, with ``warp``, blending
+    them by displacement interpolation) predict nodes left out better? For ``n_heldout`` seeded
+    interior nodes, each node's registered crops (N, J, h, w) predicted from its x and y
+    neighbours (the node left out, full rank, along ``surface`` if given) at a fixed orientation,
+    turned (with ``turn``), warped and turned and warped (with ``warp``); returns the mean NMSE of
+    each against the node's own crops (``nmse_<variant>``)."""
     gi = np.asarray(grid_index)
     held = heldout_nodes(gi, n_heldout, seed)
     keep = np.ones(len(gi), bool)
     stacks = _Stacks(crops, {tuple(k): n for n, k in enumerate(gi)}, keep, np.asarray(axes[2], float))
-    errors: dict[str, list[float]] = {"fixed_orientation": [], "turned": []}
+    variants = {"fixed_orientation": (None, False)}
+    if turn is not None:
+        variants["turned"] = (turn, False)
+    if warp:
+        variants["warped"] = (None, True)
+        if turn is not None:
+            variants["turned_warped"] = (turn, True)
+    errors: dict[str, list[float]] = {name: [] for name in variants}
     for n in held:
         keep[:] = True
         keep[n] = False  # this node alone left out
         y = np.asarray(crops[n], np.float64)
         norm = max(float((y**2).sum()), 1e-300)
-        for name, how in (("fixed_orientation", None), ("turned", turn)):
-            lateral = list(_neighbour_predictions(stacks, gi[n], axes, surface, how, which="xy").values())
+        for name, (how, warping) in variants.items():
+            lateral = list(_neighbour_predictions(stacks, gi[n], axes, surface, how, "xy", warping).values())
             if lateral:
                 errors[name].append(float(np.mean([((p - y) ** 2).sum() / norm for p in lateral])))
     return {
-        "n_heldout": len(errors["turned"]),
+        "n_heldout": len(errors["fixed_orientation"]),
         **{f"nmse_{name}": (float(np.mean(v)) if v else None) for name, v in errors.items()},
     }

@@ -74,7 +74,10 @@ class LSVModel:
     #: True: between lateral nodes each neighbour's PSF is turned to the source's azimuth about
     #: the lenslet's axis before the blend (:mod:`.rotation`), on the grid refined ``refine`` times.
     rotate_aberrations: bool = False
-    #: With ``rotate_aberrations``: the turned coefficients (J, K, nz, ny', nx') on the refined
+    #: True: between nodes the neighbours' PSFs are blended by displacement interpolation (each
+    #: warped to the interpolated focus shape first, :mod:`.warp`), on the grid refined ``refine`` times.
+    warp_shapes: bool = False
+    #: With ``rotate_aberrations`` or ``warp_shapes``: the turned (warped) coefficients (J, K, nz, ny', nx') on the refined
     #: grid as computed before (saved with the model, minutes to compute at full size); None, or
     #: ones that no longer agree with ``coefficients`` at the calibration nodes: computed anew
     #: (a ``replace`` that changes the focal surface, refine or basis must pass None here).
@@ -116,12 +119,15 @@ class LSVModel:
 
     def _set_interpolation_grid(self) -> None:
         """Check the focal surface and refinement; precompute each lenslet's refined coefficients."""
-        surface, refine, rotate = self.focal_surface, self.refine, bool(self.rotate_aberrations)
+        surface, refine = self.focal_surface, self.refine
+        rotate, warp = bool(self.rotate_aberrations), bool(self.warp_shapes)
         if not (isinstance(refine, int | np.integer) and 1 <= refine <= 64):
             raise ModelError(f"refine = {refine!r}: must be an integer within 1–64")
-        if rotate and refine < 2:
-            raise ModelError("rotate_aberrations needs refine ≥ 2 (the turned PSFs are blended on the refined grid)")
-        if surface is None and not rotate:
+        if (rotate or warp) and refine < 2:
+            raise ModelError(
+                "rotate_aberrations and warp_shapes need refine ≥ 2 (the PSFs are blended on the refined grid)"
+            )
+        if surface is None and not (rotate or warp):
             if refine != 1:
                 raise ModelError(f"refine = {refine}: needs a focal surface (refine 1 without one)")
             object.__setattr__(self, "_interpolation", (self.axes, None))
@@ -130,12 +136,19 @@ class LSVModel:
             raise ModelError(f"focal_surface must be a FocalSurface, got {type(surface).__name__}")
         if surface is not None and surface.n_lenslets != self.n_lenslets:
             raise ModelError(f"focal surface has {surface.n_lenslets} lenslets, the basis {self.n_lenslets}")
-        if rotate:
+        if rotate or warp:
             axes = tuple(refine_axis(a, int(refine)) for a in self.axes[:2]) + (self.grid_z_mm,)
             coefficients = self.turned_coefficients
             if not _agrees_at_nodes(coefficients, self.coefficients, self.n_lenslets, int(refine)):
                 axes, coefficients = rotated_lenslet_coefficients(
-                    self.coefficients, self.basis, self.axes, self.geometry, surface, int(refine)
+                    self.coefficients,
+                    self.basis,
+                    self.axes,
+                    self.geometry,
+                    surface,
+                    int(refine),
+                    turn=rotate,
+                    warp=warp,
                 )
             object.__setattr__(self, "turned_coefficients", coefficients)
         else:

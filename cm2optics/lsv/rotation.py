@@ -19,6 +19,10 @@ onto that axis at every depth): least squares over the calibration depths. Housi
 and a real lens's asymmetries break the symmetry; whether a scan follows it is decided by the
 scan's own nodes, left out and predicted with and without the turn
 (:func:`cm2optics.lsv.epsf_validate.turn_check`, ``cm2 lsv build --rotate auto``).
+
+The same machinery carries the displacement interpolation of :mod:`cm2optics.lsv.warp`
+(``warp=True``): each neighbour's PSF turned and warped to the interpolated focus shape in one
+resampling, all eight neighbours (4 lateral × 2 depths) blended so, then re-projected.
 """
 
 from __future__ import annotations
@@ -31,6 +35,7 @@ import torch
 from cm2optics.lsv.focal_surface import FocalSurface
 from cm2optics.lsv.interpolate import defocus_nodes, refine_axis, trilinear_coefficients
 from cm2optics.lsv.preprocess import Geometry
+from cm2optics.lsv.warp import affine_resample, displacement_blend
 
 __all__ = [
     "AzimuthTurn",
@@ -79,21 +84,14 @@ def rotate_patches(patches: torch.Tensor, angles: np.ndarray, centres: np.ndarra
     """(M, h, w) patches each turned by ``angles`` (M,) rad about ``centres`` ((M, 2) or (2,),
     (row, col) samples), on the sensor's (row, col) axes (a displacement at azimuth
     ``atan2(col, row)`` moves to azimuth + angle); bicubic, zero outside."""
-    M, h, w = patches.shape
-    options = {"dtype": patches.dtype, "device": patches.device}
-    cos = torch.as_tensor(np.cos(angles), **options)[:, None, None]
-    sin = torch.as_tensor(np.sin(angles), **options)[:, None, None]
-    centres = torch.as_tensor(np.broadcast_to(np.asarray(centres, float), (M, 2)).copy(), **options)
-    cr, cc = centres[:, 0, None, None], centres[:, 1, None, None]
-    dr = torch.arange(h, **options)[None, :, None] - cr
-    dc = torch.arange(w, **options)[None, None, :] - cc
-    source_row = cr + cos * dr + sin * dc  # the inverse rotation of each output sample
-    source_col = cc - sin * dr + cos * dc
-    grid = torch.stack([2.0 * source_col / (w - 1) - 1.0, 2.0 * source_row / (h - 1) - 1.0], dim=-1)
-    out = torch.nn.functional.grid_sample(
-        patches[:, None], grid, mode="bicubic", padding_mode="zeros", align_corners=True
-    )
-    return out[:, 0]
+    return affine_resample(patches, np.swapaxes(turn_matrices(angles), -1, -2), centres, centres)
+
+
+def turn_matrices(angles: np.ndarray) -> np.ndarray:
+    """(…, 2, 2) rotations of (row, col) displacements by ``angles`` (…) rad: a displacement at
+    azimuth ``atan2(col, row)`` moves to azimuth + angle."""
+    cos, sin = np.cos(angles), np.sin(angles)
+    return np.stack([np.stack([cos, -sin], -1), np.stack([sin, cos], -1)], -2)
 
 
 def basis_projector(basis: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
@@ -110,18 +108,24 @@ def rotated_blend(
     weights: np.ndarray,
     angles: np.ndarray,
     pivot: np.ndarray,
+    warp: bool = False,
 ) -> np.ndarray:
     """Coefficients (M, K) of the blends ``Σ_l w_l · rot(Δφ_l)[Σ_k c_lk P_k]`` re-projected on the
     basis patches P (least squares; ``basis``: :func:`basis_projector`, patches of ``shape``),
     for ``neighbours`` (M, L, K) coefficient vectors, tent ``weights`` (M, L) and azimuth
     differences ``angles`` (M, L) rad, each PSF turned about ``pivot`` (row, col) samples
-    (:func:`rotate_patches`). Blends whose angles are all zero are the plain weighted sums of the
-    coefficients (no re-projection)."""
+    (:func:`rotate_patches`). ``warp``: the turned PSFs blended by displacement interpolation
+    (:func:`~cm2optics.lsv.warp.displacement_blend`) instead. Blends that neither turn nor (with
+    ``warp``) mix two neighbours are the plain weighted sums of the coefficients (no
+    re-projection)."""
     B, projector = basis
     K = B.shape[0]
     h, w = shape
     plain = np.einsum("mlk,ml->mk", neighbours, weights)
-    turning = np.nonzero(np.any((np.abs(angles) > 1e-9) & (weights > 0), axis=1))[0]
+    changing = np.any((np.abs(angles) > 1e-9) & (weights > 0), axis=1)
+    if warp:
+        changing |= np.count_nonzero(weights > 1e-9, axis=1) > 1
+    turning = np.nonzero(changing)[0]
     if len(turning) == 0:
         return plain
     out = plain.copy()
@@ -131,8 +135,15 @@ def rotated_blend(
         rows = turning[start : start + step]
         c = torch.as_tensor(neighbours[rows].reshape(-1, K), dtype=torch.float32)
         psfs = (c @ B).reshape(-1, h, w)
-        turned = rotate_patches(psfs, angles[rows].reshape(-1), pivot).reshape(len(rows), L, -1)
-        blended = torch.einsum("mlp,ml->mp", turned, torch.as_tensor(weights[rows], dtype=torch.float32))
+        if warp:
+            rotation = turn_matrices(angles[rows])  # (m, L, 2, 2)
+            turns = np.concatenate(
+                [rotation, np.broadcast_to(np.asarray(pivot, float), rotation.shape[:-1])[..., None]], -1
+            )
+            blended = displacement_blend(psfs.reshape(len(rows), L, h, w), weights[rows], turns).reshape(len(rows), -1)
+        else:
+            turned = rotate_patches(psfs, angles[rows].reshape(-1), pivot).reshape(len(rows), L, -1)
+            blended = torch.einsum("mlp,ml->mp", turned, torch.as_tensor(weights[rows], dtype=torch.float32))
         out[rows] = (blended @ projector.T).numpy()
     return out
 
@@ -167,21 +178,28 @@ def rotated_lenslet_coefficients(
     geometry: Geometry,
     surface: FocalSurface | None,
     refine: int,
+    *,
+    turn: bool = True,
+    warp: bool = False,
 ) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray], np.ndarray]:
     """As :func:`~cm2optics.lsv.interpolate.refined_lenslet_coefficients` (along the focal
-    surface if there is one, else at fixed depth), but each lateral neighbour's PSF turned to the
-    refined node's azimuth about the lenslet's axis before the blend, about the axis's focus
-    (:func:`axis_pivots`), and the blend re-projected on the lenslet's basis patches (module
-    docstring). ``basis`` (K, J, h, w). Returns the refined axes (x, y, z mm) and (J, K, nz,
-    ny', nx') float32."""
+    surface if there is one, else at fixed depth), but with ``turn`` each lateral neighbour's PSF
+    turned to the refined node's azimuth about the lenslet's axis before the blend, about the
+    axis's focus (:func:`axis_pivots`), with ``warp`` all eight neighbours (4 lateral × 2 depths)
+    blended by displacement interpolation (:mod:`cm2optics.lsv.warp`), and the blend re-projected
+    on the lenslet's basis patches (module docstring). ``basis`` (K, J, h, w). Returns the
+    refined axes (x, y, z mm) and (J, K, nz, ny', nx') float32."""
     xs, ys, zs = (np.asarray(a, float) for a in axes)
     J = basis.shape[1]
     K = coefficients.shape[0]
     fine = (refine_axis(xs, refine), refine_axis(ys, refine), zs)
     z, y, x = np.meshgrid(fine[2], fine[1], fine[0], indexing="ij")
     flat = surface if surface is not None else FocalSurface(np.zeros((J, 4)), np.zeros(J))
-    lens_axes = lenslet_axes(geometry, zs)
-    pivots = axis_pivots(coefficients, basis, axes, lens_axes)
+    if turn:
+        lens_axes = lenslet_axes(geometry, zs)
+        pivots = axis_pivots(coefficients, basis, axes, lens_axes)
+    else:
+        pivots = np.zeros((J, len(zs), 2))
     out = np.empty((J, K) + z.shape, np.float32)
     for j in range(J):
         projector = basis_projector(basis[:, j])
@@ -190,12 +208,21 @@ def rotated_lenslet_coefficients(
             nodes, weights = defocus_nodes(flat, axes, j, xz, yz, zz)  # (P, 8, 3): 4 lateral × 2 depths
             nodes, weights = nodes.reshape(-1, 4, 2, 3), weights.reshape(-1, 4, 2)
             values = np.moveaxis(coefficients[:, nodes[..., 0], nodes[..., 1], nodes[..., 2]], 0, -1)  # (P,4,2,K)
-            lateral = weights.sum(-1)  # (P, 4)
-            stacks = np.einsum("plek,ple->plk", values, weights) / np.where(lateral > 0, lateral, 1.0)[..., None]
-            target = sensor_azimuth(geometry, lens_axes[j], xz[:, None], yz[:, None], zz[:, None])
-            node = sensor_azimuth(geometry, lens_axes[j], xs[nodes[..., 0, 2]], ys[nodes[..., 0, 1]], zz[:, None])
-            angles = np.angle(np.exp(1j * (target - node)))  # wrapped to (−π, π]
-            blended = rotated_blend(projector, basis.shape[2:], stacks, lateral, angles, pivots[j, iz])  # (P, K)
+            angles = np.zeros(weights.shape[:2])
+            if turn:
+                target = sensor_azimuth(geometry, lens_axes[j], xz[:, None], yz[:, None], zz[:, None])
+                node = sensor_azimuth(geometry, lens_axes[j], xs[nodes[..., 0, 2]], ys[nodes[..., 0, 1]], zz[:, None])
+                angles = np.angle(np.exp(1j * (target - node)))  # wrapped to (−π, π]
+            if warp:  # every neighbour its own shape
+                neighbours, blend_weights = values.reshape(len(xz), 8, K), weights.reshape(-1, 8)
+                angles = np.repeat(angles, 2, axis=1)
+            else:  # each lateral neighbour's axial stack blended first
+                blend_weights = weights.sum(-1)  # (P, 4)
+                safe = np.where(blend_weights > 0, blend_weights, 1.0)[..., None]
+                neighbours = np.einsum("plek,ple->plk", values, weights) / safe
+            blended = rotated_blend(
+                projector, basis.shape[2:], neighbours, blend_weights, angles, pivots[j, iz], warp=warp
+            )  # (P, K)
             out[j, :, iz] = blended.T.reshape((K,) + x.shape[1:])
     return fine, out
 

@@ -11,7 +11,8 @@ Two cases, chosen by comparing the scan with the one the model was built from:
   matrices of the crops (per lenslet), so no pixel is touched twice.
   A model that turns its lateral neighbours with the azimuth (:mod:`cm2optics.lsv.rotation`)
   also gets ``leave_one_out_turned``: held-out nodes predicted from their x and y neighbours with
-  and without the turn, full rank, on the crops (:func:`~cm2optics.lsv.epsf_validate.turn_check`).
+  and without the turn, full rank, on the crops (:func:`~cm2optics.lsv.epsf_validate.turn_check`);
+  likewise a model that warps them (:mod:`cm2optics.lsv.warp`), with and without the warp.
 - **Another scan (e.g. offset by half a step): held-out positions.** Each position's image from
   the model (:meth:`LSVModel.point_image`) is compared with the measured image over the model's
   focus windows.
@@ -320,11 +321,13 @@ def validate_model(
         crops = extract_crops(index, model.geometry, model.patch_shape, progress=progress) * np.float32(model.scale)
         gi = index.grid_index()
         result.update(_leave_one_out(model, crops, gi, _ranks(model, ranks, len(index) - 1), n_heldout, seed, progress))
-        if model.rotate_aberrations:  # the Gram-matrix check cannot turn PSFs: the lateral neighbours, turned
-            turn = AzimuthTurn.of_model(model)
-            turn = replace(turn, pivots=turn.pivots / model.oversample)  # whole-pixel crops
+        if model.rotate_aberrations or model.warp_shapes:  # the Gram-matrix check cannot turn or warp PSFs
+            turn = None
+            if model.rotate_aberrations:
+                turn = AzimuthTurn.of_model(model)
+                turn = replace(turn, pivots=turn.pivots / model.oversample)  # whole-pixel crops
             result["leave_one_out_turned"] = turn_check(
-                crops, gi, model.axes, model.focal_surface, turn, n_heldout=n_heldout, seed=seed
+                crops, gi, model.axes, model.focal_surface, turn, warp=model.warp_shapes, n_heldout=n_heldout, seed=seed
             )
         if model.oversample > 1:
             result["note"] = (

@@ -63,6 +63,9 @@ def test_build_json_model_and_report(model):
     assert check["n_heldout"] > 0 and check["nmse_fixed_orientation"] >= 0 and check["nmse_turned"] >= 0
     assert rotation["turned"] == (check["nmse_turned"] < 0.9 * check["nmse_fixed_orientation"])
     assert load_model(path).rotate_aberrations == rotation["turned"]
+    plain, warped = ("turned", "turned_warped") if rotation["turned"] else ("fixed_orientation", "warped")
+    assert rotation["warped"] == (check[f"nmse_{warped}"] < 0.9 * check[f"nmse_{plain}"])
+    assert load_model(path).warp_shapes == rotation["warped"]
     report = Path(summary["report"])
     assert report.name == "report.html" and report.is_file()
     for name in FIGURES:
@@ -235,6 +238,8 @@ def test_simulate_volume_per_lenslet_and_lsi(model, tmp_path):
         (["lsv", "build", "{scan}", "--refine", "0"], "--refine = 0"),
         (["lsv", "build", "{scan}", "--rotate", "sideways"], "--rotate = 'sideways'"),
         (["lsv", "build", "{scan}", "--rotate", "on", "--refine", "1"], "--rotate on needs --refine ≥ 2"),
+        (["lsv", "build", "{scan}", "--warp", "maybe"], "--warp = 'maybe'"),
+        (["lsv", "build", "{scan}", "--warp", "on", "--refine", "1"], "--warp on needs --refine ≥ 2"),
         (["lsv", "validate", "/no/model.h5", "{scan}"], "no such model file"),
         (["lsv", "validate", "{model}", "{scan}", "--ranks", "a,b"], "--ranks"),
         (["simulate", "--model", "{model}", "--out", "x.tif"], "exactly one of --volume and --emitters"),

@@ -326,10 +326,12 @@ def test_sparse_ball_is_the_point_image_blurred_by_its_ball():
         assert np.linalg.norm(image - expected) / np.linalg.norm(expected) < 1e-5
 
 
-def test_a_turned_model_keeps_every_path_consistent():
-    """Neighbours turned with the azimuth (cm2optics.lsv.rotation): the adjoint identity, the naive
-    reference, a single voxel against the point image and sparse points against point images."""
-    model = replace(synthetic_model("general"), refine=2, rotate_aberrations=True)
+@pytest.mark.parametrize("how", [{"rotate_aberrations": True}, {"warp_shapes": True}], ids=["turned", "warped"])
+def test_a_turned_or_warped_model_keeps_every_path_consistent(how):
+    """Neighbours turned with the azimuth (cm2optics.lsv.rotation) or blended by displacement
+    interpolation (cm2optics.lsv.warp): the adjoint identity, the naive reference, a single voxel
+    against the point image and sparse points against point images."""
+    model = replace(synthetic_model("general"), refine=2, **how)
     assert not model.shared_coefficients
     op = model.operator(GRIDS["coarser"])
     _check_adjoint_and_naive(model, op, seed=4)
@@ -342,6 +344,6 @@ def test_a_turned_model_keeps_every_path_consistent():
         for x, y, z in zip(emitters.x_um, emitters.y_um, emitters.z_um, strict=True)
     )
     assert np.linalg.norm(sparse - expected) / np.linalg.norm(expected) < 1e-5
-    # the turn changed the coefficients between the nodes (else this test would not test it)
+    # the turn (warp) changed the coefficients between the nodes (else this test would not test it)
     plain = replace(synthetic_model("general"), refine=1)
     assert not np.allclose(model.point_image(0.12, 0.25, 0.06), plain.point_image(0.12, 0.25, 0.06), atol=1e-3)

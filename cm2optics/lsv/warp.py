@@ -1,0 +1,132 @@
+"""Shape-preserving (displacement) interpolation between neighbouring node PSFs.
+
+Blending two foci of different size or elongation linearly gives a ghosted double shape, not the
+shape in between. Displacement interpolation moves mass instead: for Gaussian-like foci the
+optimal-transport (McCann) interpolation between two shapes is the affine map that matches their
+second moments. Here every neighbour's focus is described by its centroid ``c_l`` and 2 × 2
+covariance ``Σ_l`` (:func:`focus_moments`, weighted by the squared PSF so that faint wings and
+low-rank ripples do not count); the target shape is the weighted log-Euclidean mean of the
+neighbours' covariances (``exp Σ w_l log Σ_l``: equal to each at its own node, geometric in
+between, so an astigmatic focus that turns from vertical to horizontal passes through round and
+a defocus blur grows smoothly), at the weighted mean centroid; each neighbour is warped onto it
+by the symmetric transport map ``T_l`` (``T_l Σ_l T_l = Σ_t``, :func:`transport_maps`) about its
+centroid, flux conserved (÷ det T_l), and the warped PSFs are blended with the same weights. A
+turn with the azimuth (:mod:`cm2optics.lsv.rotation`) is composed into the same resampling.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+__all__ = [
+    "MAX_STRETCH",
+    "affine_resample",
+    "displacement_blend",
+    "focus_moments",
+    "log_euclidean_mean",
+    "transport_maps",
+]
+
+#: A transport map's stretch along either principal axis is clipped to [1/MAX_STRETCH,
+#: MAX_STRETCH] (a vignetted or nearly empty focus must not be blown up).
+MAX_STRETCH = 3.0
+
+
+def affine_resample(
+    patches: torch.Tensor, matrices: np.ndarray, out_centres: np.ndarray, in_centres: np.ndarray
+) -> torch.Tensor:
+    """(M, h, w) patches resampled so that output sample x (row, col) takes the input's value at
+    ``in_centres + matrices · (x − out_centres)`` (matrices (M, 2, 2), centres (M, 2) or (2,), in
+    samples); bicubic, zero outside (no flux scaling)."""
+    M, h, w = patches.shape
+    options = {"dtype": patches.dtype, "device": patches.device}
+    m = torch.as_tensor(np.broadcast_to(np.asarray(matrices, float), (M, 2, 2)).copy(), **options)
+    co = torch.as_tensor(np.broadcast_to(np.asarray(out_centres, float), (M, 2)).copy(), **options)
+    ci = torch.as_tensor(np.broadcast_to(np.asarray(in_centres, float), (M, 2)).copy(), **options)
+    dr = torch.arange(h, **options)[None, :, None] - co[:, 0, None, None]
+    dc = torch.arange(w, **options)[None, None, :] - co[:, 1, None, None]
+    source_row = ci[:, 0, None, None] + m[:, 0, 0, None, None] * dr + m[:, 0, 1, None, None] * dc
+    source_col = ci[:, 1, None, None] + m[:, 1, 0, None, None] * dr + m[:, 1, 1, None, None] * dc
+    grid = torch.stack([2.0 * source_col / (w - 1) - 1.0, 2.0 * source_row / (h - 1) - 1.0], dim=-1)
+    out = torch.nn.functional.grid_sample(
+        patches[:, None], grid, mode="bicubic", padding_mode="zeros", align_corners=True
+    )
+    return out[:, 0]
+
+
+def focus_moments(patches: torch.Tensor) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Centroid (M, 2) and covariance (M, 2, 2) (samples², (row, col)) of each patch's focus,
+    weighted by the squared positive part of the PSF (for a Gaussian focus: its centre and half
+    its covariance); and each patch's weight total (M,) (0: an empty patch)."""
+    p = torch.clamp(patches.double(), min=0.0) ** 2
+    M, h, w = p.shape
+    rows = torch.arange(h, dtype=p.dtype)[None, :, None]
+    cols = torch.arange(w, dtype=p.dtype)[None, None, :]
+    total = p.sum(dim=(1, 2))
+    safe = torch.where(total > 0, total, torch.ones_like(total))
+    mr = (p * rows).sum(dim=(1, 2)) / safe
+    mc = (p * cols).sum(dim=(1, 2)) / safe
+    dr, dc = rows - mr[:, None, None], cols - mc[:, None, None]
+    crr = (p * dr * dr).sum(dim=(1, 2)) / safe
+    ccc = (p * dc * dc).sum(dim=(1, 2)) / safe
+    crc = (p * dr * dc).sum(dim=(1, 2)) / safe
+    covariance = torch.stack([torch.stack([crr, crc], -1), torch.stack([crc, ccc], -1)], -2)
+    return torch.stack([mr, mc], -1).numpy(), covariance.numpy(), total.numpy()
+
+
+def _symmetric_function(matrices: np.ndarray, function) -> np.ndarray:
+    """``function`` applied to the eigenvalues of symmetric matrices (…, 2, 2)."""
+    values, vectors = np.linalg.eigh(matrices)
+    return np.einsum("...ij,...j,...kj->...ik", vectors, function(values), vectors)
+
+
+def log_euclidean_mean(covariances: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """``exp(Σ_l w_l log Σ_l) `` of SPD matrices (M, L, 2, 2) with weights (M, L) summing to 1."""
+    logs = _symmetric_function(covariances, lambda v: np.log(np.maximum(v, 1e-12)))
+    return _symmetric_function(np.einsum("mlij,ml->mij", logs, weights), np.exp)
+
+
+def transport_maps(source: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """Symmetric positive maps T (…, 2, 2) with ``T Σ_s T = Σ_t`` (the optimal-transport map
+    between centred Gaussians): ``Σ_s^{-1/2} (Σ_s^{1/2} Σ_t Σ_s^{1/2})^{1/2} Σ_s^{-1/2}``; their
+    principal stretches clipped to [1/:data:`MAX_STRETCH`, :data:`MAX_STRETCH`]."""
+    root = _symmetric_function(source, lambda v: np.sqrt(np.maximum(v, 1e-12)))
+    inverse_root = _symmetric_function(source, lambda v: 1.0 / np.sqrt(np.maximum(v, 1e-12)))
+    middle = _symmetric_function(root @ target @ root, lambda v: np.sqrt(np.maximum(v, 0.0)))
+    T = inverse_root @ middle @ inverse_root
+    T = 0.5 * (T + np.swapaxes(T, -1, -2))
+    return _symmetric_function(T, lambda v: np.clip(v, 1.0 / MAX_STRETCH, MAX_STRETCH))
+
+
+def displacement_blend(psfs: torch.Tensor, weights: np.ndarray, turns: np.ndarray | None = None) -> torch.Tensor:
+    """Blend (M, h, w) of neighbour PSFs ``psfs`` (M, L, h, w) with ``weights`` (M, L) (summing
+    to 1) by displacement interpolation (module docstring). ``turns``: optional (M, L, 2, 3)
+    rotation about a pivot applied to each neighbour first, as ``[R | pivot]`` with R the forward
+    rotation (the turned PSF at x is the PSF at ``pivot + Rᵀ(x − pivot)``); composed into the one
+    resampling. Neighbours with zero weight or an empty patch are left out of the target shape."""
+    M, L, h, w = psfs.shape
+    flat = psfs.reshape(M * L, h, w)
+    centroid, covariance, total = focus_moments(flat)
+    centroid, covariance = centroid.reshape(M, L, 2), covariance.reshape(M, L, 2, 2)
+    weights = np.asarray(weights, float)
+    used = (weights > 0) & (total.reshape(M, L) > 0) & (np.linalg.det(covariance) > 0)
+    shape_weights = np.where(used, weights, 0.0)
+    shape_weights /= np.maximum(shape_weights.sum(axis=1, keepdims=True), 1e-300)
+    rotation = np.broadcast_to(np.eye(2), (M, L, 2, 2))
+    turned_centroid = centroid
+    if turns is not None:
+        rotation, pivot = turns[..., :2], turns[..., 2]
+        turned_centroid = pivot + np.einsum("mlij,mlj->mli", rotation, centroid - pivot)
+        covariance = rotation @ covariance @ np.swapaxes(rotation, -1, -2)
+    safe = np.where(used[..., None, None], covariance, np.eye(2))
+    target = log_euclidean_mean(safe, shape_weights)  # (M, 2, 2)
+    target_centroid = np.einsum("mli,ml->mi", turned_centroid, shape_weights)
+    T = transport_maps(safe, np.broadcast_to(target[:, None], safe.shape))
+    T = np.where(used[..., None, None], T, np.eye(2))
+    # output x ← turned PSF at c'_l + T⁻¹(x − c_t) ← node PSF at c_l + Rᵀ T⁻¹ (x − c_t)
+    matrices = np.swapaxes(rotation, -1, -2) @ np.linalg.inv(T)
+    out_centres = np.where(used[..., None], target_centroid[:, None], turned_centroid)
+    warped = affine_resample(flat, matrices.reshape(-1, 2, 2), out_centres.reshape(-1, 2), centroid.reshape(-1, 2))
+    gain = torch.as_tensor(weights / np.linalg.det(T), dtype=psfs.dtype)
+    return torch.einsum("mlp,ml->mp", warped.reshape(M, L, -1), gain).reshape(M, h, w)
