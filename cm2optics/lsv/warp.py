@@ -58,21 +58,25 @@ def affine_resample(
 def focus_moments(patches: torch.Tensor) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Centroid (M, 2) and covariance (M, 2, 2) (samples², (row, col)) of each patch's focus,
     weighted by the squared positive part of the PSF (for a Gaussian focus: its centre and half
-    its covariance); and each patch's weight total (M,) (0: an empty patch)."""
-    p = torch.clamp(patches.double(), min=0.0) ** 2
-    M, h, w = p.shape
-    rows = torch.arange(h, dtype=p.dtype)[None, :, None]
-    cols = torch.arange(w, dtype=p.dtype)[None, None, :]
-    total = p.sum(dim=(1, 2))
+    its covariance); and each patch's weight total (M,) (0: an empty patch). Sums over the
+    patch's row and column profiles (coordinates from the patch centre, float64 sums)."""
+    M, h, w = patches.shape
+    q = torch.clamp(patches.float(), min=0.0) ** 2
+    rows = torch.arange(h, dtype=q.dtype) - (h - 1) / 2
+    cols = torch.arange(w, dtype=q.dtype) - (w - 1) / 2
+    by_row = q.sum(dim=2).double()  # (M, h)
+    by_col = q.sum(dim=1).double()  # (M, w)
+    cross = (q @ cols).double() @ rows.double()  # (M,): Σ q·r·c
+    r, c = rows.double(), cols.double()
+    total = by_row.sum(dim=1)
     safe = torch.where(total > 0, total, torch.ones_like(total))
-    mr = (p * rows).sum(dim=(1, 2)) / safe
-    mc = (p * cols).sum(dim=(1, 2)) / safe
-    dr, dc = rows - mr[:, None, None], cols - mc[:, None, None]
-    crr = (p * dr * dr).sum(dim=(1, 2)) / safe
-    ccc = (p * dc * dc).sum(dim=(1, 2)) / safe
-    crc = (p * dr * dc).sum(dim=(1, 2)) / safe
+    mr, mc = by_row @ r / safe, by_col @ c / safe
+    crr = by_row @ (r * r) / safe - mr * mr
+    ccc = by_col @ (c * c) / safe - mc * mc
+    crc = cross / safe - mr * mc
     covariance = torch.stack([torch.stack([crr, crc], -1), torch.stack([crc, ccc], -1)], -2)
-    return torch.stack([mr, mc], -1).numpy(), covariance.numpy(), total.numpy()
+    centre = torch.tensor([(h - 1) / 2, (w - 1) / 2], dtype=torch.float64)
+    return (torch.stack([mr, mc], -1) + centre).numpy(), covariance.numpy(), total.numpy()
 
 
 def _symmetric_function(matrices: np.ndarray, function) -> np.ndarray:
