@@ -160,6 +160,7 @@ def fine_model(model: LSVModel, sampling: int | None = None) -> LSVModel:
         focal_surface=None,
         refine=1,
         rotate_aberrations=False,
+        warp_shapes=False,
     )
     # the interpolated coefficients live in the basis's coefficient space, whatever its sampling:
     # the model's own (along its focal surface, turned with the azimuth), not computed again

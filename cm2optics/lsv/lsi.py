@@ -357,5 +357,6 @@ def lsi_model(model: LSVModel) -> LSVModel:
         focal_surface=None,
         refine=1,
         rotate_aberrations=False,
+        warp_shapes=False,
         turned_coefficients=None,
     )

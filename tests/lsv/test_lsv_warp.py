@@ -12,7 +12,9 @@ import pytest
 import torch
 
 from cm2optics.lsv.build import model_from_crops
+from cm2optics.lsv.epsf import fine_model
 from cm2optics.lsv.epsf_validate import turn_check
+from cm2optics.lsv.lsi import lsi_model
 from cm2optics.lsv.model import load_model
 from cm2optics.lsv.preprocess import Geometry
 from cm2optics.lsv.warp import displacement_blend, focus_moments, log_euclidean_mean, transport_maps
@@ -138,6 +140,9 @@ def test_warping_the_neighbours_reproduces_a_psf_whose_shape_changes_with_the_fi
     loaded = load_model(warped.save(tmp_path / "warped.h5"))
     assert loaded.warp_shapes and not loaded.rotate_aberrations
     np.testing.assert_allclose(loaded.lenslet_coefficients(0), warped.lenslet_coefficients(0), atol=1e-6)
+    assert not lsi_model(loaded).warp_shapes  # the shift-invariant baseline has no neighbours
+    fine = fine_model(loaded)  # the ePSF operator's fine-grid model keeps the warped coefficients
+    np.testing.assert_allclose(fine.lenslet_coefficients(0), warped.lenslet_coefficients(0), atol=1e-6)
 
 
 def test_the_scan_decides_for_the_warp_where_the_shape_changes(toy):
