@@ -12,7 +12,6 @@ import pytest
 import torch
 
 from cm2optics.lsv import model as model_module
-from cm2optics.lsv.build import model_from_crops
 from cm2optics.lsv.epsf_validate import turn_check
 from cm2optics.lsv.lsi import lsi_model
 from cm2optics.lsv.model import ModelError, load_model
@@ -47,24 +46,10 @@ def _psf(geometry: Geometry, x: float, y: float, z: float) -> np.ndarray:
 
 
 @pytest.fixture(scope="module")
-def toy():
+def toy(grid_toy):
     geometry = _geometry()
-    xs, ys, zs = np.linspace(-1.7, 2.3, 5), np.linspace(-2.2, 1.8, 5), np.array([-0.2, 0.0, 0.2])
-    positions = [(x, y, z) for z in zs for y in ys for x in xs]
-    grid_index = np.array([[ix, iy, iz] for iz in range(3) for iy in range(5) for ix in range(5)])
-    crops = np.stack([_psf(geometry, *p) for p in positions])
-    model, _ = model_from_crops(
-        crops,
-        grid_index,
-        (xs, ys, zs),
-        geometry,
-        rank=len(crops),
-        sensor_shape=(400, 420),
-        pixel_um=5.0,
-        axial_um=100.0,
-        trim=None,
-        oversample=S,
-    )
+    axes = (np.linspace(-1.7, 2.3, 5), np.linspace(-2.2, 1.8, 5), np.array([-0.2, 0.0, 0.2]))
+    model, crops, grid_index = grid_toy(lambda x, y, z: _psf(geometry, x, y, z), axes, geometry, S)
     return geometry, model, crops, grid_index
 
 

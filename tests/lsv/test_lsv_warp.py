@@ -11,7 +11,6 @@ import numpy as np
 import pytest
 import torch
 
-from cm2optics.lsv.build import model_from_crops
 from cm2optics.lsv.epsf import fine_model
 from cm2optics.lsv.epsf_validate import turn_check
 from cm2optics.lsv.lsi import lsi_model
@@ -95,24 +94,9 @@ def _psf(x: float, y: float, z: float) -> np.ndarray:
 
 
 @pytest.fixture(scope="module")
-def toy():
-    xs, ys, zs = np.linspace(-0.95, 1.05, 5), np.linspace(-1.45, 0.55, 5), np.array([-0.2, 0.0, 0.2])
-    positions = [(x, y, z) for z in zs for y in ys for x in xs]
-    grid_index = np.array([[ix, iy, iz] for iz in range(3) for iy in range(5) for ix in range(5)])
-    crops = np.stack([_psf(*p) for p in positions])
-    model, _ = model_from_crops(
-        crops,
-        grid_index,
-        (xs, ys, zs),
-        _geometry(),
-        rank=len(crops),
-        sensor_shape=(400, 420),
-        pixel_um=5.0,
-        axial_um=100.0,
-        trim=None,
-        oversample=S,
-    )
-    return model, crops, grid_index
+def toy(grid_toy):
+    axes = (np.linspace(-0.95, 1.05, 5), np.linspace(-1.45, 0.55, 5), np.array([-0.2, 0.0, 0.2]))
+    return grid_toy(_psf, axes, _geometry(), S)
 
 
 def _error(model, points) -> float:
