@@ -35,7 +35,15 @@ from cm2optics.lsv.model import LSVModel
 from cm2optics.lsv.preprocess import Geometry, GeometryFit, estimate_geometry, extract_crops
 from cm2optics.lsv.rotation import AzimuthTurn
 
-__all__ = ["BuildResult", "build_model", "default_patch_px", "model_from_crops", "scan_fingerprint"]
+__all__ = [
+    "BuildResult",
+    "build_model",
+    "default_patch_px",
+    "keep_node_flux",
+    "model_from_crops",
+    "node_nmse",
+    "scan_fingerprint",
+]
 
 Progress = Callable[[str, int, int], None]
 #: Crop side at full resolution (the paper's 160 × 160 px per focus).
@@ -62,8 +70,7 @@ class BuildResult:
         ks = sorted({k for k in (1, 2, 4, 8, 16, 32, 64, 128, 256, model.rank) if k < len(dec.nmse)})
         return {
             "rank": model.rank,
-            "nmse_calibration": float(dec.nmse[model.rank]),
-            "nmse_calibration_per_psf": float(dec.nmse_per_psf[model.rank]),
+            **_calibration_error(model, dec),
             "numerical_rank": numerical_rank(dec.singular_values),
             "nmse_vs_rank": {str(k): float(dec.nmse[k]) for k in ks},
             "nmse_per_psf_vs_rank": {str(k): float(dec.nmse_per_psf[k]) for k in ks},
@@ -454,6 +461,55 @@ def build_model(
     return BuildResult(model, decomposition, replace(fit, geometry=geometry), crops, gi, seconds)
 
 
+def _calibration_error(model: LSVModel, dec: Decomposition) -> dict[str, Any]:
+    """The saved model's error at its nodes (``nmse_calibration``, ``…_per_psf``; after
+    :func:`keep_node_flux`) beside the truncated SVD's (``…_svd``), and which one the first is."""
+    svd = model.provenance.get("svd", {})
+    before = {
+        "nmse_calibration_svd": float(dec.nmse[model.rank]),
+        "nmse_calibration_per_psf_svd": float(dec.nmse_per_psf[model.rank]),
+    }
+    if svd.get("nmse_model") is None:  # an estimated ePSF basis: no model error on the whole-pixel crops
+        return {
+            "nmse_calibration": before["nmse_calibration_svd"],
+            "nmse_calibration_per_psf": before["nmse_calibration_per_psf_svd"],
+            "nmse_calibration_of": "the whole-pixel SVD (the estimated ePSF basis is finer than the frames)",
+        } | before
+    return {
+        "nmse_calibration": svd["nmse_model"],
+        "nmse_calibration_per_psf": svd["nmse_per_psf_model"],
+        "nmse_calibration_of": "the saved model (node fluxes kept)",
+    } | before
+
+
+def node_nmse(decomposition: Decomposition, crops: np.ndarray) -> tuple[float, float] | None:
+    """The error of ``coefficients · basis`` at the nodes against ``crops`` (N, J, h, w) on the
+    basis's grid: ``‖X − X̂‖²_F / ‖X‖²_F`` and the mean over non-dark nodes of ``‖x_n − x̂_n‖² /
+    ‖x_n‖²`` (as :mod:`cm2optics.lsv.decompose` defines them); None if the grids differ (an
+    estimated ePSF basis). Float64 sums over column chunks: ``‖x‖² − 2 c·(B x) + cᵀ G c``."""
+    basis = decomposition.basis.reshape(decomposition.rank, -1)
+    if decomposition.basis.shape[1:] != crops.shape[1:]:
+        return None
+    X = crops.reshape(len(crops), -1)
+    norms = np.zeros(len(X))
+    projections = np.zeros((len(X), len(basis)))
+    gram = np.zeros((len(basis), len(basis)))
+    for start in range(0, X.shape[1], 16384):
+        x = X[:, start : start + 16384].astype(np.float64)
+        b = basis[:, start : start + 16384].astype(np.float64)
+        norms += np.einsum("np,np->n", x, x)
+        projections += x @ b.T
+        gram += b @ b.T
+    c = decomposition.coefficients.astype(np.float64)
+    errors = np.clip(
+        norms - 2.0 * np.einsum("nk,nk->n", c, projections) + np.einsum("nk,kl,nl->n", c, gram, c), 0, None
+    )
+    valid = norms > 1e-12 * max(float(norms.max()), 1e-300)
+    total = float(norms.sum())
+    per_psf = float(np.mean(errors[valid] / norms[valid])) if valid.any() else 0.0
+    return (float(errors.sum()) / total if total > 0 else 0.0), per_psf
+
+
 def _whole_pixels(window: slice, n: int, S: int) -> slice:
     """``window`` (centred on n//2) widened so that its half-width is a whole number of pixels."""
     centre = n // 2
@@ -569,6 +625,7 @@ def model_from_crops(
         index, options = frames
         decomposition, estimate = estimate_epsf_basis(index, geometry, decomposition, crops, S, **(options or {}))
     decomposition, flux_before = keep_node_flux(decomposition, crops)
+    model_error = node_nmse(decomposition, crops)
     gi = np.asarray(grid_index)
     coefficients = np.zeros((K, len(zs), len(ys), len(xs)), np.float32)
     coefficients[:, gi[:, 2], gi[:, 1], gi[:, 0]] = decomposition.coefficients.T
@@ -599,8 +656,10 @@ def model_from_crops(
         "patch_px": list(model.patch_shape),
         "trim_energy": trim,
         "numerical_rank": numerical_rank(decomposition.singular_values),
-        "nmse": float(decomposition.nmse[K]),
+        "nmse": float(decomposition.nmse[K]),  # the truncated SVD's, before keep_node_flux
         "nmse_per_psf": float(decomposition.nmse_per_psf[K]),
+        "nmse_model": model_error[0] if model_error else None,  # the saved model's at its nodes
+        "nmse_per_psf_model": model_error[1] if model_error else None,
     }
     provenance["svd"]["node_flux_before"] = {  # the truncated basis's flux at the nodes / the crops' (1: kept)
         f"p{q}": round(float(v), 4) for q, v in zip((5, 50, 95), np.percentile(flux_before, [5, 50, 95]), strict=True)
