@@ -133,8 +133,12 @@ def rotated_blend(
     step = max(1, ROTATION_BATCH // L)
     for start in range(0, len(turning), step):
         rows = turning[start : start + step]
+        # only the neighbours with weight are synthesised and resampled (a blend's zero-weight ones add nothing)
+        active = torch.as_tensor(np.flatnonzero(weights[rows].reshape(-1) > 0))
         c = torch.as_tensor(neighbours[rows].reshape(-1, K), dtype=torch.float32)
-        psfs = (c @ B).reshape(-1, h, w)
+        psfs = torch.zeros((len(c), h * w), dtype=torch.float32)
+        psfs[active] = c[active] @ B
+        psfs = psfs.reshape(-1, h, w)
         if warp:
             rotation = turn_matrices(angles[rows])  # (m, L, 2, 2)
             turns = np.concatenate(
@@ -142,8 +146,10 @@ def rotated_blend(
             )
             blended = displacement_blend(psfs.reshape(len(rows), L, h, w), weights[rows], turns).reshape(len(rows), -1)
         else:
-            turned = rotate_patches(psfs, angles[rows].reshape(-1), pivot).reshape(len(rows), L, -1)
-            blended = torch.einsum("mlp,ml->mp", turned, torch.as_tensor(weights[rows], dtype=torch.float32))
+            turned = rotate_patches(psfs[active], angles[rows].reshape(-1)[active.numpy()], pivot)
+            gain = torch.as_tensor(weights[rows].reshape(-1)[active.numpy()], dtype=torch.float32)
+            blended = torch.zeros((len(rows), h * w), dtype=torch.float32)
+            blended.index_add_(0, active // L, turned.reshape(len(active), -1) * gain[:, None])
         out[rows] = (blended @ projector.T).numpy()
     return out
 

@@ -40,15 +40,20 @@ def affine_resample(
     ``in_centres + matrices · (x − out_centres)`` (matrices (M, 2, 2), centres (M, 2) or (2,), in
     samples); bicubic, zero outside (no flux scaling)."""
     M, h, w = patches.shape
+    m = np.broadcast_to(np.asarray(matrices, float), (M, 2, 2))
+    co = np.broadcast_to(np.asarray(out_centres, float), (M, 2))
+    ci = np.broadcast_to(np.asarray(in_centres, float), (M, 2))
+    # grid_sample's coordinates (x: col, y: row, each −1…1 across the samples) of the source of
+    # output sample (r, c): origin + r·per_row + c·per_col, summed from its row and column parts
+    scale = np.array([2.0 / max(w - 1, 1), 2.0 / max(h - 1, 1)])  # (x, y) per sample
+    origin = (ci - np.einsum("mij,mj->mi", m, co))[:, ::-1] * scale - 1.0  # (M, 2) as (x, y)
+    per_row, per_col = m[:, ::-1, 0] * scale, m[:, ::-1, 1] * scale
     options = {"dtype": patches.dtype, "device": patches.device}
-    m = torch.as_tensor(np.broadcast_to(np.asarray(matrices, float), (M, 2, 2)).copy(), **options)
-    co = torch.as_tensor(np.broadcast_to(np.asarray(out_centres, float), (M, 2)).copy(), **options)
-    ci = torch.as_tensor(np.broadcast_to(np.asarray(in_centres, float), (M, 2)).copy(), **options)
-    dr = torch.arange(h, **options)[None, :, None] - co[:, 0, None, None]
-    dc = torch.arange(w, **options)[None, None, :] - co[:, 1, None, None]
-    source_row = ci[:, 0, None, None] + m[:, 0, 0, None, None] * dr + m[:, 0, 1, None, None] * dc
-    source_col = ci[:, 1, None, None] + m[:, 1, 0, None, None] * dr + m[:, 1, 1, None, None] * dc
-    grid = torch.stack([2.0 * source_col / (w - 1) - 1.0, 2.0 * source_row / (h - 1) - 1.0], dim=-1)
+    r = torch.arange(h, **options)[None, :, None]
+    c = torch.arange(w, **options)[None, :, None]
+    by_row = torch.as_tensor(origin, **options)[:, None] + r * torch.as_tensor(per_row, **options)[:, None]
+    by_col = c * torch.as_tensor(per_col, **options)[:, None]
+    grid = by_row[:, :, None] + by_col[:, None]  # (M, h, w, 2)
     out = torch.nn.functional.grid_sample(
         patches[:, None], grid, mode="bicubic", padding_mode="zeros", align_corners=True
     )
@@ -108,12 +113,17 @@ def displacement_blend(psfs: torch.Tensor, weights: np.ndarray, turns: np.ndarra
     to 1) by displacement interpolation (module docstring). ``turns``: optional (M, L, 2, 3)
     rotation about a pivot applied to each neighbour first, as ``[R | pivot]`` with R the forward
     rotation (the turned PSF at x is the PSF at ``pivot + Rᵀ(x − pivot)``); composed into the one
-    resampling. Neighbours with zero weight or an empty patch are left out of the target shape."""
+    resampling. Neighbours with zero weight or an empty patch are left out of the target shape
+    (and zero-weight ones are not resampled)."""
     M, L, h, w = psfs.shape
     flat = psfs.reshape(M * L, h, w)
-    centroid, covariance, total = focus_moments(flat)
-    centroid, covariance = centroid.reshape(M, L, 2), covariance.reshape(M, L, 2, 2)
     weights = np.asarray(weights, float)
+    active = np.flatnonzero(weights.reshape(-1) > 0)  # a zero-weight neighbour is neither measured nor resampled
+    if len(active) == 0:
+        return torch.zeros((M, h, w), dtype=psfs.dtype, device=psfs.device)
+    centroid, covariance, total = np.zeros((M * L, 2)), np.tile(np.eye(2), (M * L, 1, 1)), np.zeros(M * L)
+    centroid[active], covariance[active], total[active] = focus_moments(flat[active])
+    centroid, covariance = centroid.reshape(M, L, 2), covariance.reshape(M, L, 2, 2)
     used = (weights > 0) & (total.reshape(M, L) > 0) & (np.linalg.det(covariance) > 0)
     shape_weights = np.where(used, weights, 0.0)
     shape_weights /= np.maximum(shape_weights.sum(axis=1, keepdims=True), 1e-300)
@@ -131,6 +141,13 @@ def displacement_blend(psfs: torch.Tensor, weights: np.ndarray, turns: np.ndarra
     # output x ← turned PSF at c'_l + T⁻¹(x − c_t) ← node PSF at c_l + Rᵀ T⁻¹ (x − c_t)
     matrices = np.swapaxes(rotation, -1, -2) @ np.linalg.inv(T)
     out_centres = np.where(used[..., None], target_centroid[:, None], turned_centroid)
-    warped = affine_resample(flat, matrices.reshape(-1, 2, 2), out_centres.reshape(-1, 2), centroid.reshape(-1, 2))
-    gain = torch.as_tensor(weights / np.linalg.det(T), dtype=psfs.dtype)
-    return torch.einsum("mlp,ml->mp", warped.reshape(M, L, -1), gain).reshape(M, h, w)
+    warped = affine_resample(
+        flat[active],
+        matrices.reshape(-1, 2, 2)[active],
+        out_centres.reshape(-1, 2)[active],
+        centroid.reshape(-1, 2)[active],
+    )
+    gain = torch.as_tensor((weights / np.linalg.det(T)).reshape(-1)[active], dtype=psfs.dtype)
+    out = torch.zeros((M, h * w), dtype=psfs.dtype, device=psfs.device)
+    out.index_add_(0, torch.as_tensor(active // L), warped.reshape(len(active), -1) * gain[:, None])
+    return out.reshape(M, h, w)
