@@ -263,7 +263,8 @@ def _build_table(model_path: Path, summary: dict[str, Any]) -> Table:
     table = Table(title=f"LSV model {model_path}")
     table.add_column("quantity")
     table.add_column("value", justify="right")
-    for key in ("rank", "nmse_calibration", "nmse_calibration_per_psf", "numerical_rank", "n_positions", "patch_px"):
+    keys = ("rank", "nmse_calibration", "nmse_calibration_svd", "nmse_calibration_per_psf", "numerical_rank")
+    for key in keys + ("n_positions", "patch_px"):
         value = summary[key]
         table.add_row(key, f"{value:.4g}" if isinstance(value, float) else str(value))
     grid = summary["default_grid"]

@@ -160,6 +160,7 @@ def _summary_rows(summary: dict[str, Any]) -> list[list[object]]:
         ["rank K", summary["rank"]],
         ["NMSE on the calibration set (whole scan)", f"{summary['nmse_calibration']:.4g}"],
         ["mean per-position NMSE", f"{summary['nmse_calibration_per_psf']:.4g}"],
+        ["NMSE of the truncated SVD (before the nodes' fluxes are kept)", f"{summary['nmse_calibration_svd']:.4g}"],
         ["numerical rank (σ > 1e-4 σ₁)", summary["numerical_rank"]],
         ["positions", summary["n_positions"]],
         ["patch per focus (px)", "×".join(str(v) for v in summary["patch_px"])],
