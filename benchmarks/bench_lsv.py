@@ -147,7 +147,7 @@ def main() -> None:
         "rank": model.rank,
         "patch_px": list(model.patch_shape),
         "crop_px": model.provenance["svd"]["crop_px"],
-        "nmse_calibration": model.provenance["svd"]["nmse"],
+        "nmse_calibration": model.provenance["svd"]["nmse_model"],  # the saved model's (the SVD's: svd.nmse)
         "seconds": round(time.perf_counter() - start, 1),
     }
     results["grid"] = grid.to_dict()
