@@ -18,6 +18,7 @@ surface the STL, the STEP file and the tracer all carry.
 
 from __future__ import annotations
 
+import functools
 import tempfile
 from pathlib import Path
 
@@ -25,8 +26,8 @@ import cadquery as cq
 import numpy as np
 import trimesh
 
-from cm2optics.design import SystemDesign
-from cm2optics.optics.collimator import CollimatorProfile, collimator_profile
+from cm2optics.design import Collimator, SystemDesign
+from cm2optics.optics.collimator import CollimatorProfile, collimator_profile, profile_from_parameters
 from cm2optics.optics.freeform import displace_lens
 
 SPLINE_POINTS = 41
@@ -88,11 +89,20 @@ def _section(profile: CollimatorProfile) -> cq.Workplane:
 def build_collimator(design: SystemDesign) -> cq.Workplane:
     """One solid in the LED frame: the revolved optical body fused with the square flange,
     made faceted freeform when the design's lens has a Zernike sag."""
-    profile = collimator_profile(design)
+    collimator_profile(design)  # checks the walls against this design's printer
+    return _built_collimator(design.collimator, design.led.peak_nm)
+
+
+@functools.lru_cache(maxsize=8)
+def _built_collimator(collimator: Collimator, peak_nm: float) -> cq.Workplane:
+    """The solid of ``collimator`` designed at ``peak_nm`` (nm), built once per process: the
+    faceted freeform part takes seconds, and the export, the tracer and the reports all ask
+    for it (callers only place or tessellate it, never change it)."""
+    profile = profile_from_parameters(collimator, peak_nm)
     revolved = _revolved_collimator(profile)
-    if not design.collimator.is_freeform:
+    if not collimator.is_freeform:
         return revolved
-    return _freeform_collimator(revolved, profile, design.collimator.lens_freeform_um)
+    return _freeform_collimator(revolved, profile, collimator.lens_freeform_um)
 
 
 def _revolved_collimator(profile: CollimatorProfile) -> cq.Workplane:

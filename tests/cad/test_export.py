@@ -20,9 +20,12 @@ COMMITTED = Path(__file__).resolve().parents[2] / "cad"
 
 
 @pytest.fixture(scope="module")
-def exported(tmp_path_factory, v2):
+def exported(tmp_path_factory, v2_collimating):
+    """The whole export (STL, STEP, pictures) of cm2-v2 with the paper's revolved collimator:
+    the default's faceted freeform part takes minutes in the interference check (the slow test
+    below exports that one)."""
     out = tmp_path_factory.mktemp("export") / "cad"
-    manifest = export_design(v2, out, wall_samples=5000, show_progress=False)
+    manifest = export_design(v2_collimating, out, wall_samples=5000, show_progress=False)
     return out, manifest
 
 
@@ -114,10 +117,30 @@ def test_failed_export_leaves_nothing_behind(tmp_path, v2, monkeypatch):
     assert list(tmp_path.iterdir()) == []
 
 
-def test_committed_cad_matches_the_code(exported, v2):
-    """`cad/` holds the default design's parts: regenerate with `cm2 cad export --preset cm2-v2 --out cad/`."""
+def test_committed_cad_is_the_default_design(v2):
+    """`cad/` holds the default design's parts, checked as committed: regenerate with
+    `cm2 cad export --preset cm2-v2 --format stl --out cad/`."""
     committed = json.loads((COMMITTED / "manifest.json").read_text())
-    fresh = exported[1]
+    assert committed["parameter_hash"] == v2.parameter_hash()
+    assert load_preset(str(COMMITTED / "design.yaml")) == v2
+    assert committed["assembly"]["interferences"] == [] and all(committed["checks"].values())
+    for part in committed["parts"]:
+        mesh = trimesh.load(COMMITTED / part["file"], force="mesh")
+        assert mesh.is_watertight and mesh.volume == pytest.approx(part["volume_mm3"], rel=0.005), part["name"]
+
+
+@pytest.fixture(scope="module")
+def exported_default(tmp_path_factory, v2):
+    out = tmp_path_factory.mktemp("export-default") / "cad"
+    return export_design(v2, out, formats="stl", pictures=False, wall_samples=5000, show_progress=False)
+
+
+@pytest.mark.slow
+def test_committed_cad_matches_the_code(exported_default, v2):
+    """A fresh export of the default design (minutes: the freeform part's interference check)
+    gives the committed parts."""
+    committed = json.loads((COMMITTED / "manifest.json").read_text())
+    fresh = exported_default
     assert committed["parameter_hash"] == v2.parameter_hash() == fresh["parameter_hash"]
     assert [p["name"] for p in committed["parts"]] == [p["name"] for p in fresh["parts"]]
     for old, new in zip(committed["parts"], fresh["parts"], strict=True):
@@ -128,6 +151,6 @@ def test_committed_cad_matches_the_code(exported, v2):
     assert committed["assembly"]["interferences"] == fresh["assembly"]["interferences"]
 
 
-def test_design_yaml_written_with_the_parts(exported, v2):
+def test_design_yaml_written_with_the_parts(exported, v2_collimating):
     out, _ = exported
-    assert load_preset(str(out / "design.yaml")) == v2
+    assert load_preset(str(out / "design.yaml")) == v2_collimating

@@ -22,8 +22,9 @@ REFERENCE = Path(__file__).resolve().parents[2].parent / "shared/reference/cm2-v
 
 
 @pytest.fixture(scope="module")
-def design():
-    return load_preset("cm2-v2")
+def design(v2_collimating):
+    """The paper's collimating architecture (the shaped, freeform default has its own tests)."""
+    return v2_collimating
 
 
 @pytest.fixture(scope="module")
