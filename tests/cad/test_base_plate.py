@@ -10,6 +10,7 @@ import cadquery as cq
 import numpy as np
 import pytest
 import trimesh
+from collimator_standin import collimator_envelope
 from scipy.spatial import ConvexHull
 
 from cm2optics.cad.base_plate import base_plate_fits, build_base_plate
@@ -18,7 +19,6 @@ from cm2optics.cad.mesh_checks import min_wall_thickness_mm
 from cm2optics.cad.placement import location_from_pose
 from cm2optics.design import DesignError, load_preset
 from cm2optics.optics import first_order
-from cm2optics.optics.collimator import collimator_profile
 from cm2optics.optics.layout import led_poses, mla_housing_envelope
 
 SHARED = 1e-6  # mm³: shared faces and edges, not overlap
@@ -32,20 +32,6 @@ def plate(design) -> cq.Solid:
 def placed(design, part: cq.Solid) -> list[cq.Solid]:
     """``part`` (LED frame) at every LED pose."""
     return [part.moved(location_from_pose(pose)) for pose in led_poses(design)]
-
-
-def collimator_envelope(design) -> cq.Solid:
-    """Stand-in for the collimator: its square flange and its revolved outer surface (the TIR
-    surface and the side up to the flange, from the computed profile; a freeform lens lies
-    inside it), filled to the axis."""
-    profile = collimator_profile(design)
-    bottom, r = profile.flange_bottom_z_mm, design.collimator.footprint_mm / 2
-    every = max(1, len(profile.tir_r_mm) // 20)  # ≈ 20 chords: sagitta < 1 µm, and fast booleans
-    tir = list(zip(profile.tir_r_mm[::every], profile.tir_z_mm[::every], strict=True))
-    outline = [(0.0, profile.entry_z_mm), *tir, (profile.tir_r_mm[-1], profile.tir_z_mm[-1])]
-    outline += [(profile.tir_r_mm[-1], bottom), (0.0, bottom)]
-    body = cq.Workplane("XZ").polyline([(float(x), float(z)) for x, z in outline]).close().revolve(360, (0, 0), (0, 1))
-    return Box(-r, r, -r, r, bottom, profile.exit_z_mm).solid().union(body).val()
 
 
 def unit_parts(design) -> dict[str, cq.Solid]:
