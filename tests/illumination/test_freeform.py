@@ -87,6 +87,34 @@ def test_freeform_part_is_watertight_printable_and_carries_the_sag(v2_collimatin
     assert mesh.volume == pytest.approx(_stl_mesh(v2_collimating).volume, rel=1e-3)
 
 
+def test_default_freeform_lens_is_one_smooth_face_on_the_sag(v2, tmp_path):
+    """The default's lens is one B-spline face: its points over the cavity's disc (a 60 × 60
+    grid of its parameters) lie within 1 µm of ``z_lens(r) + S(x, y)`` (the profile's 401 lens
+    points interpolated, the Zernike sag); the part's STEP file stays small (not a faceted
+    solid)."""
+    from OCP.BRep import BRep_Tool
+
+    from cm2optics.cad.tessellate import export_step
+
+    part = build_collimator(v2)
+    splines = [f for f in part.faces().vals() if f.geomType() == "BSPLINE"]
+    assert len(splines) == 1
+    surface = BRep_Tool.Surface_s(splines[0].wrapped)
+    u0, u1, v0, v1 = surface.Bounds()
+    points = np.array([surface.Value(u, v).Coord() for u in np.linspace(u0, u1, 60) for v in np.linspace(v0, v1, 60)])
+    profile = collimator_profile(v2)
+    a = profile.cavity_radius_mm
+    r = np.hypot(points[:, 0], points[:, 1])
+    points, r = points[r < a], r[r < a]
+    assert len(points) > 2000
+    expected = np.interp(r, profile.lens_r_mm, profile.lens_z_mm) + lens_sag_mm(
+        v2.collimator.lens_freeform_um, points[:, 0], points[:, 1], a
+    )
+    assert np.max(np.abs(points[:, 2] - expected)) < 1e-3
+    export_step(part, tmp_path / "c.step")
+    assert (tmp_path / "c.step").stat().st_size < 500_000
+
+
 def test_lens_tilt_term_deflects_the_beam_by_the_closed_form_angle(v2):
     """A Z₂ term c tilts the lens by α = atan(2c/a): a ray from the LED along the axis meets it
     at incidence α, refracts to β = asin(sin α / n) from the normal, runs α − β off the axis and
