@@ -1,5 +1,5 @@
-"""A light stand-in for the collimator in the housing and base-plate tests (the real part, faceted
-when freeform, makes their booleans slow)."""
+"""A light stand-in for the collimator in the housing and base-plate tests: its outer surface and
+flange (what the seats and sockets fit), without the lens and cavity inside."""
 
 from __future__ import annotations
 

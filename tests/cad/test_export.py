@@ -20,12 +20,9 @@ COMMITTED = Path(__file__).resolve().parents[2] / "cad"
 
 
 @pytest.fixture(scope="module")
-def exported(tmp_path_factory, v2_collimating):
-    """The whole export (STL, STEP, pictures) of cm2-v2 with the paper's revolved collimator:
-    the default's faceted freeform part takes minutes in the interference check (the slow test
-    below exports that one)."""
+def exported(tmp_path_factory, v2):
     out = tmp_path_factory.mktemp("export") / "cad"
-    manifest = export_design(v2_collimating, out, wall_samples=5000, show_progress=False)
+    manifest = export_design(v2, out, wall_samples=5000, show_progress=False)
     return out, manifest
 
 
@@ -117,31 +114,17 @@ def test_failed_export_leaves_nothing_behind(tmp_path, v2, monkeypatch):
     assert list(tmp_path.iterdir()) == []
 
 
-def test_committed_cad_is_the_default_design(v2):
-    """`cad/` holds the default design's parts, checked as committed: regenerate with
-    `cm2 cad export --preset cm2-v2 --format stl --out cad/`."""
+def test_committed_cad_matches_the_code(exported, v2):
+    """`cad/` holds the default design's parts, as STL and STEP (each STEP solid of its part's
+    volume): regenerate with `cm2 cad export --preset cm2-v2 --out cad/`."""
     committed = json.loads((COMMITTED / "manifest.json").read_text())
-    assert committed["parameter_hash"] == v2.parameter_hash()
-    assert load_preset(str(COMMITTED / "design.yaml")) == v2
-    assert committed["assembly"]["interferences"] == [] and all(committed["checks"].values())
-    for part in committed["parts"]:
-        mesh = trimesh.load(COMMITTED / part["file"], force="mesh")
-        assert mesh.is_watertight and mesh.volume == pytest.approx(part["volume_mm3"], rel=0.005), part["name"]
-
-
-@pytest.fixture(scope="module")
-def exported_default(tmp_path_factory, v2):
-    out = tmp_path_factory.mktemp("export-default") / "cad"
-    return export_design(v2, out, formats="stl", pictures=False, wall_samples=5000, show_progress=False)
-
-
-@pytest.mark.slow
-def test_committed_cad_matches_the_code(exported_default, v2):
-    """A fresh export of the default design (minutes: the freeform part's interference check)
-    gives the committed parts."""
-    committed = json.loads((COMMITTED / "manifest.json").read_text())
-    fresh = exported_default
+    fresh = exported[1]
     assert committed["parameter_hash"] == v2.parameter_hash() == fresh["parameter_hash"]
+    assert load_preset(str(COMMITTED / "design.yaml")) == v2
+    assert (COMMITTED / "assembly.step").is_file()
+    for part in committed["parts"]:
+        step = cq.importers.importStep(str(COMMITTED / f"{part['name']}.step")).val()
+        assert step.Volume() == pytest.approx(part["volume_mm3"], rel=1e-6), part["name"]
     assert [p["name"] for p in committed["parts"]] == [p["name"] for p in fresh["parts"]]
     for old, new in zip(committed["parts"], fresh["parts"], strict=True):
         assert old["volume_mm3"] == pytest.approx(new["volume_mm3"], rel=1e-4), old["name"]
@@ -151,6 +134,6 @@ def test_committed_cad_matches_the_code(exported_default, v2):
     assert committed["assembly"]["interferences"] == fresh["assembly"]["interferences"]
 
 
-def test_design_yaml_written_with_the_parts(exported, v2_collimating):
+def test_design_yaml_written_with_the_parts(exported, v2):
     out, _ = exported
-    assert load_preset(str(out / "design.yaml")) == v2_collimating
+    assert load_preset(str(out / "design.yaml")) == v2
