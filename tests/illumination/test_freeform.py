@@ -45,6 +45,9 @@ def test_noll_zernike_terms_are_the_textbook_ones_and_orthonormal():
     # c₂ = 10 µm over a 0.5-mm radius: a plane of slope 2·0.010/0.5 = 0.04.
     x = np.array([-0.2, 0.0, 0.3])
     assert np.allclose(lens_sag_mm((0.0, 10.0), x, np.zeros(3), 0.5), 0.04 * x)
+    # Past the rim (x = 0.6 mm): clipped, the rim's sag 0.02 mm; unclipped, the plane goes on.
+    assert lens_sag_mm((0.0, 10.0), np.array([0.6]), np.zeros(1), 0.5) == pytest.approx(0.02)
+    assert lens_sag_mm((0.0, 10.0), np.array([0.6]), np.zeros(1), 0.5, clip=False) == pytest.approx(0.024)
 
 
 @pytest.fixture(scope="module")
@@ -67,8 +70,8 @@ def test_zero_freeform_terms_reproduce_the_revolved_part(revolved):
 
 def test_freeform_part_is_watertight_printable_and_carries_the_sag(v2_collimating):
     """The CAD part with a tilt and a defocus term on the collimating (hyperbolic) lens: one
-    closed solid, walls ≥ 0.4 mm, its lens vertices moved by exactly the sag (the tracer reads
-    this mesh)."""
+    closed solid, walls ≥ 0.4 mm, its lens vertices on the displaced hyperbola within 0.1 µm (the
+    tracer reads this mesh)."""
     coefficients = (0.0, 15.0, -8.0, 6.0)
     design = v2_collimating.with_changes({"collimator.lens_freeform_um": list(coefficients)})
     mesh = _stl_mesh(design)
@@ -82,7 +85,7 @@ def test_freeform_part_is_watertight_printable_and_carries_the_sag(v2_collimatin
     lens = (r < 0.95 * a) & (v[:, 2] > profile.entry_z_mm) & (v[:, 2] < profile.exit_z_mm - 0.1)
     assert lens.sum() > 50
     expected = profile.lens_height_mm(r[lens]) + lens_sag_mm(coefficients, v[lens, 0], v[lens, 1], a)
-    assert np.max(np.abs(v[lens, 2] - expected)) < 2e-3  # the tessellation's chord tolerance and the vertex flat
+    assert np.max(np.abs(v[lens, 2] - expected)) < 1e-4  # STL vertices lie on the face, fitted to ≈ 10 nm
     # Every Zernike term but piston has zero mean over the lens disc: the volume stays.
     assert mesh.volume == pytest.approx(_stl_mesh(v2_collimating).volume, rel=1e-3)
 
