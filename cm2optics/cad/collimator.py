@@ -141,7 +141,7 @@ def _one_solid(shape: cq.Shape) -> cq.Workplane:
     return cq.Workplane("XY").add(solids[0])
 
 
-def freeform_lens_height_mm(profile: CollimatorProfile, coefficients_um: tuple[float, ...]):
+def _freeform_lens_height(profile: CollimatorProfile, coefficients_um: tuple[float, ...]):
     """``z(x, y) = z_lens(r) + S(x, y)`` (mm) of the lens of ``profile`` with the Zernike sag
     of ``coefficients_um`` (µm): ``z_lens`` a cubic spline through the profile's lens points
     (mirrored about the axis), both continued smoothly past the cavity's rim."""
@@ -163,7 +163,7 @@ def _freeform_cavity(profile: CollimatorProfile, coefficients_um: tuple[float, .
     a, g = profile.cavity_radius_mm, profile.entry_z_mm
     half = FREEFORM_GRID_MARGIN * a
     x, y = np.meshgrid(*2 * [np.linspace(-half, half, FREEFORM_GRID_POINTS)], indexing="ij")
-    z = freeform_lens_height_mm(profile, coefficients_um)(x, y)
+    z = _freeform_lens_height(profile, coefficients_um)(x, y)
     if z.min() <= g or z.max() >= profile.exit_z_mm:
         raise RuntimeError("the freeform lens leaves the collimator's body: smaller Zernike terms are needed")
     grid = [[cq.Vector(*map(float, p)) for p in zip(*row, strict=True)] for row in zip(x, y, z, strict=True)]
