@@ -10,24 +10,28 @@ The lens is revolved from ``r = ε`` and closed by a flat disc of radius ε at i
 for the default design): a curved face revolved from the axis has a pole there, which
 OpenCascade tessellates into a degenerate triangle and the exported STL is then not closed.
 
-A freeform lens (``collimator.lens_freeform_um``, :mod:`cm2optics.optics.freeform`): the revolved
-solid is tessellated with chord tolerance ``FREEFORM_TOLERANCE_MM``, its lens and cavity-wall
-vertices are moved by the sag, and the triangles are joined back into one faceted solid — the
-surface the STL, the STEP file and the tracer all carry.
+A freeform lens (``collimator.lens_freeform_um``, :mod:`cm2optics.optics.freeform`) is one smooth
+B-spline face: the displaced lens ``z_lens(r) + S(x, y)`` is sampled on a square grid a little
+wider than the cavity, approximated by a B-spline surface, extruded downwards into a prism and
+cut, inside the cavity's cylinder, from the revolved body with its cavity filled. The cavity
+wall stays the cylinder ``r = a`` (the sag of :func:`~cm2optics.optics.freeform.displace_lens`
+moves its points along it); the STL, the STEP file and the tracer all carry this solid.
 """
 
 from __future__ import annotations
 
+import functools
 import tempfile
 from pathlib import Path
 
 import cadquery as cq
 import numpy as np
 import trimesh
+from scipy.interpolate import CubicSpline
 
-from cm2optics.design import SystemDesign
-from cm2optics.optics.collimator import CollimatorProfile, collimator_profile
-from cm2optics.optics.freeform import displace_lens
+from cm2optics.design import Collimator, SystemDesign
+from cm2optics.optics.collimator import CollimatorProfile, collimator_profile, profile_from_parameters
+from cm2optics.optics.freeform import lens_sag_mm
 
 SPLINE_POINTS = 41
 """Points of the computed curves that each CAD spline passes through."""
@@ -36,8 +40,14 @@ VERTEX_FLAT_SAG_MM = 1e-4
 """Largest departure of the lens's vertex flat from the hyperbola, mm (0.1 µm: below any
 tessellation or printing tolerance)."""
 
-FREEFORM_TOLERANCE_MM = 0.0005
-"""Chord tolerance of the revolved solid's tessellation that a freeform sag displaces, mm."""
+FREEFORM_GRID_POINTS = 41
+"""Points per side of the square grid of the displaced lens that its B-spline face fits."""
+
+FREEFORM_GRID_MARGIN = 1.05
+"""Half-width of that grid over the cavity radius: the face overhangs the cavity's cylinder."""
+
+FREEFORM_FIT_TOLERANCE_MM = 1e-5
+"""Tolerance of the B-spline fit to the grid points, mm (10 nm)."""
 
 
 def _spline_points(points: np.ndarray) -> list[tuple[float, float]]:
@@ -56,27 +66,32 @@ def _end_tangents(points: np.ndarray) -> list[tuple[float, float]]:
     return [_unit(points[1] - points[0]), _unit(points[-1] - points[-2])]
 
 
-def _section(profile: CollimatorProfile) -> cq.Workplane:
-    """The closed half-section (r ≥ 0) in the XZ plane, ready to revolve about z."""
-    # Vertex flat of radius ε: sag ε² / (2 R_vertex) = VERTEX_FLAT_SAG_MM.
-    flat = np.sqrt(2.0 * profile.lens_vertex_radius_mm * VERTEX_FLAT_SAG_MM)
-    keep = profile.lens_r_mm > 2.0 * flat
-    lens = np.vstack(
-        [[flat, profile.lens_height_mm(flat)], np.column_stack([profile.lens_r_mm[keep], profile.lens_z_mm[keep]])]
-    )
-    lens_tangents = [_unit((1.0, profile.lens_slope(r))) for r in (lens[0, 0], lens[-1, 0])]
+def _section(profile: CollimatorProfile, filled: bool = False) -> cq.Workplane:
+    """The closed half-section (r ≥ 0) in the XZ plane, ready to revolve about z; ``filled``:
+    without the cavity (its floor the entry plane)."""
     tir = np.column_stack([profile.tir_r_mm, profile.tir_z_mm])
     a, g = profile.cavity_radius_mm, profile.entry_z_mm
     r_end, z_end = tir[-1]
     # On "XZ", local (x, y) is global (x, z).
+    sketch = cq.Workplane("XZ").moveTo(0.0, profile.exit_z_mm)
+    if filled:
+        sketch = sketch.lineTo(0.0, g)
+    else:
+        # Vertex flat of radius ε: sag ε² / (2 R_vertex) = VERTEX_FLAT_SAG_MM.
+        flat = np.sqrt(2.0 * profile.lens_vertex_radius_mm * VERTEX_FLAT_SAG_MM)
+        keep = profile.lens_r_mm > 2.0 * flat
+        lens = np.vstack(
+            [[flat, profile.lens_height_mm(flat)], np.column_stack([profile.lens_r_mm[keep], profile.lens_z_mm[keep]])]
+        )
+        lens_tangents = [_unit((1.0, profile.lens_slope(r))) for r in (lens[0, 0], lens[-1, 0])]
+        sketch = (
+            sketch.lineTo(0.0, lens[0, 1])
+            .lineTo(*lens[0])
+            .spline(_spline_points(lens)[1:], tangents=lens_tangents, includeCurrent=True)
+            .lineTo(a, g)
+        )
     sketch = (
-        cq.Workplane("XZ")
-        .moveTo(0.0, profile.exit_z_mm)
-        .lineTo(0.0, lens[0, 1])
-        .lineTo(*lens[0])
-        .spline(_spline_points(lens)[1:], tangents=lens_tangents, includeCurrent=True)
-        .lineTo(a, g)
-        .lineTo(profile.outer_radius_entry_mm, g)
+        sketch.lineTo(profile.outer_radius_entry_mm, g)
         .lineTo(*tir[0])
         .spline(_spline_points(tir)[1:], tangents=_end_tangents(tir), includeCurrent=True)
     )
@@ -87,17 +102,27 @@ def _section(profile: CollimatorProfile) -> cq.Workplane:
 
 def build_collimator(design: SystemDesign) -> cq.Workplane:
     """One solid in the LED frame: the revolved optical body fused with the square flange,
-    made faceted freeform when the design's lens has a Zernike sag."""
-    profile = collimator_profile(design)
-    revolved = _revolved_collimator(profile)
-    if not design.collimator.is_freeform:
-        return revolved
-    return _freeform_collimator(revolved, profile, design.collimator.lens_freeform_um)
+    its lens one smooth freeform face when the design's lens has a Zernike sag."""
+    collimator_profile(design)  # checks the walls against this design's printer
+    return _built_collimator(design.collimator, design.led.peak_nm)
 
 
-def _revolved_collimator(profile: CollimatorProfile) -> cq.Workplane:
-    """The revolved optical body fused with the square flange (LED frame)."""
-    body = _section(profile).revolve(360.0, (0.0, 0.0, 0.0), (0.0, 1.0, 0.0))
+@functools.lru_cache(maxsize=8)
+def _built_collimator(collimator: Collimator, peak_nm: float) -> cq.Workplane:
+    """The solid of ``collimator`` designed at ``peak_nm`` (nm), built once per process: the
+    export, the tracer and the reports all ask for it (callers only place or tessellate it,
+    never change it)."""
+    profile = profile_from_parameters(collimator, peak_nm)
+    if not collimator.is_freeform:
+        return _revolved_collimator(profile)
+    body = _revolved_collimator(profile, filled=True).val()
+    return _one_solid(body.cut(_freeform_cavity(profile, collimator.lens_freeform_um)).clean())
+
+
+def _revolved_collimator(profile: CollimatorProfile, filled: bool = False) -> cq.Workplane:
+    """The revolved optical body fused with the square flange (LED frame); ``filled``: without
+    its cavity."""
+    body = _section(profile, filled).revolve(360.0, (0.0, 0.0, 0.0), (0.0, 1.0, 0.0))
     side = profile.footprint_mm
     flange = (
         cq.Workplane("XY")
@@ -105,51 +130,48 @@ def _revolved_collimator(profile: CollimatorProfile) -> cq.Workplane:
         .rect(side, side)
         .extrude(profile.exit_z_mm - profile.flange_bottom_z_mm)
     )
-    solids = body.union(flange, clean=True).solids().vals()
-    if len(solids) != 1:
-        raise RuntimeError(f"the collimator must be one solid, got {len(solids)}")
+    return _one_solid(body.union(flange, clean=True).val())
+
+
+def _one_solid(shape: cq.Shape) -> cq.Workplane:
+    """``shape`` as a workplane holding its single solid; raises when it is not one solid."""
+    solids = shape.Solids()
+    if len(solids) != 1 or not solids[0].isValid():
+        raise RuntimeError(f"the collimator must be one valid solid, got {len(solids)} solid(s)")
     return cq.Workplane("XY").add(solids[0])
 
 
-def _freeform_collimator(
-    revolved: cq.Workplane, profile: CollimatorProfile, coefficients_um: tuple[float, ...]
-) -> cq.Workplane:
-    """The revolved solid's tessellation with the lens sag of ``coefficients_um`` (µm), as one
-    faceted solid: each vertex and edge made once and shared by its triangles, each triangle a
-    planar face turned outwards, the shell closed into a solid."""
-    from OCP.BRep import BRep_Builder
-    from OCP.BRepBuilderAPI import (
-        BRepBuilderAPI_MakeEdge,
-        BRepBuilderAPI_MakeFace,
-        BRepBuilderAPI_MakeSolid,
-        BRepBuilderAPI_MakeVertex,
-        BRepBuilderAPI_MakeWire,
-    )
-    from OCP.gp import gp_Pnt
-    from OCP.TopoDS import TopoDS_Shell
+def _freeform_lens_height(profile: CollimatorProfile, coefficients_um: tuple[float, ...]):
+    """``z(x, y) = z_lens(r) + S(x, y)`` (mm) of the lens of ``profile`` with the Zernike sag
+    of ``coefficients_um`` (µm): ``z_lens`` a cubic spline through the profile's lens points
+    (mirrored about the axis), both continued smoothly past the cavity's rim."""
+    r = np.concatenate([-profile.lens_r_mm[:0:-1], profile.lens_r_mm])
+    z = np.concatenate([profile.lens_z_mm[:0:-1], profile.lens_z_mm])
+    lens = CubicSpline(r, z, extrapolate=True)
 
-    from cm2optics.cad.tessellate import export_stl
+    def height(x_mm: np.ndarray, y_mm: np.ndarray) -> np.ndarray:
+        sag = lens_sag_mm(coefficients_um, x_mm, y_mm, profile.cavity_radius_mm, clip=False)
+        return lens(np.hypot(x_mm, y_mm)) + sag
 
-    with tempfile.TemporaryDirectory() as folder:
-        path = Path(folder) / "revolved.stl"
-        export_stl(revolved.val(), path, FREEFORM_TOLERANCE_MM)
-        mesh = trimesh.load_mesh(path, force="mesh")
-    mesh = trimesh.Trimesh(displace_lens(np.asarray(mesh.vertices), profile, coefficients_um), mesh.faces)
-    if not (mesh.is_watertight and mesh.is_winding_consistent and mesh.volume > 0):
-        raise RuntimeError("the freeform collimator's displaced tessellation is not a closed solid")
-    vertices = [BRepBuilderAPI_MakeVertex(gp_Pnt(*map(float, p))).Vertex() for p in mesh.vertices]
-    edges = [BRepBuilderAPI_MakeEdge(vertices[a], vertices[b]).Edge() for a, b in mesh.edges_unique]
-    builder, shell = BRep_Builder(), TopoDS_Shell()
-    builder.MakeShell(shell)
-    for (e0, e1, e2), normal in zip(mesh.faces_unique_edges, mesh.face_normals, strict=True):
-        face = BRepBuilderAPI_MakeFace(BRepBuilderAPI_MakeWire(edges[e0], edges[e1], edges[e2]).Wire(), True).Face()
-        if cq.Face(face).normalAt().toTuple() @ normal < 0:
-            face.Reverse()
-        builder.Add(shell, face)
-    solid = cq.Solid(BRepBuilderAPI_MakeSolid(shell).Solid())
-    if abs(solid.Volume() - mesh.volume) > 1e-6 * mesh.volume:
-        raise RuntimeError("the freeform collimator's faces do not close into the mesh's solid")
-    return cq.Workplane("XY").add(solid)
+    return height
+
+
+def _freeform_cavity(profile: CollimatorProfile, coefficients_um: tuple[float, ...]) -> cq.Solid:
+    """The cavity under the freeform lens: the cylinder ``r = a`` from below the entry plane,
+    capped by the B-spline face through the displaced lens (fit to ``FREEFORM_FIT_TOLERANCE_MM``
+    on a ``FREEFORM_GRID_POINTS``² grid)."""
+    a, g = profile.cavity_radius_mm, profile.entry_z_mm
+    half = FREEFORM_GRID_MARGIN * a
+    x, y = np.meshgrid(*2 * [np.linspace(-half, half, FREEFORM_GRID_POINTS)], indexing="ij")
+    z = _freeform_lens_height(profile, coefficients_um)(x, y)
+    if z.min() <= g or z.max() >= profile.exit_z_mm:
+        raise RuntimeError("the freeform lens leaves the collimator's body: smaller Zernike terms are needed")
+    grid = [[cq.Vector(*map(float, p)) for p in zip(*row, strict=True)] for row in zip(x, y, z, strict=True)]
+    face = cq.Face.makeSplineApprox(grid, tol=FREEFORM_FIT_TOLERANCE_MM, minDeg=3, maxDeg=5)
+    depth = z.max() - g + 1.0  # the prism's floor lies below the cylinder's
+    prism = cq.Solid.extrudeLinear(face, cq.Vector(0.0, 0.0, -depth))
+    cylinder = cq.Solid.makeCylinder(a, z.max() - g + 1.0, cq.Vector(0.0, 0.0, g - 0.5))
+    return cylinder.intersect(prism)
 
 
 def _mesh_summary(mesh: trimesh.Trimesh, light_axis: np.ndarray) -> dict[str, object]:

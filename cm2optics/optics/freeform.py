@@ -54,10 +54,14 @@ def zernike(j: int, rho: np.ndarray, phi: np.ndarray) -> np.ndarray:
     return math.sqrt(2 * (n + 1)) * radial * angular
 
 
-def lens_sag_mm(coefficients_um: tuple[float, ...], x_mm: np.ndarray, y_mm: np.ndarray, radius_mm: float) -> np.ndarray:
+def lens_sag_mm(
+    coefficients_um: tuple[float, ...], x_mm: np.ndarray, y_mm: np.ndarray, radius_mm: float, clip: bool = True
+) -> np.ndarray:
     """The sag ``S(x, y)`` (mm) of Zernike coefficients ``c_1 … c_J`` (µm) over a disc of
-    ``radius_mm``; ρ is clipped at 1 (points on the rim get the rim's sag)."""
-    rho = np.minimum(np.hypot(x_mm, y_mm) / radius_mm, 1.0)
+    ``radius_mm``; ``clip``: ρ is clipped at 1 (points past the rim get the rim's sag), else the
+    polynomials continue past it."""
+    rho = np.hypot(x_mm, y_mm) / radius_mm
+    rho = np.minimum(rho, 1.0) if clip else rho
     phi = np.arctan2(y_mm, x_mm)
     sag = np.zeros_like(rho, dtype=float)
     for j, c in enumerate(coefficients_um, start=1):

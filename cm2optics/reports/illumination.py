@@ -21,6 +21,16 @@ def _pct(estimate) -> str:
     return f"{100 * estimate.value:.1f} ± {100 * estimate.stderr:.2f} %"
 
 
+def _placement(design: SystemDesign) -> str:
+    """The units' placement in words: tilt, offset, aim point and azimuth (rounded)."""
+    led = design.led_array
+    side = "short of" if led.aim_mm > 0 else "past"
+    aim = f", aimed {abs(led.aim_mm):.2f} mm {side} the field centre" if led.aim_mm else ""
+    return (
+        f"{led.tilt_deg:.1f}° tilt, {led.offset_mm:.2f} mm off-axis{aim}, first unit at {led.azimuth_deg:.1f}° azimuth"
+    )
+
+
 def _figure_rows(design: SystemDesign, results: list) -> list[list[str]]:
     """The comparison table's rows: one figure of merit a row, one design a column."""
     rows = [
@@ -96,8 +106,8 @@ def add_illumination_section(
     report.heading(heading)
     report.paragraph(
         f"Ray trace of LED → collimator → excitation filter → sample plane on Mitsuba 3 ({variant().variant}), "
-        f"{rays:,} rays per design over the {design.led_array.count} LEDs ({design.led_array.tilt_deg:g}° tilt, "
-        f"{design.led_array.offset_mm:g} mm off-axis), housings absorbing, sample plane at z = {first_order.object_plane_z_mm(design):.2f} mm; "
+        f"{rays:,} rays per design over the {design.led_array.count} LEDs ({_placement(design)}), housings absorbing, "
+        f"sample plane at z = {first_order.object_plane_z_mm(design):.2f} mm; "
         f"{elapsed:.1f} s in all. LED: {setup.notes['led_profile']}; spectrum: {setup.notes['led_spectrum']}. "
         f"Filter: {setup.notes['excitation_filter']}. Each figure ± its Monte Carlo standard error."
     )

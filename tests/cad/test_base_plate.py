@@ -10,6 +10,7 @@ import cadquery as cq
 import numpy as np
 import pytest
 import trimesh
+from collimator_standin import collimator_envelope
 from scipy.spatial import ConvexHull
 
 from cm2optics.cad.base_plate import base_plate_fits, build_base_plate
@@ -31,15 +32,6 @@ def plate(design) -> cq.Solid:
 def placed(design, part: cq.Solid) -> list[cq.Solid]:
     """``part`` (LED frame) at every LED pose."""
     return [part.moved(location_from_pose(pose)) for pose in led_poses(design)]
-
-
-def collimator_envelope(design) -> cq.Solid:
-    """Stand-in for the collimator: its flange and a cylinder of the flange's half-width."""
-    col = design.collimator
-    exit_z = col.led_gap_mm + col.height_mm
-    r = col.footprint_mm / 2
-    body = cq.Workplane().circle(r).extrude(col.height_mm - col.flange_mm).translate((0, 0, col.led_gap_mm))
-    return Box(-r, r, -r, r, exit_z - col.flange_mm, exit_z).solid().union(body).val()
 
 
 def unit_parts(design) -> dict[str, cq.Solid]:
@@ -100,25 +92,39 @@ def test_one_valid_solid_on_the_flange(design, plate):
     assert bb.zmin == pytest.approx(mla_housing_envelope(design).flange_top_z_mm, abs=1e-6)
 
 
+def _socket_and_rail_vertices(design, layout, side: float, t: float, z0: float) -> np.ndarray:
+    """The vertices of one unit's socket block (its back edge along x at y = −side chamfered by
+    ``t``) and of its rail's steps, LED frame (mm): the plate's convex outermost points."""
+    z1 = layout.back_z_mm + design.base_plate.socket_depth_mm
+    section = [(-side + t, z0), (side, z0), (side, z1), (-side, z1), (-side, z0 + t)]
+    points = [(x, y, z) for x in (-side, side) for y, z in section]
+    for step in layout.rails:
+        z_floor = layout.back_z_mm - design.mechanics.clearance_mm - t / 2
+        points += [(x, y, z) for x in (step.x0, side) for y in (step.y0, step.y1) for z in (z_floor, step.z1)]
+    return np.array(points)
+
+
 def test_bounding_box_from_the_sockets_and_rails(design, plate):
-    """Its extent is set by the sockets' chamfered back corners and the rails' front ends."""
+    """Its extent is set by the sockets' blocks (their chamfered back corners, whatever the units'
+    azimuth) and the rails' front ends."""
     c, t = design.mechanics.clearance_mm, design.mechanics.wall_mm
     layout = led_housing_layout(design)
     side = layout.half_mm + c + t
     z0 = layout.back_z_mm - c - t
-    pose = led_poses(design)[0]  # the unit on +x
-    back_corners = pose.apply(np.array([(side, -side, z0 + t), (side, -side + t, z0)]))
+    pose = led_poses(design)[0]
+    vertices = _socket_and_rail_vertices(design, layout, side, t, z0)
+    back_corners = np.concatenate([p.apply(vertices) for p in led_poses(design)])
     rail = layout.rails[1]
     rail_tops = pose.apply(np.array([(side, y, rail.z1) for y in (rail.y0, rail.y1)]))
     socket_tops = pose.apply(
         np.array([(side, y, layout.back_z_mm + design.base_plate.socket_depth_mm) for y in (-side, side)])
     )
     bb = plate.BoundingBox()
-    reach = back_corners[:, 0].max()
-    assert (bb.xmin, bb.xmax, bb.ymin, bb.ymax) == pytest.approx((-reach, reach, -reach, reach), abs=1e-6)
+    low, high = back_corners[:, :2].min(axis=0), back_corners[:, :2].max(axis=0)
+    assert (bb.xmin, bb.xmax, bb.ymin, bb.ymax) == pytest.approx((low[0], high[0], low[1], high[1]), abs=1e-6)
     assert bb.zmax == pytest.approx(max(rail_tops[:, 2].max(), socket_tops[:, 2].max()), abs=1e-6)
-    # Same class as the authors' plate (≈ 21 × 21 × 8 mm), on a longer unit and resting lower.
-    assert bb.xlen < 26 and bb.zlen < 11
+    # On the camera board (the authors' plate: ≈ 21 × 21 × 8 mm; cm2-v2's units sit farther out).
+    assert bb.xlen < design.sensor_board.size_mm and bb.ylen < design.sensor_board.size_mm and bb.zlen < 11
 
 
 def test_dome_volume_from_its_sections(design, plate):

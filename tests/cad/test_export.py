@@ -115,10 +115,16 @@ def test_failed_export_leaves_nothing_behind(tmp_path, v2, monkeypatch):
 
 
 def test_committed_cad_matches_the_code(exported, v2):
-    """`cad/` holds the default design's parts: regenerate with `cm2 cad export --preset cm2-v2 --out cad/`."""
+    """`cad/` holds the default design's parts, as STL and STEP (each STEP solid of its part's
+    volume): regenerate with `cm2 cad export --preset cm2-v2 --out cad/`."""
     committed = json.loads((COMMITTED / "manifest.json").read_text())
     fresh = exported[1]
     assert committed["parameter_hash"] == v2.parameter_hash() == fresh["parameter_hash"]
+    assert load_preset(str(COMMITTED / "design.yaml")) == v2
+    assert (COMMITTED / "assembly.step").is_file()
+    for part in committed["parts"]:
+        step = cq.importers.importStep(str(COMMITTED / f"{part['name']}.step")).val()
+        assert step.Volume() == pytest.approx(part["volume_mm3"], rel=1e-6), part["name"]
     assert [p["name"] for p in committed["parts"]] == [p["name"] for p in fresh["parts"]]
     for old, new in zip(committed["parts"], fresh["parts"], strict=True):
         assert old["volume_mm3"] == pytest.approx(new["volume_mm3"], rel=1e-4), old["name"]

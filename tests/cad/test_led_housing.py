@@ -9,6 +9,7 @@ import cadquery as cq
 import numpy as np
 import pytest
 import trimesh
+from collimator_standin import collimator_envelope, collimator_swept_along_x
 from OCP.gp import gp_Dir, gp_Lin, gp_Pnt
 from OCP.IntCurvesFace import IntCurvesFace_ShapeIntersector
 
@@ -22,18 +23,6 @@ SHARED = 1e-6  # mm³: shared faces and edges, not overlap
 @pytest.fixture(scope="module")
 def housing(design) -> cq.Solid:
     return build_led_housing(design).val()
-
-
-def collimator_envelope(design) -> cq.Solid:
-    """A stand-in for the collimator: its square flange and a cylinder of the flange's
-    half-width around its body (the real body lies inside it)."""
-    col = design.collimator
-    exit_z = col.led_gap_mm + col.height_mm
-    flange_z0 = exit_z - col.flange_mm
-    r = col.footprint_mm / 2
-    flange = Box(-r, r, -r, r, flange_z0, exit_z).solid()
-    body = cq.Workplane().circle(r).extrude(flange_z0 - col.led_gap_mm).translate((0, 0, col.led_gap_mm))
-    return flange.union(body).val()
 
 
 def seated_parts(design) -> dict[str, cq.Solid]:
@@ -164,18 +153,7 @@ def swept_along_x(design, name: str) -> cq.Solid:
     """The space a seated part sweeps when pushed out along +x past the housing's side."""
     out = design.led_housing.outer_mm
     if name == "collimator":
-        col = design.collimator
-        exit_z = col.led_gap_mm + col.height_mm
-        flange_z0 = exit_z - col.flange_mm
-        r = col.footprint_mm / 2
-        body = cq.Workplane().circle(r).extrude(flange_z0 - col.led_gap_mm).translate((0, 0, col.led_gap_mm))
-        return (
-            Box(-r, out, -r, r, flange_z0, exit_z)
-            .solid()
-            .union(body)
-            .union(Box(0, out, -r, r, col.led_gap_mm, flange_z0).solid())
-            .val()
-        )
+        return collimator_swept_along_x(design, out)
     bb = led_unit_parts(design)[name].val().BoundingBox()
     return Box(bb.xmin, out, bb.ymin, bb.ymax, bb.zmin, bb.zmax).solid().val()
 

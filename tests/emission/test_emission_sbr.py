@@ -19,7 +19,7 @@ from cm2optics.emission.filter_angles import (
 from cm2optics.emission.sbr import Sample, signal_and_background
 from cm2optics.optics import first_order
 from cm2optics.spectra.absorption import fresnel_transmittance
-from cm2optics.spectra.chain import emission_chain, excitation_spectrum
+from cm2optics.spectra.chain import emission_chain, excitation_half_angle_rad, excitation_spectrum
 from cm2optics.spectra.library import led_spectrum
 
 COARSE = {"field_step_mm": 0.5, "pupil_samples": 16, "beam_samples": 8}
@@ -55,9 +55,11 @@ def test_beams_land_around_the_field_and_reflect_by_fresnel(v2):
     assert v2.volume.field_mm / 2 < footprint.radius_mm(0.95) < 2 * v2.volume.field_mm
     _, directions, power = specular_rays(v2, 1.5, 8)
     assert np.all(directions[:, 2] < 0)  # back towards the device
-    angles = np.arccos(-directions[:, 2])  # every ray of a 45° ± 14.5° beam reaches the sample
+    angles = np.arccos(-directions[:, 2])  # every ray of the tilt ± δ beam reaches the sample
     np.testing.assert_allclose(power * len(power), 1 - fresnel_transmittance(angles, 1.5))
-    assert np.degrees(angles.min()) == pytest.approx(45 - 14.48, abs=1.0)
+    delta = math.degrees(excitation_half_angle_rad(v2))  # asin(1 mm / 4 mm) = 14.48°
+    assert delta == pytest.approx(14.48, abs=0.01)
+    assert np.degrees(angles.min()) == pytest.approx(v2.led_array.tilt_deg - delta, abs=1.0)
 
 
 def test_excitation_light_is_the_led_through_its_filter(v2):

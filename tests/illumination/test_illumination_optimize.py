@@ -21,9 +21,9 @@ def _shaped(design, **fields):
     return design.with_changes({f"collimator.{k}": v for k, v in fields.items()})
 
 
-def test_zero_spread_is_exactly_the_collimating_design(v2):
-    reference = collimator_profile(v2)
-    shaped = shaped_profile(v2.collimator, v2.led.peak_nm)
+def test_zero_spread_is_exactly_the_collimating_design(v2_collimating):
+    reference = collimator_profile(v2_collimating)
+    shaped = shaped_profile(v2_collimating.collimator, v2_collimating.led.peak_nm)
     assert shaped.lens_vertex_z_mm == pytest.approx(reference.lens_vertex_z_mm, rel=1e-8)
     np.testing.assert_allclose(shaped.lens_z_mm, reference.lens_height_mm(shaped.lens_r_mm), atol=1e-8)
     assert shaped.tir_r_mm[-1] == pytest.approx(reference.tir_r_mm[-1], rel=1e-8)
@@ -63,23 +63,23 @@ def test_revolved_mesh_is_a_closed_solid_with_the_cad_volume(v2):
     assert mesh.volume == pytest.approx(exact, rel=2e-3)
 
 
-def test_impossible_shapes_are_design_errors(v2):
+def test_impossible_shapes_are_design_errors(v2_collimating):
     with pytest.raises(DesignError, match="collimator.lens_spread_deg.*0.0–40.0"):
-        _shaped(v2, lens_spread_deg=60.0)
+        _shaped(v2_collimating, lens_spread_deg=60.0)
     with pytest.raises(DesignError):
-        collimator_profile(_shaped(v2, tir_spread_deg=30.0))  # spreading outwards: too tall
+        collimator_profile(_shaped(v2_collimating, tir_spread_deg=30.0))  # spreading outwards: too tall
 
 
-def test_the_design_yaml_rebuilds_the_shaped_part(v2, tmp_path):
+def test_the_design_yaml_rebuilds_the_shaped_part(v2_collimating, tmp_path):
     from cm2optics.cad.collimator import build_collimator
 
-    design = _shaped(v2, lens_spread_deg=15.0, tir_spread_deg=20.0, tir_crossing=True)
+    design = _shaped(v2_collimating, lens_spread_deg=15.0, tir_spread_deg=20.0, tir_crossing=True)
     design.save(tmp_path / "d.yaml")
     again = load_design(tmp_path / "d.yaml")
     shaped_volume = build_collimator(again).val().Volume()
     mesh = revolve_profile(collimator_profile(again))
     assert mesh.volume == pytest.approx(shaped_volume, rel=2e-3)
-    assert abs(shaped_volume - build_collimator(v2).val().Volume()) > 1e-3
+    assert abs(shaped_volume - build_collimator(v2_collimating).val().Volume()) > 1e-3
 
 
 def test_etendue_bound(v2):
@@ -95,7 +95,9 @@ def test_etendue_bound(v2):
 def test_uniform_beam_bound_is_reached_by_a_unit_looking_straight_down(v2):
     """One unit on the axis, facing the sample: a radial profile lights the circle exactly
     evenly (up to the bins straddling its rim), so nearly all of its output can be delivered."""
-    overhead = v2.with_changes({"led_array.tilt_deg": 0.0, "led_array.offset_mm": 1e-3, "led_array.count": 1})
+    overhead = v2.with_changes(
+        {"led_array.tilt_deg": 0.0, "led_array.offset_mm": 1e-3, "led_array.aim_mm": 0.0, "led_array.count": 1}
+    )
     bound = uniform_beam_bound(overhead, max_cv=0.05)
     assert bound["output_bound"] > 0.95
     assert bound["cv"] <= 0.05
@@ -201,7 +203,7 @@ def test_etendue_blur_and_its_sampling(v2):
     assert angle.max() <= alpha + 1e-12
 
 
-def test_free_aim_bound_takes_the_best_clear_placement(v2):
+def test_free_aim_bound_takes_the_best_clear_placement(v2_collimating):
     """With a grid of placements the free-aim bound is the best of the fixed-aim bounds of the
     placements that clear the tower (same rings, rays and seed: the same footprints), skips the
     ones that clash, and the finite LED's blur costs output against the ideal point-like beam."""
@@ -209,9 +211,11 @@ def test_free_aim_bound_takes_the_best_clear_placement(v2):
 
     kw = {"rings": 24, "rays_per_ring": 3000, "max_angle_deg": 45.0}
     grid = {"led_array.tilt_deg": (45.0,), "led_array.aim_mm": (-2.0, 0.0, 1.0)}
-    free = free_aim_bound(v2, grid=grid, finite_source=False, **kw)
+    free = free_aim_bound(v2_collimating, grid=grid, finite_source=False, **kw)
     fixed = {
-        aim: uniform_beam_bound(v2.with_changes({"led_array.aim_mm": aim}), finite_source=False, **kw)["output_bound"]
+        aim: uniform_beam_bound(v2_collimating.with_changes({"led_array.aim_mm": aim}), finite_source=False, **kw)[
+            "output_bound"
+        ]
         for aim in (0.0, 1.0)
     }
     assert free["output_bound"] == pytest.approx(max(fixed.values()), abs=1e-4)
@@ -219,12 +223,12 @@ def test_free_aim_bound_takes_the_best_clear_placement(v2):
     skipped = [p for p in free["placements"] if "skipped" in p]
     assert [p["placement"]["led_array.aim_mm"] for p in skipped] == [-2.0]
     assert "imaging tower" in skipped[0]["skipped"]
-    blurred = free_aim_bound(v2, grid=grid, finite_source=True, **kw)
+    blurred = free_aim_bound(v2_collimating, grid=grid, finite_source=True, **kw)
     assert blurred["output_bound"] < free["output_bound"]
     assert blurred["delivered_bound"] == pytest.approx(blurred["output_bound"] * blurred["spectral_ceiling"], abs=1e-3)
 
 
-def test_free_aim_sweeps_the_placement_and_rejects_units_in_the_tower(v2):
+def test_free_aim_sweeps_the_placement_and_rejects_units_in_the_tower(v2_collimating):
     from cm2optics.illumination.optimize import AIM_PARAMETERS, PARAMETERS, _sobol, evaluate_candidate, search_box
 
     assert search_box(False) == PARAMETERS
@@ -233,8 +237,8 @@ def test_free_aim_sweeps_the_placement_and_rejects_units_in_the_tower(v2):
     assert _sobol(box, 8, seed=5) == _sobol(box, 8, seed=5) != _sobol(box, 8, seed=6)  # seeded, reproducible
     for point in _sobol(box, 8, seed=5):
         assert all(box[k][0] <= v <= box[k][1] for k, v in point.items())
-    values = {k: getattr(v2.collimator, k.split(".")[1]) for k in PARAMETERS} | {"led_array.aim_mm": -2.0}
-    entry = evaluate_candidate(v2.to_dict(), values, 1000, 0, 0.1, threads=1)
+    values = {k: getattr(v2_collimating.collimator, k.split(".")[1]) for k in PARAMETERS} | {"led_array.aim_mm": -2.0}
+    entry = evaluate_candidate(v2_collimating.to_dict(), values, 1000, 0, 0.1, threads=1)
     assert entry["feasible"] is False and "imaging tower" in entry["reason"]
 
 

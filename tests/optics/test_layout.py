@@ -33,7 +33,8 @@ def test_aiming_past_the_centre_raises_the_units(v2):
     plane, so the aperture sits lower (further from the sample) by Δaim / tan(tilt)."""
     base = led_poses(v2)[0].origin_mm[2]
     aimed = led_poses(v2.with_changes({"led_array.aim_mm": -1.0}))[0].origin_mm[2]
-    assert base - aimed == pytest.approx(1.0 / math.tan(math.radians(v2.led_array.tilt_deg)))
+    shift = v2.led_array.aim_mm + 1.0
+    assert base - aimed == pytest.approx(shift / math.tan(math.radians(v2.led_array.tilt_deg)))
 
 
 def _cube(centre_x: float, angle_deg: float) -> tuple[np.ndarray, np.ndarray]:
@@ -59,13 +60,14 @@ def test_separating_axis_test_on_cubes(x, angle, overlap):
     assert _convex_overlap(a, a_axes, b, b_axes) is overlap
 
 
-def test_unit_clashes_pass_the_preset_and_catch_units_in_the_tower(v2):
+def test_unit_clashes_pass_the_preset_and_catch_units_in_the_tower(v2, v2_collimating):
     from cm2optics.optics.layout import unit_clashes
 
-    assert unit_clashes(v2) == []
-    low = v2.with_changes({"led_array.aim_mm": -2.0})  # the same tilt, aimed past the centre: lower, into the tower
+    assert unit_clashes(v2) == [] and unit_clashes(v2_collimating) == []
+    # At 45° / 6.7 mm, aimed past the centre: lower, into the tower.
+    low = v2_collimating.with_changes({"led_array.aim_mm": -2.0})
     assert any("enters the imaging tower" in line for line in unit_clashes(low))
-    crowded = v2.with_changes({"led_array.offset_mm": 5.5, "led_array.tilt_deg": 55.0})
+    crowded = v2_collimating.with_changes({"led_array.offset_mm": 5.5, "led_array.tilt_deg": 55.0})
     assert any("overlap" in line for line in unit_clashes(crowded))
 
 
