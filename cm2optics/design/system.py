@@ -22,6 +22,7 @@ import yaml
 
 from cm2optics.design import paraxial
 from cm2optics.design.as_built import AsBuilt
+from cm2optics.design.as_built_illumination import IlluminationAsBuilt
 from cm2optics.design.coerce import dataclass_from_dict, to_plain, write_text_atomic
 from cm2optics.design.filters import AbsorptionFilter, InterferenceFilter
 from cm2optics.design.illumination import LED, Collimator, LEDArray
@@ -40,7 +41,8 @@ class SystemDesign:
 
     ``as_built`` (optional in YAML): how the assembled device departs from the design
     (:class:`~cm2optics.design.as_built.AsBuilt`); absent or all-default, it leaves the design's
-    YAML and parameter hash as they were.
+    YAML and parameter hash as they were. ``illumination_as_built`` (optional): the same for
+    the LED units (:class:`~cm2optics.design.as_built_illumination.IlluminationAsBuilt`).
     """
 
     name: str
@@ -61,9 +63,11 @@ class SystemDesign:
     led_housing: LEDHousing
     base_plate: BasePlate
     as_built: AsBuilt = field(default_factory=AsBuilt)
+    illumination_as_built: IlluminationAsBuilt = field(default_factory=IlluminationAsBuilt)
 
     def __post_init__(self) -> None:
         self._check_as_built()
+        self._check_illumination_as_built()
         self._check_mla_on_sensor()
         self._check_filter_bands()
         self._check_film()
@@ -86,6 +90,18 @@ class SystemDesign:
                 [list(v) if isinstance(v, tuple) else v for v in value],
                 len(value) in (0, count),
                 f"must list one value per lenslet ({count} = mla.rows × mla.cols, row by row) or be empty",
+            )
+
+    def _check_illumination_as_built(self) -> None:
+        """Per-unit lists have one entry per LED unit (or none)."""
+        count = self.led_array.count
+        for name in ("led_flux", "led_tilt_deg", "collimator_decenter_mm"):
+            value = getattr(self.illumination_as_built, name)
+            check(
+                f"illumination_as_built.{name}",
+                [list(v) if isinstance(v, tuple) else v for v in value],
+                len(value) in (0, count),
+                f"must list one value per LED unit ({count} = led_array.count) or be empty",
             )
 
     def _check_mla_on_sensor(self) -> None:
@@ -254,6 +270,11 @@ class SystemDesign:
             data["as_built"] = changed
         else:
             del data["as_built"]
+        changed = self.illumination_as_built.changed()
+        if changed:
+            data["illumination_as_built"] = changed
+        else:
+            del data["illumination_as_built"]
         return data
 
     def to_yaml(self) -> str:
