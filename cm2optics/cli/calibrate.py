@@ -184,3 +184,49 @@ def illumination(
     for item in doc["unexplained"]:
         typer.echo(f"  unexplained: {item['description']}")
     typer.echo(f"report: {report}")
+
+
+@calibrate_app.command("paper")
+@user_errors
+def paper(
+    preset: PresetOption = "cm2-v2",
+    out: Annotated[Path, typer.Option("--out", "-o", help="Report folder.")] = Path("out/calibration-paper"),
+    rays: Annotated[int, typer.Option("--rays", min=10_000, help="Rays of each trace (all LEDs).")] = 400_000,
+    seed: Annotated[int, typer.Option("--seed", help="Seed of the rays.")] = 0,
+    overwrite: OverwriteOption = False,
+    as_json: JsonOption = False,
+) -> None:
+    """The paper's own measurements as residuals of the model: (a) the excitation power.
+
+    The paper measured up to 75 mW over the 8-mm field at 350 mA; the design is traced as cm2
+    illum run traces it, and its power multiplied by a chain of factors, each with its value, 1σ
+    relative uncertainty, source and whether the code computed it (LED photometric conversion
+    from the spectrum and CIE V(λ), the power meter's aperture and angular response at the
+    traced rays' incidence, the printed surface error by re-traces) or assumed it (thermal
+    droop, the filter's coating); what remains is the unexplained ratio. The paper's numbers
+    are inputs with their place in shared/paper. Writes paper.json, excitation_power.png and
+    report.html into --out. JSON key: excitation_power (measured_mw, predicted_mw, factors,
+    explained_mw, remaining_ratio, description).
+    """
+    from cm2optics.calibrate.paper import excitation_power_chain
+    from cm2optics.design import load_preset
+    from cm2optics.errors import UserError
+    from cm2optics.formats.outputs import claim_folder
+    from cm2optics.reports.calibrate_paper import write_paper_report
+
+    design = load_preset(preset)
+    if design.collimator is None:
+        raise UserError(f"--preset {preset}: the paper's measurements are of a design with collimators (cm2-v2)")
+    check_output(out, command="calibrate paper", kind="folder", inputs=[preset], overwrite=overwrite)
+    document = {"excitation_power": excitation_power_chain(design, rays=rays, seed=seed)}
+    claim_folder(out, "calibrate paper")
+    report = write_paper_report(document, out)
+    if as_json:
+        print(json.dumps(document, indent=2, ensure_ascii=False))
+        return
+    power = document["excitation_power"]
+    typer.echo(f"excitation power: traced {power['predicted_mw']:.0f} mW, measured {power['measured_mw']:g} mW")
+    for factor in power["factors"]:
+        typer.echo(f"  {factor['name']}: × {factor['value']:.3f} ± {100 * factor['uncertainty']:.0f} %")
+    typer.echo(f"  {power['description']}")
+    typer.echo(f"report: {report}")
