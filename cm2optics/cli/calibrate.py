@@ -125,7 +125,7 @@ def illumination(
     pixel_um: Annotated[float, typer.Option("--pixel-um", help="The map's pixel on the sample, µm.")],
     preset: PresetOption = "cm2-v2",
     out: Annotated[Path, typer.Option("--out", "-o", help="Report folder.")] = Path("out/calibration-illumination"),
-    rays: Annotated[int, typer.Option("--rays", min=1000, help="Rays of each model trace (all LEDs).")] = 400_000,
+    rays: Annotated[int, typer.Option("--rays", help="Rays of each model trace (all LEDs), ≥ 1000.")] = 400_000,
     bin_mm: Annotated[float, typer.Option("--bin-mm", help="Side of the comparison bins on the sample, mm.")] = 0.5,
     counts_per_electron: Annotated[
         float, typer.Option("--counts-per-electron", help="The camera's gain, for the map's shot noise.")
@@ -191,7 +191,7 @@ def illumination(
 def paper(
     preset: PresetOption = "cm2-v2",
     out: Annotated[Path, typer.Option("--out", "-o", help="Report folder.")] = Path("out/calibration-paper"),
-    rays: Annotated[int, typer.Option("--rays", min=10_000, help="Rays of each trace (all LEDs).")] = 400_000,
+    rays: Annotated[int, typer.Option("--rays", help="Rays of each trace (all LEDs), ≥ 10000.")] = 400_000,
     seed: Annotated[int, typer.Option("--seed", help="Seed of the rays.")] = 0,
     overwrite: OverwriteOption = False,
     as_json: JsonOption = False,
@@ -217,6 +217,8 @@ def paper(
     design = load_preset(preset)
     if design.collimator is None:
         raise UserError(f"--preset {preset}: the paper's measurements are of a design with collimators (cm2-v2)")
+    if rays < 10_000:
+        raise UserError(f"--rays = {rays}: must be ≥ 10000")
     check_output(out, command="calibrate paper", kind="folder", inputs=[preset], overwrite=overwrite)
     document = {"excitation_power": excitation_power_chain(design, rays=rays, seed=seed)}
     claim_folder(out, "calibrate paper")

@@ -609,13 +609,21 @@ def _network_and_calibration_cases() -> list[Case]:
 
 
 def _illumination_calibration_cases() -> list[Case]:
-    """`cm2 calibrate illumination`: a bad map file, pixel size, map too small, output, preset."""
+    """`cm2 calibrate illumination` (a bad map file, pixel size, map too small, output, preset)
+    and `cm2 calibrate paper` (a design without collimators, a bad option, an existing output)."""
     command = "calibrate illumination"
 
     def run(*args: str) -> list[str]:
         return ["calibrate", "illumination", *args]
 
+    paper = ["calibrate", "paper", "--rays", "10000"]
     return [
+        Case("calibrate paper", "option", [*paper, "--preset", "cm2-v1", "--out", "{case}/r"], ("collimators",)),
+        Case("calibrate paper", "option", [*paper, "--preset", "nope", "--out", "{case}/r"], ("unknown preset",)),
+        Case("calibrate paper", "option", [*paper[:2], "--rays", "5", "--out", "{case}/r"], ("--rays",)),
+        Case(
+            "calibrate paper", "existing-output", [*paper, "--out", "{case}"], ("not empty", "--overwrite"), {"k": "x"}
+        ),
         Case(
             command, "input-file", run("{missing}", "--pixel-um", "20", "--out", "{case}/r"), ("missing.tif", "no such")
         ),
