@@ -83,6 +83,13 @@ class UnitEffect:
         return f"{self.name}[{self.unit}]"
 
 
+def _pair_effect(
+    name: str, unit: int, names: tuple[str, str], limit: float, step: float, description: str
+) -> UnitEffect:
+    """A traced effect of two parameters, each within ±limit, finite-difference step ``step``."""
+    return UnitEffect(name, unit, tuple(Parameter(n, 0.0, -limit, limit, step) for n in names), description, True)
+
+
 def illumination_effects(units: int, collimator: bool) -> tuple[UnitEffect, ...]:
     """Every candidate effect of ``units`` LED units (decentres only with a collimator)."""
     low, high = LED_FLUX
@@ -98,28 +105,24 @@ def illumination_effects(units: int, collimator: bool) -> tuple[UnitEffect, ...]
             )
         )
         out.append(
-            UnitEffect(
+            _pair_effect(
                 "led_tilt",
                 u,
-                (
-                    Parameter("tilt_x_deg", 0.0, -LED_TILT_DEG, LED_TILT_DEG, 0.5),
-                    Parameter("tilt_y_deg", 0.0, -LED_TILT_DEG, LED_TILT_DEG, 0.5),
-                ),
+                ("tilt_x_deg", "tilt_y_deg"),
+                LED_TILT_DEG,
+                0.5,
                 "the unit is tilted about its LED (its housing seated askew)",
-                True,
             )
         )
         if collimator:
             out.append(
-                UnitEffect(
+                _pair_effect(
                     "collimator_decenter",
                     u,
-                    (
-                        Parameter("dx_mm", 0.0, -COLLIMATOR_DECENTER_MM, COLLIMATOR_DECENTER_MM, 0.05),
-                        Parameter("dy_mm", 0.0, -COLLIMATOR_DECENTER_MM, COLLIMATOR_DECENTER_MM, 0.05),
-                    ),
+                    ("dx_mm", "dy_mm"),
+                    COLLIMATOR_DECENTER_MM,
+                    0.05,
                     "the collimator sits off its LED's axis",
-                    True,
                 )
             )
     return tuple(out)

@@ -67,7 +67,6 @@ class SystemDesign:
 
     def __post_init__(self) -> None:
         self._check_as_built()
-        self._check_illumination_as_built()
         self._check_mla_on_sensor()
         self._check_filter_bands()
         self._check_film()
@@ -81,28 +80,33 @@ class SystemDesign:
         )
 
     def _check_as_built(self) -> None:
-        """Per-lenslet lists have one entry per full lenslet (or none)."""
-        count = self.mla.rows * self.mla.cols
-        for name in ("lenslet_decenter_mm", "lenslet_transmission"):
-            value = getattr(self.as_built, name)
-            check(
-                f"as_built.{name}",
-                [list(v) if isinstance(v, tuple) else v for v in value],
-                len(value) in (0, count),
-                f"must list one value per lenslet ({count} = mla.rows × mla.cols, row by row) or be empty",
-            )
-
-    def _check_illumination_as_built(self) -> None:
-        """Per-unit lists have one entry per LED unit (or none)."""
-        count = self.led_array.count
-        for name in ("led_flux", "led_tilt_deg", "collimator_decenter_mm"):
-            value = getattr(self.illumination_as_built, name)
-            check(
-                f"illumination_as_built.{name}",
-                [list(v) if isinstance(v, tuple) else v for v in value],
-                len(value) in (0, count),
-                f"must list one value per LED unit ({count} = led_array.count) or be empty",
-            )
+        """Per-lenslet lists have one entry per full lenslet, per-unit lists one per LED unit (or none)."""
+        lenslets = self.mla.rows * self.mla.cols
+        per_item = (
+            (
+                self.as_built,
+                "as_built",
+                ("lenslet_decenter_mm", "lenslet_transmission"),
+                lenslets,
+                f"lenslet ({lenslets} = mla.rows × mla.cols, row by row)",
+            ),
+            (
+                self.illumination_as_built,
+                "illumination_as_built",
+                ("led_flux", "led_tilt_deg", "collimator_decenter_mm"),
+                self.led_array.count,
+                f"LED unit ({self.led_array.count} = led_array.count)",
+            ),
+        )
+        for section, prefix, names, count, what in per_item:
+            for name in names:
+                value = getattr(section, name)
+                check(
+                    f"{prefix}.{name}",
+                    [list(v) if isinstance(v, tuple) else v for v in value],
+                    len(value) in (0, count),
+                    f"must list one value per {what} or be empty",
+                )
 
     def _check_mla_on_sensor(self) -> None:
         """The MLA fits the sensor's active area."""
