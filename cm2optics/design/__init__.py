@@ -7,8 +7,8 @@ code. Construct parts directly (``MicrolensArray(...)``) or load a YAML preset
 naming the field, the value and what is allowed.
 
 One idea per module: :mod:`~.validation` (errors), :mod:`~.sensor`, :mod:`~.mla`, :mod:`~.filters`,
-:mod:`~.imaging`, :mod:`~.illumination`, :mod:`~.mechanics` (the parts), :mod:`~.as_built`
-(how the assembled device departs from them), :mod:`~.system` (the
+:mod:`~.imaging`, :mod:`~.illumination`, :mod:`~.mechanics` (the parts), :mod:`~.as_built` and
+:mod:`~.as_built_illumination` (how the assembled device departs from them), :mod:`~.system` (the
 device and its cross-part checks), :mod:`~.coerce` and :mod:`~.io` (YAML), :mod:`~.materials`
 (refractive indices) and :mod:`~.paraxial` (ABCD matrices). Derived optics (best focus,
 magnification, object pixel, NA) are functions in :mod:`cm2optics.optics.first_order`; this
@@ -16,6 +16,7 @@ package imports no other part of cm2optics.
 """
 
 from cm2optics.design.as_built import AsBuilt
+from cm2optics.design.as_built_illumination import IlluminationAsBuilt
 from cm2optics.design.filters import AbsorptionFilter, InterferenceFilter
 from cm2optics.design.illumination import LED, Collimator, LEDArray
 from cm2optics.design.imaging import ImagedVolume, ImagingLayout
@@ -43,6 +44,7 @@ __all__ = [
     "BasePlate",
     "Collimator",
     "DesignError",
+    "IlluminationAsBuilt",
     "ImagedVolume",
     "ImagingLayout",
     "InterferenceFilter",

@@ -20,8 +20,8 @@ ranges, so that a fitted effect is a design value that every stage honours:
 
 The sensor offset moves the pixel grid only: the active area's edges, where the tracer drops
 rays, stay centred on the axis (for offsets ≪ the sensor's half-width this matters only to
-foci at its very edge). The illumination path (``cm2 illum run``) has no as-built fields yet:
-a design with the section illuminates as designed.
+foci at its very edge). The illumination path (``cm2 illum run``) reads its own section,
+``illumination_as_built`` (:mod:`cm2optics.design.as_built_illumination`).
 
 Lenslets are numbered row by row over the full cells (``j = row · cols + col``), as in
 :meth:`cm2optics.design.MicrolensArray.lenslet_centres_mm`; partial cells left by dicing move

@@ -22,6 +22,7 @@ import yaml
 
 from cm2optics.design import paraxial
 from cm2optics.design.as_built import AsBuilt
+from cm2optics.design.as_built_illumination import IlluminationAsBuilt
 from cm2optics.design.coerce import dataclass_from_dict, to_plain, write_text_atomic
 from cm2optics.design.filters import AbsorptionFilter, InterferenceFilter
 from cm2optics.design.illumination import LED, Collimator, LEDArray
@@ -40,7 +41,8 @@ class SystemDesign:
 
     ``as_built`` (optional in YAML): how the assembled device departs from the design
     (:class:`~cm2optics.design.as_built.AsBuilt`); absent or all-default, it leaves the design's
-    YAML and parameter hash as they were.
+    YAML and parameter hash as they were. ``illumination_as_built`` (optional): the same for
+    the LED units (:class:`~cm2optics.design.as_built_illumination.IlluminationAsBuilt`).
     """
 
     name: str
@@ -61,6 +63,7 @@ class SystemDesign:
     led_housing: LEDHousing
     base_plate: BasePlate
     as_built: AsBuilt = field(default_factory=AsBuilt)
+    illumination_as_built: IlluminationAsBuilt = field(default_factory=IlluminationAsBuilt)
 
     def __post_init__(self) -> None:
         self._check_as_built()
@@ -77,16 +80,33 @@ class SystemDesign:
         )
 
     def _check_as_built(self) -> None:
-        """Per-lenslet lists have one entry per full lenslet (or none)."""
-        count = self.mla.rows * self.mla.cols
-        for name in ("lenslet_decenter_mm", "lenslet_transmission"):
-            value = getattr(self.as_built, name)
-            check(
-                f"as_built.{name}",
-                [list(v) if isinstance(v, tuple) else v for v in value],
-                len(value) in (0, count),
-                f"must list one value per lenslet ({count} = mla.rows × mla.cols, row by row) or be empty",
-            )
+        """Per-lenslet lists have one entry per full lenslet, per-unit lists one per LED unit (or none)."""
+        lenslets = self.mla.rows * self.mla.cols
+        per_item = (
+            (
+                self.as_built,
+                "as_built",
+                ("lenslet_decenter_mm", "lenslet_transmission"),
+                lenslets,
+                f"lenslet ({lenslets} = mla.rows × mla.cols, row by row)",
+            ),
+            (
+                self.illumination_as_built,
+                "illumination_as_built",
+                ("led_flux", "led_tilt_deg", "collimator_decenter_mm"),
+                self.led_array.count,
+                f"LED unit ({self.led_array.count} = led_array.count)",
+            ),
+        )
+        for section, prefix, names, count, what in per_item:
+            for name in names:
+                value = getattr(section, name)
+                check(
+                    f"{prefix}.{name}",
+                    [list(v) if isinstance(v, tuple) else v for v in value],
+                    len(value) in (0, count),
+                    f"must list one value per {what} or be empty",
+                )
 
     def _check_mla_on_sensor(self) -> None:
         """The MLA fits the sensor's active area."""
@@ -254,6 +274,11 @@ class SystemDesign:
             data["as_built"] = changed
         else:
             del data["as_built"]
+        changed = self.illumination_as_built.changed()
+        if changed:
+            data["illumination_as_built"] = changed
+        else:
+            del data["illumination_as_built"]
         return data
 
     def to_yaml(self) -> str:

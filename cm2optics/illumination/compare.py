@@ -15,6 +15,7 @@ import numpy as np
 
 from cm2optics.design import SystemDesign
 from cm2optics.design.materials import Material
+from cm2optics.illumination.as_built import as_built_scene
 from cm2optics.illumination.excitation import Transmission, design_filter_transmission, filter_from_table
 from cm2optics.illumination.geometry import CollimatorMesh, build_scene, collimator_from_design, collimator_from_stl
 from cm2optics.illumination.metrics import IlluminationFigures, figures_of_merit
@@ -112,7 +113,8 @@ def compare_designs(
     configs: list[tuple[str, CollimatorMesh | None]],
     progress: Any = None,
 ) -> list[IlluminationFigures]:
-    """Trace every configuration in ``setup`` and return their figures, in order.
+    """Trace every configuration in ``setup`` (as built: the design's ``illumination_as_built``)
+    and return their figures, in order.
 
     progress: optional callable ``progress(label)`` called before each trace.
     """
@@ -120,13 +122,15 @@ def compare_designs(
     for label, collimator in configs:
         if progress is not None:
             progress(label)
-        scene = build_scene(
-            design,
-            collimator,
-            excitation_filter=setup.transmission is not None,
-            housing=setup.housing,
-            smooth_normals=setup.smooth_normals,
-            label=label,
+        scene = as_built_scene(
+            build_scene(
+                design,
+                collimator,
+                excitation_filter=setup.transmission is not None,
+                housing=setup.housing,
+                smooth_normals=setup.smooth_normals,
+                label=label,
+            )
         )
         record = trace(
             scene,

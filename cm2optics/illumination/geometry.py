@@ -161,6 +161,8 @@ class IlluminationScene:
     notes: remarks on how the scene departs from the design (e.g. an air film added).
     index_override: optional ``{Medium: n(wavelength_nm)}`` replacing the materials' indices
         (tests use a constant n = 1.5).
+    led_flux: per unit its radiant flux relative to the LED's (empty: all 1; a design's
+        ``illumination_as_built.led_flux``, :mod:`cm2optics.illumination.as_built`).
     """
 
     design: SystemDesign
@@ -174,6 +176,7 @@ class IlluminationScene:
     portal_z_mm: float
     notes: tuple[str, ...] = field(default=())
     index_override: dict[Medium, Callable[[np.ndarray], np.ndarray]] = field(default_factory=dict)
+    led_flux: tuple[float, ...] = ()
 
     def refractive_indices(self, wavelength_nm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Per-ray refractive indices (collimator material, filter substrate) at ``wavelength_nm`` (nm)."""
@@ -201,6 +204,11 @@ class IlluminationScene:
     @property
     def field_radius_mm(self) -> float:
         return float(self.design.volume.field_mm / 2)
+
+    @property
+    def unit_flux(self) -> np.ndarray:
+        """(count,) each unit's radiant flux relative to the LED's."""
+        return np.asarray(self.led_flux, dtype=float) if self.led_flux else np.ones(self.units)
 
     @property
     def unit_axes(self) -> np.ndarray:

@@ -15,7 +15,8 @@ delivered_fraction
     power landing on the sample plane (z = object_plane_z_mm) inside the field circle
     (diameter volume.field_mm, centred on the optical axis) / P_emit.
 power_mw
-    delivered_fraction × led_array.count × LED radiant flux: mW into the circle from the array.
+    delivered_fraction × led_array.count × LED radiant flux (each LED scaled by the design's
+    ``illumination_as_built.led_flux``): mW into the circle from the array.
 uniformity_min_max, uniformity_cv
     over the square bins (side ``bin_mm``) of the array's irradiance map whose centres lie in
     the circle: min / max, and standard deviation / mean. Monte Carlo noise adds to the
@@ -60,7 +61,8 @@ JACKKNIFE_GROUPS = 16
 DEFINITIONS = {
     "throughput": "power leaving the excitation filter's back face (no filter: the unit's exit plane) / power emitted by the LEDs",
     "delivered_fraction": "power landing inside the field circle (volume.field_mm) on the sample plane / power emitted",
-    "power_mw": "delivered_fraction × led_array.count × LED radiant flux: mW into the circle from the array",
+    "power_mw": "delivered_fraction × led_array.count × LED radiant flux (each LED scaled by "
+    "illumination_as_built.led_flux): mW into the circle from the array",
     "uniformity_min_max": "min / max of the array's irradiance over the bin_mm bins centred inside the circle",
     "uniformity_cv": "standard deviation / mean of the same bins (includes Monte Carlo noise, see uniformity_cv_noise)",
     "uniformity_cv_noise": "CV that Monte Carlo noise alone gives a uniform field with these rays: 1/√(rays per bin)",
@@ -256,12 +258,13 @@ def _ledger(status: np.ndarray, on_sample: np.ndarray, delivered: np.ndarray) ->
     return ledger
 
 
-def _per_led(record: RayRecord, delivered: np.ndarray, flux: float) -> list[dict[str, Any]]:
-    """Each LED's throughput, delivered fraction and power (mW; flux in mW) with their errors."""
+def _per_led(record: RayRecord, delivered: np.ndarray) -> list[dict[str, Any]]:
+    """Each LED's throughput, delivered fraction and power (mW) with their errors."""
     units = record.units
     per_led = []
     for unit in range(units):
         mine = record.unit == unit
+        flux = float(np.count_nonzero(mine) * record.power_mw)  # this LED's emitted power, mW
         t = _fraction(record.passed[mine])
         f = _fraction(delivered[mine])
         per_led.append(
@@ -307,14 +310,15 @@ def figures_of_merit(
     units = record.units
     throughput = _fraction(record.passed)
     delivered_fraction = _fraction(delivered)
-    power = Estimate(delivered_fraction.value * units * flux, delivered_fraction.stderr * units * flux)
+    emitted_mw = record.rays * record.power_mw  # units × flux, less or more where LEDs differ
+    power = Estimate(delivered_fraction.value * emitted_mw, delivered_fraction.stderr * emitted_mw)
 
     uniformity_cv, uniformity_min_max, mean_count = _uniformity(record, on_sample, bin_mm, radius)
     passed_angles = angle[record.passed]
 
     ledger = _ledger(status, on_sample, delivered)
 
-    per_led = _per_led(record, delivered, flux)
+    per_led = _per_led(record, delivered)
 
     map_half = map_bin_mm * math.ceil((radius + map_margin_mm) / map_bin_mm)
     hits = record.hit_mm

@@ -247,7 +247,7 @@ def trace_rays_numpy(
         bounces=bounces,
         power_mw=batch.power_mw,
         units=scene.units,
-        rays_per_unit=count // max(scene.units, 1),
+        rays_per_unit=batch.rays_per_unit or count // max(scene.units, 1),
         seconds=time.perf_counter() - start,
         variant="numpy-reference",
     )

@@ -90,6 +90,7 @@ class EmittedBatch:
 
     unit: LED unit of each ray. origin_mm, direction: (N, 3). wavelength_nm: (N,), nm.
     power_mw: power carried by each ray, mW (the same for all).
+    rays_per_unit: rays of a unit at the LED's nominal flux (0: N / units, every unit alike).
     """
 
     unit: np.ndarray
@@ -97,6 +98,7 @@ class EmittedBatch:
     direction: np.ndarray
     wavelength_nm: np.ndarray
     power_mw: float
+    rays_per_unit: int = 0
 
 
 @dataclass(frozen=True, eq=False)
@@ -111,7 +113,7 @@ class RayRecord:
     wavelength_nm: the ray's wavelength, nm.
     bounces: surfaces met.
     power_mw: power of each ray, mW.
-    units: number of LED units; rays_per_unit: rays each unit emitted.
+    units: number of LED units; rays_per_unit: rays a unit emits at the LED's nominal flux.
     seconds: wall time of the trace (sampling, tracing, copying back), s.
     variant: the Mitsuba variant that traced (``"numpy-reference"`` for the reference tracer).
     """
@@ -144,23 +146,28 @@ def _rotate(matrix: np.ndarray, vectors: np.ndarray) -> np.ndarray:
 
 def emit_rays(scene: IlluminationScene, source: LEDSource, rays: int, seed: int) -> EmittedBatch:
     """``rays`` LED rays split evenly over the units (``rays // units`` each, at least 1),
-    sampled with ``numpy.random.default_rng(seed)`` and placed in the device frame."""
+    sampled with ``numpy.random.default_rng(seed)`` and placed in the device frame. A unit of
+    relative flux f (``scene.led_flux``) emits ``round(f · rays // units)`` rays of the same power."""
     units = scene.units
     per_unit = max(int(rays) // units, 1)
     rng = np.random.default_rng(seed)
     origins, directions, wavelengths, unit_ids = [], [], [], []
-    for unit, matrix in enumerate(scene.poses):
-        emitted = sample_led_rays(source, per_unit, rng)
+    for unit, (matrix, flux) in enumerate(zip(scene.poses, scene.unit_flux, strict=True)):
+        count = int(round(flux * per_unit))
+        if count == 0:
+            continue
+        emitted = sample_led_rays(source, count, rng)
         origins.append(_rotate(matrix, emitted.origin_mm) + matrix[:3, 3])
         directions.append(_rotate(matrix, emitted.direction))
         wavelengths.append(emitted.wavelength_nm)
-        unit_ids.append(np.full(per_unit, unit, dtype=np.int32))
+        unit_ids.append(np.full(count, unit, dtype=np.int32))
     return EmittedBatch(
         unit=np.concatenate(unit_ids),
         origin_mm=np.concatenate(origins),
         direction=np.concatenate(directions),
         wavelength_nm=np.concatenate(wavelengths),
         power_mw=source.radiant_flux_mw / per_unit,
+        rays_per_unit=per_unit,
     )
 
 
@@ -483,6 +490,7 @@ def trace_rays(
             batch.direction[lo:hi],
             batch.wavelength_nm[lo:hi],
             batch.power_mw,
+            batch.rays_per_unit,
         )
         parts.append(kernel.run(sub, n_coll[lo:hi], n_filt[lo:hi], lo))
     out = parts[0] if len(parts) == 1 else {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
@@ -496,7 +504,7 @@ def trace_rays(
         bounces=out["bounces"].astype(np.int32),
         power_mw=batch.power_mw,
         units=scene.units,
-        rays_per_unit=count // max(scene.units, 1),
+        rays_per_unit=batch.rays_per_unit or count // max(scene.units, 1),
         seconds=time.perf_counter() - start,
         variant=variant().variant,
     )

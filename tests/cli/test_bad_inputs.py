@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import tifffile
 from typer.testing import CliRunner
 
 from cm2optics.cli import app
@@ -50,6 +51,7 @@ def inputs(tmp_path_factory) -> dict[str, Path]:
     (root / "positions.csv").write_text("x_mm,y_mm,z_mm\n0,0,0\n")
     (root / "meas.tif").write_bytes(b"II*\x00" + bytes(range(256)) * 4)  # any existing file: refused before reading
     (root / "garbage.tif").write_bytes(os.urandom(2048))
+    tifffile.imwrite(root / "map.tif", np.full((64, 64), 100.0, np.float32))  # a valid 64 × 64 map
     (root / "garbage.h5").write_bytes(os.urandom(2048))
     (root / "garbage.csv").write_bytes(b"\x00\xff\xfe not,a,csv\n\x01\x02")
     (root / "garbage.yaml").write_text("mla: [unclosed\n  : :\n")
@@ -64,6 +66,7 @@ def inputs(tmp_path_factory) -> dict[str, Path]:
         "emitters": root / "emitters.csv",
         "positions": root / "positions.csv",
         "meas": root / "meas.tif",
+        "map": root / "map.tif",
         "garbage_tif": root / "garbage.tif",
         "garbage_h5": root / "garbage.h5",
         "garbage_csv": root / "garbage.csv",
@@ -601,6 +604,60 @@ def _network_and_calibration_cases() -> list[Case]:
             ["calibrate", "scan", "{scan}", "--preset", "nope", "--out", "{case}/r"],
             ("unknown preset",),
         ),
+        *_illumination_calibration_cases(),
+    ]
+
+
+def _illumination_calibration_cases() -> list[Case]:
+    """`cm2 calibrate illumination` (a bad map file, pixel size, map too small, output, preset)
+    and `cm2 calibrate paper` (a design without collimators, a bad option, an existing output)."""
+    command = "calibrate illumination"
+
+    def run(*args: str) -> list[str]:
+        return ["calibrate", "illumination", *args]
+
+    paper = ["calibrate", "paper", "--rays", "10000"]
+    return [
+        Case("calibrate paper", "option", [*paper, "--preset", "cm2-v1", "--out", "{case}/r"], ("collimators",)),
+        Case("calibrate paper", "option", [*paper, "--preset", "nope", "--out", "{case}/r"], ("unknown preset",)),
+        Case("calibrate paper", "option", [*paper[:2], "--rays", "5", "--out", "{case}/r"], ("--rays",)),
+        Case(
+            "calibrate paper", "existing-output", [*paper, "--out", "{case}"], ("not empty", "--overwrite"), {"k": "x"}
+        ),
+        Case(
+            command, "input-file", run("{missing}", "--pixel-um", "20", "--out", "{case}/r"), ("missing.tif", "no such")
+        ),
+        Case(
+            command,
+            "input-file",
+            run("{garbage_tif}", "--pixel-um", "20", "--out", "{case}/r"),
+            ("garbage.tif", "TIFF"),
+        ),
+        Case(command, "input-file", run("{adir}", "--pixel-um", "20", "--out", "{case}/r"), ("adir.tif",)),
+        Case(command, "option", run("{map}", "--pixel-um", "0", "--out", "{case}/r"), ("--pixel-um", "> 0")),
+        Case(command, "option", run("{map}", "--pixel-um", "400", "--out", "{case}/r"), ("--pixel-um", "half a bin")),
+        Case(command, "input-file", run("{map}", "--pixel-um", "10", "--out", "{case}/r"), ("covers 0 bins",)),
+        Case(
+            command,
+            "option",
+            run("{map}", "--pixel-um", "20", "--counts-per-electron", "0", "--out", "{case}/r"),
+            ("--counts-per-electron",),
+        ),
+        Case(command, "option", run("{map}", "--pixel-um", "20", "--bin-mm", "9", "--out", "{case}/r"), ("--bin-mm",)),
+        Case(
+            command,
+            "option",
+            run("{map}", "--pixel-um", "20", "--preset", "nope", "--out", "{case}/r"),
+            ("unknown preset",),
+        ),
+        Case(command, "output-is-input", run("{map}", "--pixel-um", "20", "--out", "{map}"), ("is the input",)),
+        Case(
+            command,
+            "existing-output",
+            run("{map}", "--pixel-um", "20", "--out", "{case}"),
+            ("not empty", "--overwrite"),
+            {"k": "x"},
+        ),
     ]
 
 
@@ -630,6 +687,7 @@ def test_the_catalogue_is_large_and_covers_every_writing_command():
         "lsv validate",
         "spectra fit-filter",
         "net-testset",
+        "calibrate illumination",
     ]:
         assert _command(name) in commands
 

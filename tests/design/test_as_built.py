@@ -15,11 +15,11 @@ from cm2optics.design.coerce import to_plain
 
 
 def _hash_without_as_built(design: SystemDesign) -> str:
-    """The parameter hash as it was before the section (and ``led_array.aim_mm``,
+    """The parameter hash as it was before the section (and ``illumination_as_built``, ``led_array.aim_mm``,
     ``collimator.lens_freeform_um``) existed: every part but as_built, the aim only where it is
     not the field's centre, the lens's Zernike terms only where one is not zero."""
     data = to_plain(design)
-    del data["as_built"]
+    del data["as_built"], data["illumination_as_built"]
     if data["led_array"]["aim_mm"] == 0.0:
         del data["led_array"]["aim_mm"]
     if data["collimator"] is not None and not any(data["collimator"]["lens_freeform_um"]):

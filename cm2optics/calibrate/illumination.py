@@ -1,0 +1,668 @@
+"""Calibrate the illumination against a measured map: residual before, effects found, residual after.
+
+:func:`calibrate_illumination` is what ``cm2 calibrate illumination`` runs. The measured map is
+an image of a uniform fluorescent slide on the sample plane: its rows run along +y and its
+columns along +x of the device frame (as ``cm2 illum run``'s maps), its centre on the optical
+axis, ``pixel_um`` its pixel on the sample. The image is averaged into square bins of
+``bin_mm`` over the field's circle, where the model's irradiance map — traced by the same
+tracer as ``cm2 illum run``, with the design's ``illumination_as_built`` — is binned too.
+
+Registration (nuisance, always free): one global scale (the exposure, the dye's brightness and
+the camera's gain are unknown) and one lateral offset (x, y, mm; the camera's centre on the
+axis). Noise: shot noise of the camera, ``counts_per_electron × model`` per pixel (averaged
+over the bin's pixels), plus the model's own Monte Carlo variance (every ray's power squared
+per bin), so that χ² ≈ 1 when the model matches the data to the noise.
+
+Effects (:func:`illumination_effects`, the fields of
+:class:`~cm2optics.design.as_built_illumination.IlluminationAsBuilt`): ``led_flux`` (a unit's
+relative radiant flux; linear — each unit's map is traced once and weighted), ``led_tilt``
+(the unit turned about its LED, degrees) and ``collimator_decenter`` (mm), both by finite
+differences on re-traces with the same rays (common random numbers). Relative fluxes are
+relative to the units left at nominal (the global scale absorbs the rest: a map cannot tell one
+LED at 70 % from three at 143 %).
+
+Attribution as for scans (:mod:`.attribute`): every candidate is fitted, linearised, beside the
+nuisance and the effects already kept; the one that lowers the BIC (χ² + k ln n) most is kept
+if it lowers it by more than ``BIC_THRESHOLD`` once refitted by Gauss–Newton with the tracer in
+the loop; the search stops when no candidate is significant (the BIC alone: a map has few
+bins, so χ²_red may sit a little above ``CHI2_FLOOR`` with a significant effect left; above it
+after the effects, the residual is described as unexplained).
+Uncertainties: the covariance's diagonal, scaled by χ²_red where it exceeds 1.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from cm2optics.calibrate.attribute import BIC_THRESHOLD, CHI2_FLOOR
+from cm2optics.calibrate.effects import Parameter
+from cm2optics.design import SystemDesign
+from cm2optics.design.as_built_illumination import COLLIMATOR_DECENTER_MM, LED_FLUX, LED_TILT_DEG
+from cm2optics.errors import UserError
+
+__all__ = [
+    "IlluminationCalibration",
+    "MeasuredMap",
+    "UnitEffect",
+    "bin_measured_map",
+    "calibrate_illumination",
+    "illumination_effects",
+    "read_measured_map",
+]
+
+Progress = Callable[[str], None]
+
+#: Registration parameters: global scale, lateral offset of the measured map (mm).
+NUISANCE = ("scale", "offset_x_mm", "offset_y_mm")
+#: Gauss–Newton iterations of a refit.
+ITERATIONS = 6
+#: Least number of bins a map must cover.
+MIN_BINS = 30
+#: Largest lateral offset of the measured map fitted, mm (used bins keep this much inside the image).
+MAX_OFFSET_MM = 0.5
+
+
+@dataclass(frozen=True)
+class UnitEffect:
+    """An effect of one LED unit: its vocabulary name, parameters and whether it needs re-traces."""
+
+    name: str
+    unit: int
+    parameters: tuple[Parameter, ...]
+    description: str
+    traced: bool  # False: linear in the unit's own map (led_flux)
+
+    @property
+    def key(self) -> str:
+        return f"{self.name}[{self.unit}]"
+
+
+def _pair_effect(
+    name: str, unit: int, names: tuple[str, str], limit: float, step: float, description: str
+) -> UnitEffect:
+    """A traced effect of two parameters, each within ±limit, finite-difference step ``step``."""
+    return UnitEffect(name, unit, tuple(Parameter(n, 0.0, -limit, limit, step) for n in names), description, True)
+
+
+def illumination_effects(units: int, collimator: bool) -> tuple[UnitEffect, ...]:
+    """Every candidate effect of ``units`` LED units (decentres only with a collimator)."""
+    low, high = LED_FLUX
+    out = []
+    for u in range(units):
+        out.append(
+            UnitEffect(
+                "led_flux",
+                u,
+                (Parameter("flux", 1.0, low, high, 0.02),),
+                "the LED emits more or less than the others (binning, ageing, drive current)",
+                False,
+            )
+        )
+        out.append(
+            _pair_effect(
+                "led_tilt",
+                u,
+                ("tilt_x_deg", "tilt_y_deg"),
+                LED_TILT_DEG,
+                0.5,
+                "the unit is tilted about its LED (its housing seated askew)",
+            )
+        )
+        if collimator:
+            out.append(
+                _pair_effect(
+                    "collimator_decenter",
+                    u,
+                    ("dx_mm", "dy_mm"),
+                    COLLIMATOR_DECENTER_MM,
+                    0.05,
+                    "the collimator sits off its LED's axis",
+                )
+            )
+    return tuple(out)
+
+
+# ----------------------------------------------------------------------------- the measured map
+
+
+def read_measured_map(path: str | Path) -> np.ndarray:
+    """A measured illumination map (2-D TIFF, counts) as float64; one clear error for anything else."""
+    import tifffile
+
+    path = Path(path)
+    if not path.is_file():
+        raise UserError(f"{path}: no such map file")
+    try:
+        image = np.asarray(tifffile.imread(path), dtype=np.float64)
+    except Exception as error:  # tifffile raises many kinds for a file that is not a TIFF
+        raise UserError(f"{path}: not a readable TIFF ({type(error).__name__}: {error})") from None
+    image = np.squeeze(image)
+    if image.ndim != 2 or min(image.shape) < 8:
+        raise UserError(f"{path}: a map must be one 2-D image of at least 8 × 8 pixels, got shape {image.shape}")
+    if not np.all(np.isfinite(image)):
+        raise UserError(f"{path}: the map holds NaN or infinite values")
+    if image.max() <= 0:
+        raise UserError(f"{path}: the map is empty (no value > 0)")
+    return image
+
+
+@dataclass(frozen=True, eq=False)
+class MeasuredMap:
+    """The measured map and its comparison grid.
+
+    image: (y, x) counts. pixel_mm: its pixel on the sample, mm. bin_mm: bin side, mm.
+    half_mm: grid half-width, mm. label: (y, x) flat bin of every pixel (−1: none).
+    index: (B,) flat index of each used bin in the (n, n) grid. pixels: (B,) pixels per used bin.
+    centres_mm: (B, 2) used bins' centres (x, y), mm. values: (B,) mean counts per pixel, no offset.
+    """
+
+    image: np.ndarray
+    pixel_mm: float
+    bin_mm: float
+    half_mm: float
+    label: np.ndarray
+    index: np.ndarray
+    pixels: np.ndarray
+    centres_mm: np.ndarray
+    values: np.ndarray
+
+    @property
+    def side(self) -> int:
+        return int(round(2 * self.half_mm / self.bin_mm))
+
+    def values_at(self, offset_mm: np.ndarray) -> np.ndarray:
+        """(B,) mean counts per pixel with the optical axis at ``offset_mm`` (x, y) in the image
+        (the image resampled bilinearly, so that the values change smoothly with the offset)."""
+        from scipy.ndimage import shift
+
+        moved = shift(
+            self.image, (-offset_mm[1] / self.pixel_mm, -offset_mm[0] / self.pixel_mm), order=1, mode="nearest"
+        )
+        keep = self.label >= 0
+        sums = np.bincount(self.label[keep], weights=moved[keep], minlength=self.side**2)
+        return sums[self.index] / self.pixels
+
+    def grid(self, values: np.ndarray) -> np.ndarray:
+        """(n, n) image (y, x) of per-bin ``values``, NaN outside the used bins."""
+        out = np.full(self.side * self.side, np.nan)
+        out[self.index] = values
+        return out.reshape(self.side, self.side)
+
+
+def bin_measured_map(image: np.ndarray, pixel_um: float, bin_mm: float, radius_mm: float) -> MeasuredMap:
+    """The comparison grid of ``image`` (y, x; its centre on the axis, ``pixel_um`` µm per pixel
+    on the sample): bins of ``bin_mm`` inside the circle of ``radius_mm`` that the image covers
+    whole with :data:`MAX_OFFSET_MM` to spare (room for the fitted offset)."""
+    if not (math.isfinite(pixel_um) and pixel_um > 0):
+        raise UserError(f"--pixel-um = {pixel_um}: must be a number > 0")
+    pixel_mm = pixel_um / 1000.0
+    if pixel_mm > bin_mm / 2:
+        raise UserError(f"--pixel-um = {pixel_um}: the map's pixels must be at most half a bin ({bin_mm} mm)")
+    half = bin_mm * math.ceil(radius_mm / bin_mm)
+    n = int(round(2 * half / bin_mm))
+    h, w = image.shape
+    x = (np.arange(w) - (w - 1) / 2) * pixel_mm
+    y = (np.arange(h) - (h - 1) / 2) * pixel_mm
+    col = np.floor((x + half) / bin_mm).astype(np.int64)
+    row = np.floor((y + half) / bin_mm).astype(np.int64)
+    ok = (row[:, None] >= 0) & (row[:, None] < n) & (col[None, :] >= 0) & (col[None, :] < n)
+    label = np.where(ok, row[:, None] * n + col[None, :], -1)
+    pixels = np.bincount(label[ok], minlength=n * n)
+    centres = -half + bin_mm * (np.arange(n) + 0.5)
+    cx, cy = np.meshgrid(centres, centres)
+    reach = bin_mm / 2 + MAX_OFFSET_MM  # a used bin and the offset's room lie inside the image
+    covered = (np.abs(cx) + reach <= w * pixel_mm / 2) & (np.abs(cy) + reach <= h * pixel_mm / 2)
+    used = (covered & (np.hypot(cx, cy) <= radius_mm)).ravel() & (pixels > 0)
+    if used.sum() < MIN_BINS:
+        raise UserError(
+            f"the map ({h} × {w} px at {pixel_um} µm = {w * pixel_mm:.2f} × {h * pixel_mm:.2f} mm) covers "
+            f"{int(used.sum())} bins of {bin_mm} mm inside the {2 * radius_mm:g}-mm field with ±{MAX_OFFSET_MM} mm "
+            f"to spare: at least {MIN_BINS} needed"
+        )
+    index = np.flatnonzero(used)
+    label = np.where(np.isin(label, index), label, -1)
+    sums = np.bincount(label[label >= 0], weights=image[label >= 0], minlength=n * n)
+    return MeasuredMap(
+        image,
+        pixel_mm,
+        bin_mm,
+        half,
+        label,
+        index,
+        pixels[index].astype(float),
+        np.column_stack([cx.ravel()[index], cy.ravel()[index]]),
+        sums[index] / pixels[index],
+    )
+
+
+# ----------------------------------------------------------------------------- the traced model
+
+
+class TracedMaps:
+    """The design's irradiance per LED unit on the measured map's bins, for any unit tilts and
+    collimator decentres (traces cached; the same rays every time: common random numbers)."""
+
+    def __init__(self, design: SystemDesign, measured: MeasuredMap, rays: int, seed: int):
+        from cm2optics.illumination.compare import setup_from_options
+        from cm2optics.illumination.geometry import build_scene, collimator_from_design
+
+        self.setup = setup_from_options(design, rays=rays, seed=seed)
+        collimator = collimator_from_design(design) if design.collimator is not None else None
+        self.scene = build_scene(design, collimator)
+        self.measured = measured
+        self._cache: dict[bytes, tuple[np.ndarray, np.ndarray, float]] = {}
+        self.traces = 0
+
+    @property
+    def units(self) -> int:
+        return self.scene.units
+
+    def _hits(self, geometry: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+        """Sample-plane hits (mm), their units and the power per ray (mW) for ``geometry``
+        (units, 4): tilt about x, y (degrees), collimator decentre dx, dy (mm)."""
+        from cm2optics.illumination.robustness import UnitError, perturbed_scene
+        from cm2optics.illumination.tracer import Status, trace
+
+        key = np.round(geometry, 9).tobytes()
+        if key not in self._cache:
+            scene = self.scene
+            if np.any(geometry != 0):
+                offsets = -geometry[:, 2:] if scene.collimator is not None else np.zeros((self.units, 2))
+                scene = perturbed_scene(
+                    scene, [UnitError(o, t, None) for o, t in zip(offsets, geometry[:, :2], strict=True)]
+                )
+            record = trace(
+                scene, self.setup.source, self.setup.rays, transmission=self.setup.transmission, seed=self.setup.seed
+            )
+            on = record.status == int(Status.SAMPLE)
+            self._cache[key] = (record.hit_mm[on].astype(np.float32), record.unit[on].astype(np.int8), record.power_mw)
+            self.traces += 1
+        return self._cache[key]
+
+    def maps(self, geometry: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(units, B) irradiance (mW/mm²) of each unit in the used bins, and its Monte Carlo
+        variance ((mW/mm²)²)."""
+        hits, unit, power = self._hits(geometry)
+        m = self.measured
+        n = m.side
+        ij = np.floor((hits + m.half_mm) / m.bin_mm).astype(np.int64)
+        ok = np.all((ij >= 0) & (ij < n), axis=1)
+        flat = unit[ok].astype(np.int64) * (n * n) + ij[ok, 1] * n + ij[ok, 0]
+        counts = np.bincount(flat, minlength=self.units * n * n).reshape(self.units, n * n)[:, m.index]
+        per_ray = power / m.bin_mm**2
+        return counts * per_ray, counts * per_ray**2
+
+
+@dataclass(frozen=True)
+class _Slot:
+    """One fitted number: its effect (None: registration), parameter and where it sits in the model."""
+
+    effect: UnitEffect | None
+    parameter: Parameter
+    column: int  # registration: index in NUISANCE; flux: −1; geometry: 0–3 (tilt x, y, dx, dy)
+
+
+def _nuisance_slots(pixel_mm: float) -> list[_Slot]:
+    return [
+        _Slot(None, Parameter("scale", 1.0, 0.0, math.inf, 1e-3), 0),
+        _Slot(None, Parameter("offset_x_mm", 0.0, -MAX_OFFSET_MM, MAX_OFFSET_MM, pixel_mm), 1),
+        _Slot(None, Parameter("offset_y_mm", 0.0, -MAX_OFFSET_MM, MAX_OFFSET_MM, pixel_mm), 2),
+    ]
+
+
+def _effect_slots(effect: UnitEffect) -> list[_Slot]:
+    if effect.name == "led_flux":
+        return [_Slot(effect, effect.parameters[0], -1)]
+    first = 0 if effect.name == "led_tilt" else 2
+    return [_Slot(effect, p, first + i) for i, p in enumerate(effect.parameters)]
+
+
+class _Fit:
+    """The model's prediction, noise and χ² for a vector of slot values."""
+
+    def __init__(self, maps: TracedMaps, flux: np.ndarray, geometry: np.ndarray, counts_per_electron: float):
+        self.maps = maps
+        self.flux0 = flux  # (units,) the design's relative fluxes
+        self.geometry0 = geometry  # (units, 4) the design's tilts and decentres
+        self.gain = counts_per_electron
+
+    def unpack(self, slots: list[_Slot], theta: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
+        scale, offset = 1.0, np.zeros(2)
+        flux, geometry = self.flux0.copy(), self.geometry0.copy()
+        for slot, value in zip(slots, theta, strict=True):
+            if slot.effect is None:
+                if slot.column == 0:
+                    scale = value
+                else:
+                    offset[slot.column - 1] = value
+            elif slot.column < 0:
+                flux[slot.effect.unit] = value
+            else:
+                geometry[slot.effect.unit, slot.column] = value
+        return scale, offset, flux, geometry
+
+    def predict(self, slots: list[_Slot], theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The predicted counts per pixel in each bin and their variance (shot + Monte Carlo)."""
+        scale, _, flux, geometry = self.unpack(slots, theta)
+        m, v = self.maps.maps(geometry)
+        pred = scale * (flux @ m)
+        shot = self.gain * np.maximum(pred, self.gain) / self.maps.measured.pixels
+        return pred, shot + scale**2 * ((flux**2) @ v)
+
+    def residual(self, slots: list[_Slot], theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Data at the fitted offset less the prediction, and the noise's variance."""
+        _, offset, _, _ = self.unpack(slots, theta)
+        pred, var = self.predict(slots, theta)
+        return self.maps.measured.values_at(offset) - pred, var
+
+    def chi2(self, slots: list[_Slot], theta: np.ndarray) -> float:
+        residual, var = self.residual(slots, theta)
+        return float(np.sum(residual**2 / var))
+
+    def jacobian(self, slots: list[_Slot], theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(B, k) forward differences of the model less the data, the residual and the weights 1/σ."""
+        residual, var = self.residual(slots, theta)
+        jac = np.empty((residual.size, len(slots)))
+        for i, slot in enumerate(slots):
+            step = np.zeros(len(theta))
+            h = slot.parameter.step * (max(abs(theta[i]), 1.0) if slot.column == 0 and slot.effect is None else 1.0)
+            step[i] = h
+            jac[:, i] = (residual - self.residual(slots, theta + step)[0]) / h
+        return jac, residual, 1.0 / np.sqrt(var)
+
+    def refine(self, slots: list[_Slot], theta: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
+        """Gauss–Newton from ``theta`` (step halving, bounds): the values, χ² and covariance."""
+        low = np.array([s.parameter.low for s in slots])
+        high = np.array([s.parameter.high for s in slots])
+        chi2 = self.chi2(slots, theta)
+        for _ in range(ITERATIONS):
+            jac, residual, w = self.jacobian(slots, theta)
+            delta = np.linalg.lstsq(jac * w[:, None], residual * w, rcond=None)[0]
+            for shrink in (1.0, 0.5, 0.25, 0.125):
+                trial = np.clip(theta + shrink * delta, low, high)
+                trial_chi2 = self.chi2(slots, trial)
+                if trial_chi2 < chi2:
+                    break
+            else:
+                break
+            improved = chi2 - trial_chi2
+            theta, chi2 = trial, trial_chi2
+            if improved < 1e-4 * chi2 + 1e-6:
+                break
+        jac, _, w = self.jacobian(slots, theta)
+        cov = np.linalg.pinv((jac * w[:, None]).T @ (jac * w[:, None]))
+        return theta, chi2, cov
+
+
+# ----------------------------------------------------------------------------- attribution
+
+
+@dataclass(frozen=True)
+class IlluminationCalibration:
+    """The result: the JSON document, the maps on the comparison grid and the corrected design.
+
+    measured: the data's grid. before, after: (data at the fitted offset, model, noise σ) per
+    used bin, counts per pixel, for the nominal and the corrected model (registration fitted).
+    """
+
+    document: dict[str, Any]
+    measured: MeasuredMap
+    before: tuple[np.ndarray, np.ndarray, np.ndarray]
+    after: tuple[np.ndarray, np.ndarray, np.ndarray]
+    corrected_design: SystemDesign
+
+
+def _start(fit: _Fit, slots: list[_Slot]) -> np.ndarray:
+    """Registration start: the scale that matches the nominal map's total, no offset."""
+    theta = np.array([s.parameter.default for s in slots])
+    pred, _ = fit.predict(slots, theta)
+    theta[0] = float(fit.maps.measured.values.sum() / max(pred.sum(), 1e-300))
+    return theta
+
+
+def _candidate_scores(
+    fit: _Fit, slots: list[_Slot], theta: np.ndarray, candidates: list[UnitEffect], penalty: float
+) -> list[tuple[float, UnitEffect]]:
+    """BIC of each candidate fitted (linearised at ``theta``) beside the slots already free."""
+    trial_slots = slots + [s for c in candidates for s in _effect_slots(c)]
+    trial_theta = np.concatenate([theta] + [_current(fit, slots, theta, c) for c in candidates])
+    jac, residual, w = fit.jacobian(trial_slots, trial_theta)
+    a, b = jac * w[:, None], residual * w
+    base = list(range(len(slots)))
+    scores = []
+    at = len(slots)
+    for c in candidates:
+        cols = base + list(range(at, at + len(c.parameters)))
+        at += len(c.parameters)
+        delta = np.linalg.lstsq(a[:, cols], b, rcond=None)[0]
+        chi2 = float(np.sum((b - a[:, cols] @ delta) ** 2))
+        scores.append((chi2 + penalty * len(cols), c))
+    return scores
+
+
+def _current(fit: _Fit, slots: list[_Slot], theta: np.ndarray, effect: UnitEffect) -> np.ndarray:
+    """The values ``effect``'s parameters have in the model now."""
+    _, _, flux, geometry = fit.unpack(slots, theta)
+    if effect.name == "led_flux":
+        return np.array([flux[effect.unit]])
+    return np.array([geometry[effect.unit, s.column] for s in _effect_slots(effect)])
+
+
+def _radial_profile(measured: MeasuredMap, values: np.ndarray, width_mm: float) -> list[float | None]:
+    """Mean of ``values`` in annuli of ``width_mm`` about the axis (None where no bin falls)."""
+    ring = (np.hypot(measured.centres_mm[:, 0], measured.centres_mm[:, 1]) // width_mm).astype(int)
+    sums = np.bincount(ring, weights=values)
+    counts = np.bincount(ring)
+    return [round(float(s / c), 6) if c else None for s, c in zip(sums, counts, strict=True)]
+
+
+def _unexplained(
+    measured: MeasuredMap, residual: np.ndarray, sigma: np.ndarray, design: SystemDesign, chi2_red: float
+) -> list[dict[str, Any]]:
+    """The signature of a residual left above the noise: where its smoothed peak lies, its sign,
+    the LED unit on that side and its share of the map's energy. Empty below the noise floor:
+    ``CHI2_FLOOR``, or 3 σ of χ²_red's own spread (1 + 3√(2/dof)) where a map has few bins."""
+    dof = residual.size - 3
+    if chi2_red <= max(CHI2_FLOOR, 1 + 3 * math.sqrt(2 / dof)):
+        return []
+    from scipy.ndimage import uniform_filter
+
+    z = np.nan_to_num(measured.grid(residual / sigma))
+    weight = measured.grid(np.ones_like(residual))
+    smooth = uniform_filter(z, 3) / np.maximum(uniform_filter(np.nan_to_num(weight), 3), 1e-9)
+    smooth[np.isnan(weight)] = 0.0
+    peak = np.unravel_index(np.argmax(np.abs(smooth)), smooth.shape)
+    centres = -measured.half_mm + measured.bin_mm * (np.arange(measured.side) + 0.5)
+    x, y = float(centres[peak[1]]), float(centres[peak[0]])
+    arr = design.led_array
+    azimuths = np.radians(arr.azimuth_deg) + 2 * np.pi * np.arange(arr.count) / arr.count
+    side = int(np.argmax(np.cos(azimuths - math.atan2(y, x)))) if math.hypot(x, y) > measured.bin_mm else None
+    fraction = float(np.sum(residual**2) / np.sum(measured.values**2))
+    where = f"near unit {side}'s side" if side is not None else "at the centre"
+    return [
+        {
+            "lenslets": [],
+            "units": [] if side is None else [side],
+            "field_mm": [round(x, 3), round(y, 3)],
+            "depths_mm": [],
+            "energy_fraction": round(fraction, 6),
+            "description": (
+                f"{'excess' if smooth[peak] > 0 else 'deficit'} of light around ({x:.2f}, {y:.2f}) mm, {where}; "
+                f"reduced χ² {chi2_red:.3g} after the effects: no illumination effect of the library "
+                "(led_flux, led_tilt, collimator_decenter) explains it"
+            ),
+        }
+    ]
+
+
+def _effect_records(slots: list[_Slot], theta: np.ndarray, cov: np.ndarray, inflate: float) -> list[dict[str, Any]]:
+    records: dict[str, dict[str, Any]] = {}
+    for i, slot in enumerate(slots):
+        if slot.effect is None:
+            continue
+        record = records.setdefault(
+            slot.effect.key,
+            {"name": slot.effect.name, "unit": slot.effect.unit, "parameters": {}, "uncertainties": {}},
+        )
+        record["parameters"][slot.parameter.name] = round(float(theta[i]), 6)
+        record["uncertainties"][slot.parameter.name] = round(float(math.sqrt(max(cov[i, i], 0.0) * inflate)), 6)
+    return list(records.values())
+
+
+def _corrected(design: SystemDesign, flux: np.ndarray, geometry: np.ndarray) -> SystemDesign:
+    """``design`` with the fitted fluxes, tilts and decentres as its ``illumination_as_built``."""
+    low, high = LED_FLUX
+    return design.with_changes(
+        {
+            "illumination_as_built.led_flux": [round(float(np.clip(f, low, high)), 4) for f in flux],
+            "illumination_as_built.led_tilt_deg": [[round(float(v), 4) for v in g[:2]] for g in geometry],
+            "illumination_as_built.collimator_decenter_mm": (
+                [[round(float(v), 5) for v in g[2:]] for g in geometry] if design.collimator is not None else []
+            ),
+        }
+    )
+
+
+def _registration(slots: list[_Slot], theta: np.ndarray, cov: np.ndarray, inflate: float) -> dict[str, float]:
+    out = {}
+    for i, name in enumerate(NUISANCE):
+        out[name] = round(float(theta[i]), 6)
+        out[f"{name}_stderr"] = round(float(math.sqrt(max(cov[i, i], 0.0) * inflate)), 6)
+    return out
+
+
+def _nmse(data: np.ndarray, model: np.ndarray) -> float:
+    return round(float(np.sum((data - model) ** 2) / np.sum(data**2)), 8)
+
+
+def _cv(values: np.ndarray) -> float:
+    return round(float(values.std() / values.mean()), 6)
+
+
+def calibrate_illumination(
+    image: np.ndarray,
+    pixel_um: float,
+    design: SystemDesign,
+    *,
+    bin_mm: float = 0.5,
+    rays: int = 400_000,
+    seed: int = 0,
+    counts_per_electron: float = 1.0,
+    max_effects: int = 4,
+    effect_names: tuple[str, ...] | None = None,
+    label: str = "map",
+    progress: Progress | None = None,
+) -> IlluminationCalibration:
+    """Register the design's traced irradiance map to a measured one (``image``, counts, ``pixel_um``
+    µm per pixel on the sample), name the illumination effects the residual asks for (only those
+    in ``effect_names`` if given) and return the document, the maps and the corrected design.
+    ``label`` names the map in the document (its file)."""
+    say = progress or (lambda message: None)
+    if not (math.isfinite(counts_per_electron) and counts_per_electron > 0):
+        raise UserError(f"--counts-per-electron = {counts_per_electron}: must be a number > 0")
+    if not 0 < bin_mm <= design.volume.field_mm / 4:
+        raise UserError(f"--bin-mm = {bin_mm}: must lie within 0–{design.volume.field_mm / 4} mm")
+    if rays < 1000:
+        raise UserError(f"--rays = {rays}: must be ≥ 1000")
+    measured = bin_measured_map(image, pixel_um, bin_mm, design.volume.field_mm / 2)
+    say(f"{measured.values.size} bins of {bin_mm} mm; tracing {design.name} with {rays} rays")
+    maps = TracedMaps(design, measured, rays, seed)
+    built = design.illumination_as_built
+    units = maps.units
+    fit = _Fit(
+        maps,
+        np.array([built.flux(u) for u in range(units)]),
+        np.array([[*built.tilt_deg(u), *built.decenter_mm(u)] for u in range(units)]),
+        counts_per_electron,
+    )
+    slots = _nuisance_slots(measured.pixel_mm)
+    theta, chi2, cov = fit.refine(slots, _start(fit, slots))
+    n = measured.values.size
+    penalty = math.log(n)
+    before, var_before = fit.predict(slots, theta)
+    data_before = measured.values_at(fit.unpack(slots, theta)[1])
+    chi2_before = chi2 / (n - len(slots))
+    steps = [{"effect": None, "chi2": round(chi2_before, 5), "bic": round(chi2 + penalty * len(slots), 3)}]
+    candidates = [
+        e
+        for e in illumination_effects(units, maps.scene.collimator is not None)
+        if effect_names is None or e.name in effect_names
+    ]
+    kept: list[UnitEffect] = []
+    while len(kept) < max_effects:
+        remaining = [c for c in candidates if c not in kept]
+        if not remaining:
+            break
+        say(f"reduced χ² {chi2 / (n - len(slots)):.3g}: fitting {len(remaining)} candidates")
+        best_bic, best = min(_candidate_scores(fit, slots, theta, remaining, penalty), key=lambda t: t[0])
+        bic_now = chi2 + penalty * len(slots)
+        if bic_now - best_bic < BIC_THRESHOLD:
+            break
+        trial_slots = slots + _effect_slots(best)
+        trial, trial_chi2, trial_cov = fit.refine(
+            trial_slots, np.concatenate([theta, _current(fit, slots, theta, best)])
+        )
+        bic = trial_chi2 + penalty * len(trial_slots)
+        if bic_now - bic < BIC_THRESHOLD:
+            break
+        slots, theta, chi2, cov = trial_slots, trial, trial_chi2, trial_cov
+        kept.append(best)
+        steps.append({"effect": best.key, "chi2": round(chi2 / (n - len(slots)), 5), "bic": round(bic, 3)})
+        say(f"kept {best.key}: reduced χ² {chi2 / (n - len(slots)):.3g}")
+    after, var_after = fit.predict(slots, theta)
+    chi2_after = chi2 / (n - len(slots))
+    inflate = max(chi2_after, 1.0)
+    _, offset, flux, geometry = fit.unpack(slots, theta)
+    data = measured.values_at(offset)
+    ring = 2 * bin_mm
+    document = {
+        "design": design.name,
+        "parameter_hash": design.parameter_hash(),
+        "map": label,
+        "effects": _effect_records(slots, theta, cov, inflate),
+        "nmse_before": _nmse(data_before, before),
+        "nmse_after": _nmse(data, after),
+        "chi2_before": round(chi2_before, 5),
+        "chi2_after": round(chi2_after, 5),
+        "unexplained": _unexplained(measured, data - after, np.sqrt(var_after), design, chi2_after),
+        "registration": _registration(slots, theta, cov, inflate),
+        "steps": steps,
+        "uniformity_cv": {
+            "data": _cv(data),
+            "data_noise": round(float(np.sqrt(np.mean(counts_per_electron * data / measured.pixels)) / data.mean()), 6),
+            "model_before": _cv(before),
+            "model_after": _cv(after),
+        },
+        "radial_profile": {
+            "ring_mm": ring,
+            "radius_mm": [round(ring * (i + 0.5), 4) for i in range(len(_radial_profile(measured, data, ring)))],
+            "data": _radial_profile(measured, data, ring),
+            "data_before": _radial_profile(measured, data_before, ring),
+            "model_before": _radial_profile(measured, before, ring),
+            "model_after": _radial_profile(measured, after, ring),
+        },
+        "noise_model": f"shot noise, {counts_per_electron:g} counts per electron, plus the model's Monte Carlo variance",
+        "setup": {
+            "pixel_um": pixel_um,
+            "map_shape": list(image.shape),
+            "bins": n,
+            "bin_mm": bin_mm,
+            "rays": rays,
+            "seed": seed,
+            "traces": maps.traces,
+            "candidates": sorted({c.name for c in candidates}),
+        },
+    }
+    return IlluminationCalibration(
+        document,
+        measured,
+        (data_before, before, np.sqrt(var_before)),
+        (data, after, np.sqrt(var_after)),
+        _corrected(design, flux, geometry),
+    )

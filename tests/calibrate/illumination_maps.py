@@ -1,0 +1,53 @@
+"""Synthetic measured illumination maps for the tests of ``cm2 calibrate illumination``: the
+design as built (its ``illumination_as_built``) traced with many rays, each LED's irradiance on
+a camera's pixel grid (rows +y, columns +x), then weighted, scaled to counts and Poisson noise."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from cm2optics.design import SystemDesign
+from cm2optics.illumination.as_built import as_built_scene
+from cm2optics.illumination.compare import setup_from_options
+from cm2optics.illumination.geometry import build_scene, collimator_from_design
+from cm2optics.illumination.tracer import Status, trace
+
+
+def unit_pixel_maps(
+    design: SystemDesign,
+    *,
+    pixel_um: float = 50.0,
+    size_px: int = 180,
+    rays: int = 2_000_000,
+    offset_mm: tuple[float, float] = (0.0, 0.0),
+    seed: int = 7,
+) -> np.ndarray:
+    """(units, size_px, size_px) rays landing in each pixel from each LED; the optical axis at
+    ``offset_mm`` (x, y) from the image's centre."""
+    collimator = collimator_from_design(design) if design.collimator is not None else None
+    scene = as_built_scene(build_scene(design, collimator))
+    setup = setup_from_options(design)
+    record = trace(scene, setup.source, rays, transmission=setup.transmission, seed=seed)
+    on = record.status == int(Status.SAMPLE)
+    hits, unit = record.hit_mm[on] + np.asarray(offset_mm), record.unit[on]
+    half = size_px * pixel_um / 2000
+    return np.stack(
+        [
+            np.histogram2d(hits[unit == u, 1], hits[unit == u, 0], bins=size_px, range=[[-half, half]] * 2)[0]
+            for u in range(scene.units)
+        ]
+    )
+
+
+def measured_map(
+    unit_maps: np.ndarray, *, flux: tuple[float, ...] | None = None, mean_counts: float = 50.0, seed: int = 7
+) -> np.ndarray:
+    """A map of counts: the units' maps weighted by ``flux`` (default all 1), scaled to a mean
+    of ``mean_counts`` over the image's central disc (radius 80 % of its half-width), Poisson noise."""
+    weights = np.ones(len(unit_maps)) if flux is None else np.asarray(flux, float)
+    total = np.tensordot(weights, unit_maps, axes=1)
+    n = total.shape[-1]
+    centres = np.arange(n) - (n - 1) / 2
+    disc = np.hypot(centres[None, :], centres[:, None]) <= 0.4 * n
+    expected = total * (mean_counts / total[disc].mean())
+    return np.random.default_rng(seed).poisson(expected).astype(np.float32)

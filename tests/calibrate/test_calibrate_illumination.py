@@ -1,0 +1,104 @@
+"""`cm2 calibrate illumination`: a measured map against the traced design — registration, the
+illumination effects named by the BIC and measured, the report.
+
+Synthetic maps (:mod:`illumination_maps`): the design as built traced with 5× (fast) or 10×
+(slow) the model's rays, on a 50-µm camera grid, Poisson noise at 50 counts per pixel, the axis
+0.1 mm off the image's centre. Tolerances (≈ 2σ of the fits' own uncertainties at these ray
+counts): relative LED flux ± 0.1, tilt ± 0.5°, offset ± 0.05 mm.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import tifffile
+import yaml
+from typer.testing import CliRunner
+
+from cm2optics.calibrate.illumination import bin_measured_map, calibrate_illumination
+from cm2optics.cli import app
+from cm2optics.design import design_from_dict
+
+sys.path.insert(0, str(Path(__file__).parent))
+from illumination_maps import measured_map, unit_pixel_maps  # noqa: E402
+
+OFFSET_MM = (0.1, -0.05)
+
+
+def test_the_comparison_grid_averages_the_map_and_moves_it_smoothly():
+    """A ramp v = 10 + 2·x (x in mm) on a 20-µm grid: every bin holds the ramp at its centre, and
+    the map with the axis at offset o holds the ramp at x + o (bilinear resampling is exact on a ramp)."""
+    n, pixel_um = 500, 20.0
+    x = (np.arange(n) - (n - 1) / 2) * pixel_um / 1000
+    image = np.broadcast_to(10 + 2 * x[None, :], (n, n))
+    grid = bin_measured_map(image, pixel_um, 0.5, 4.0)
+    assert grid.values.size > 100 and np.all(np.hypot(*grid.centres_mm.T) <= 4.0)
+    assert np.allclose(grid.values, 10 + 2 * grid.centres_mm[:, 0], atol=1e-9)
+    assert np.allclose(grid.values_at(np.array([0.13, -0.2])), 10 + 2 * (grid.centres_mm[:, 0] + 0.13), atol=1e-9)
+
+
+@pytest.fixture(scope="module")
+def v1_units(v1):
+    return unit_pixel_maps(v1, rays=1_000_000, offset_mm=OFFSET_MM)
+
+
+def test_a_dim_led_is_named_and_measured_a_clean_map_yields_nothing(v1, v1_units):
+    """V1 (bare LEDs), the model traced with 200 000 rays, the flux candidates only (the tilts are
+    the slow tests'): LED 2 at 50 % is named alone and measured; the same map at full flux yields no effect."""
+    dim = calibrate_illumination(
+        measured_map(v1_units, flux=(1, 1, 0.5, 1)), 50.0, v1, rays=200_000, effect_names=("led_flux",)
+    )
+    doc = dim.document
+    assert [(e["name"], e["unit"]) for e in doc["effects"]] == [("led_flux", 2)]
+    flux = doc["effects"][0]
+    assert flux["parameters"]["flux"] == pytest.approx(0.5, abs=0.1)
+    assert 0 < flux["uncertainties"]["flux"] < 0.1
+    assert doc["chi2_after"] < doc["chi2_before"] and doc["nmse_after"] < doc["nmse_before"]
+    reg = doc["registration"]
+    assert (reg["offset_x_mm"], reg["offset_y_mm"]) == pytest.approx((-0.1, 0.05), abs=0.08)
+    assert dim.corrected_design.illumination_as_built.flux(2) == pytest.approx(flux["parameters"]["flux"], abs=1e-4)
+    clean = calibrate_illumination(measured_map(v1_units), 50.0, v1, rays=200_000, effect_names=("led_flux",))
+    assert clean.document["effects"] == [] and clean.document["unexplained"] == []
+    assert clean.corrected_design.illumination_as_built.is_nominal
+
+
+@pytest.fixture(scope="module")
+def v2_tilted_units(v2):
+    """cm2-v2 with unit 1 tilted 4° about its x axis, traced with 8 000 000 rays."""
+    tilted = v2.with_changes({"illumination_as_built.led_tilt_deg": [[0, 0], [4, 0], [0, 0], [0, 0]]})
+    return unit_pixel_maps(tilted, rays=8_000_000, offset_mm=OFFSET_MM)
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(
+    strict=True,
+    reason="not met (BENCHMARKS.md): the 4° tilt is found (3.91° about x, but 0.82° about y) and LED 3's 70 % "
+    "is named as LED 2 at 119 % (2026-11-25)",
+)
+@pytest.mark.timeout(3000)  # ≈ 15 min at load 20 on 2 cores: 8 M truth rays, ≈ 20 traces of 1 M
+def test_cli_names_a_tilted_unit_and_a_dim_led_and_writes_a_valid_corrected_design(v2_tilted_units, tmp_path):
+    """cm2-v2 with unit 1 tilted 4° and LED 3 at 70 %, against the nominal design through the
+    command (model traced with 1 000 000 rays): both effects named, measured within the
+    tolerances, the corrected design valid. (A 2° tilt is below this map's noise: not named at
+    400 000 rays, BENCHMARKS.md.)"""
+    tifffile.imwrite(tmp_path / "map.tif", measured_map(v2_tilted_units, flux=(1, 1, 1, 0.7)))
+    args = ["calibrate", "illumination", str(tmp_path / "map.tif"), "--pixel-um", "50", "--rays", "1000000"]
+    result = CliRunner().invoke(app, [*args, "--out", str(tmp_path / "rep"), "--json"])
+    assert result.exit_code == 0, result.output
+    doc = json.loads(result.stdout)
+    found = {(e["name"], e["unit"]): e["parameters"] for e in doc["effects"]}
+    assert ("led_tilt", 1) in found and ("led_flux", 3) in found, found
+    assert found[("led_tilt", 1)]["tilt_x_deg"] == pytest.approx(4.0, abs=0.5)
+    assert found[("led_tilt", 1)]["tilt_y_deg"] == pytest.approx(0.0, abs=0.5)
+    assert found[("led_flux", 3)]["flux"] == pytest.approx(0.7, abs=0.1)
+    assert doc["chi2_after"] < doc["chi2_before"]
+    for key in ("nmse_before", "nmse_after", "unexplained", "registration", "uniformity_cv", "radial_profile"):
+        assert key in doc
+    corrected = design_from_dict(yaml.safe_load((tmp_path / "rep" / "corrected-design.yaml").read_text()))
+    assert corrected.illumination_as_built.flux(3) == pytest.approx(found[("led_flux", 3)]["flux"], abs=1e-3)
+    for name in ("maps.png", "profiles.png", "report.html", "calibration.json"):
+        assert (tmp_path / "rep" / name).is_file()
