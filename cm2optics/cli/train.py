@@ -135,9 +135,10 @@ def net_testset_command(
         typer.Option(
             "--model",
             "-m",
-            help="--traced: the 3D-LSV model (.lsv.h5) both reconstructions use instead of the weights' forward model, "
-            "e.g. one built from a traced PSF scan of the design (cm2 psf simulate → cm2 lsv build): the device's "
-            "calibrated model.",
+            help="The 3D-LSV model (.lsv.h5) both reconstructions use instead of the weights' forward model (which "
+            "still images set (a)): with --traced e.g. one built from a traced PSF scan of the design (cm2 psf simulate "
+            "→ cm2 lsv build), the device's calibrated model; or a lower-rank build of the weights' own scan for a "
+            "faster FISTA. Its geometry must be the weights'.",
         ),
     ] = None,
     n_volumes: Annotated[int, typer.Option("--n-volumes", min=1, help="Test volumes.")] = 10,
@@ -159,8 +160,8 @@ def net_testset_command(
     factory = None
     if traced:
         factory = _traced_factory(loaded.config.forward_model, preset, binning)
-    elif preset is not None or binning is not None or model is not None:
-        raise UserError("--preset, --binning and --model are for --traced; give --traced or leave them out")
+    elif preset is not None or binning is not None:
+        raise UserError("--preset and --binning choose what --traced traces; give --traced or leave them out")
     if model is not None and not model.is_file():
         raise UserError(f"--model {model}: no such file")
     output_folder(

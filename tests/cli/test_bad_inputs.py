@@ -588,7 +588,6 @@ def _network_and_calibration_cases() -> list[Case]:
             ("SHA256SUMS", "missing"),
             {"w/": "", "w/config.yaml": "channels: 8\n"},
         ),
-        Case("net-testset", "option", ["net-testset", weights, "{case}/o", "--model", "{missing}"], ("for --traced",)),
         Case(
             "net-testset",
             "input-file",

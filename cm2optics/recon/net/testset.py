@@ -54,31 +54,29 @@ def net_test_set(
 
     traced: ``traced(reference)`` → the source that images the test volumes instead of the 3D-LSV
     model the runs use (set (b); made in this process, never reused). model: a 3D-LSV model file both
-    reconstructions use instead of the weights' forward model (only with ``traced``), e.g. one
-    built from a traced PSF scan of the design (``cm2 psf simulate`` → ``cm2 lsv build``): the
-    calibrated model a real device is reconstructed with; cut to the training views' sensor
-    window and written to ``out_dir/forward-model.lsv.h5``."""
+    reconstructions use instead of the weights' forward model (which still images set (a)): for
+    (b) e.g. one built from a traced PSF scan of the design (``cm2 psf simulate`` → ``cm2 lsv
+    build``), the calibrated model a real device is reconstructed with; or a lower-rank build of
+    the weights' own scan, for a faster FISTA. Its geometry must be the weights' (checked by the
+    network's run); cut to the training views' sensor window and written to
+    ``out_dir/forward-model.lsv.h5``."""
     from cm2optics.lsv.model import load_model
     from cm2optics.recon.compare import compare_baselines
     from cm2optics.recon.net.data import forward_imaging, sensor_window
     from cm2optics.recon.net.weights import load_weights
     from cm2optics.synth.imaging import Imaging
 
-    if model is not None and traced is None:
-        raise ValueError("a reconstruction model of its own is for traced test sets (set (b)) only")
     loaded = load_weights(weights)
     config = loaded.config
     check_seed(seed, config.seed)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     model_path = out_dir / "forward-model.lsv.h5"
-    if model is None:
-        source = forward_imaging(config).source  # the training sensor window
-    else:
-        source = sensor_window(load_model(model), config.synth.view_px)
+    imaging_source = forward_imaging(config).source  # the training sensor window
+    source = imaging_source if model is None else sensor_window(load_model(model), config.synth.view_px)
     if not hasattr(source, "save"):
         raise ValueError(f"{config.forward_model}: a test set needs a 3D-LSV forward model, not a toy operator")
-    if traced is not None or not model_path.is_file():
+    if model is not None or traced is not None or not model_path.is_file():
         source.save(model_path)
     test = config.synth.with_changes(
         view_px=0, patch_px=0, patches_per_volume=0, store_volume=False, density_per_mm2=(10.0, 100.0)
@@ -87,7 +85,11 @@ def net_test_set(
         "cm2net": {"method": "net", "weights": str(Path(weights).resolve()), "preprocess": "none"},
         "lsv-fista": {"forward": "lsv", "method": "fista", "l1": 0.02, "max_iter": fista_iterations},
     }
-    imaging = Imaging(traced(source), test.grid) if traced is not None else None
+    imaging = None  # set (a) imaged by the reconstruction model itself, on Dask workers
+    if traced is not None:
+        imaging = Imaging(traced(source), test.grid)
+    elif model is not None:
+        imaging = Imaging(imaging_source, test.grid)  # set (a): the weights' own model images it
     return compare_baselines(
         model_path,
         out_dir,
