@@ -130,6 +130,17 @@ def net_testset_command(
         int | None,
         typer.Option("--binning", "-b", help="--traced: the sensor binning (default: an analytic forward model's)."),
     ] = None,
+    model: Annotated[
+        Path | None,
+        typer.Option(
+            "--model",
+            "-m",
+            help="The 3D-LSV model (.lsv.h5) both reconstructions use instead of the weights' forward model (which "
+            "still images set (a)): with --traced e.g. one built from a traced PSF scan of the design (cm2 psf simulate "
+            "→ cm2 lsv build), the device's calibrated model; or a lower-rank build of the weights' own scan for a "
+            "faster FISTA. Its geometry must be the weights'.",
+        ),
+    ] = None,
     n_volumes: Annotated[int, typer.Option("--n-volumes", min=1, help="Test volumes.")] = 10,
     seed: Annotated[int, typer.Option("--seed", min=0, help="Seed of the test volumes (never the run's).")] = 1_000_003,
     fista_iterations: Annotated[int, typer.Option("--fista-iterations", min=1, help="FISTA iterations.")] = 60,
@@ -151,7 +162,11 @@ def net_testset_command(
         factory = _traced_factory(loaded.config.forward_model, preset, binning)
     elif preset is not None or binning is not None:
         raise UserError("--preset and --binning choose what --traced traces; give --traced or leave them out")
-    output_folder(out_dir, "net-testset", inputs=[weights], overwrite=overwrite)
+    if model is not None and not model.is_file():
+        raise UserError(f"--model {model}: no such file")
+    output_folder(
+        out_dir, "net-testset", inputs=[weights] + ([model] if model is not None else []), overwrite=overwrite
+    )
     summary = net_test_set(
         weights,
         out_dir,
@@ -160,6 +175,7 @@ def net_testset_command(
         fista_iterations=fista_iterations,
         workers=workers,
         traced=factory,
+        model=model,
         log=(lambda _: None) if as_json else typer.echo,
     )
     keys = ("recall", "precision", "f1", "rmse_lateral_um", "rmse_axial_um", "seconds_per_volume", "threshold")

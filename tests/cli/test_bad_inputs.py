@@ -591,6 +591,12 @@ def _network_and_calibration_cases() -> list[Case]:
             ("SHA256SUMS", "missing"),
             {"w/": "", "w/config.yaml": "channels: 8\n"},
         ),
+        Case(
+            "net-testset",
+            "input-file",
+            ["net-testset", weights, "{case}/o", "--traced", "--model", "{missing}"],
+            ("--model", "no such file"),
+        ),
         Case("train", "input-file", ["train", "{missing}"], ("missing.tif", "no such")),
         Case("train", "input-file", ["train", "{garbage_yaml}"], ("garbage.yaml", "YAML")),
         Case("calibrate scan", "input-file", ["calibrate", "scan", "{missing}", "--out", "{case}/r"], ("no such",)),

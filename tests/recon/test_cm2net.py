@@ -17,9 +17,9 @@ from cm2optics.recon.net.config import ConfigError, NetConfig, load_config
 from cm2optics.recon.net.data import PatchSource, epoch_items
 from cm2optics.recon.net.infer import histogram_match, reconstruct_with_net
 from cm2optics.recon.net.loss import cm2net_loss, volume_loss
-from cm2optics.recon.net.model import CM2Net
+from cm2optics.recon.net.model import CM2Net, build_net, fused_for_inference
 from cm2optics.recon.net.refocus import ShiftAndAdd, refocus_planes
-from cm2optics.recon.net.train import make_net
+from cm2optics.recon.net.train import make_net, start_from_weights
 from cm2optics.recon.net.weights import (
     SUMS_FILE,
     WEIGHTS_FILE,
@@ -261,6 +261,45 @@ def test_full_field_inference_checks_its_inputs_and_returns_a_volume(weights):
     other = gaussian_cm2(grid, (160, 160), defocus_px_per_um=0.006, shear_per_um=6e-4)
     with pytest.raises(GeometryMismatchError, match="refocusing"):
         reconstruct_with_net(sample.measurement, weights, other)
+
+
+def test_folding_the_batch_norms_into_the_convolutions_keeps_the_outputs(weights):
+    net = load_weights(weights).net
+    with torch.no_grad():
+        for m in net.modules():
+            if isinstance(m, torch.nn.BatchNorm2d):  # statistics and scales far from the identity
+                m.running_mean.uniform_(-0.5, 0.5), m.running_var.uniform_(0.2, 3.0)
+                m.weight.uniform_(0.5, 2.0), m.bias.uniform_(-0.3, 0.3)
+    net.eval()
+    fused = fused_for_inference(net)
+    assert not any(isinstance(m, torch.nn.BatchNorm2d) for m in fused.modules())
+    assert any(isinstance(m, torch.nn.BatchNorm2d) for m in net.modules())  # the original is untouched
+    x = torch.rand(1, 9, 40, 48)
+    with torch.no_grad():
+        (d0, v0), (d1, v1) = net(x), fused(x)
+    assert float((v0 - v1).abs().max()) < 1e-4 * max(1.0, float(v0.abs().max()))
+    assert float((d0 - d1).abs().max()) < 1e-4 * max(1.0, float(d0.abs().max()))
+
+
+def test_fine_tuning_starts_from_the_weights_with_the_refocusing_of_its_own_model(weights):
+    """start_from_weights: the learned tensors come over, the refocusing stays the new model's,
+    and the resampling's interpolation moves onto the new planes (here the weights are untrained,
+    so the resampling must become exactly the new planes' interpolation)."""
+    loaded = load_weights(weights)
+    config = loaded.config
+    z = config.synth.grid.axis_mm(0)
+    other = gaussian_cm2(config.synth.grid, (160, 160), defocus_px_per_um=0.006, shear_per_um=6e-4)
+    planes = refocus_planes(other, (float(z[0]), float(z[-1])), loaded.planes.n_planes)
+    assert not np.allclose(planes.z_mm, loaded.planes.z_mm)
+    net = build_net(config, planes, z, seed=123)
+    start_from_weights(net, weights)
+    np.testing.assert_array_equal(net.demix[0].weight.detach().numpy(), loaded.net.demix[0].weight.detach().numpy())
+    np.testing.assert_array_equal(net.refocus.shifts.numpy(), planes.shifts_px)
+    np.testing.assert_allclose(net.refocus_z_mm.numpy(), planes.z_mm)
+    np.testing.assert_allclose(net.resample.weight[:, :, 0, 0].detach().numpy(), planes.resampling(z), atol=1e-6)
+    narrow = build_net(config.with_changes(channels=4), planes, z)
+    with pytest.raises(ValueError, match="architecture"):
+        start_from_weights(narrow, weights)
 
 
 def test_cm2_reconstruct_method_net_writes_the_volume_record_and_emitters(weights, tmp_path):

@@ -63,6 +63,29 @@ def test_the_test_set_uses_a_seed_no_training_volume_used_and_scores_net_and_fis
     assert (tmp_path / "a" / "comparison.md").read_text().count("cm2net") >= 1
 
 
+@pytest.mark.slow  # two test sets with both runs: ≈ 3 min at load 20
+def test_a_model_of_its_own_reconstructs_while_the_weights_model_still_images_set_a(lsv_weights, lsv_model, tmp_path):
+    """``model=``: both runs use it (here a rank-3 build of the weights' model, same geometry), the
+    measurements are still made through the weights' own model (the same as without it)."""
+    from cm2optics.lsv.model import load_model
+    from cm2optics.synth.dataset import read_sample
+
+    low = lsv_model.truncated(3).save(tmp_path / "low-rank.lsv.h5")
+    runs = {}
+    for name, model in (("own", None), ("low", low)):
+        runs[name] = net_test_set(
+            lsv_weights, tmp_path / name, n_volumes=1, fista_iterations=2, workers=0, model=model, log=None
+        )
+    assert load_model(tmp_path / "low" / "forward-model.lsv.h5").rank == 3
+    assert load_model(tmp_path / "own" / "forward-model.lsv.h5").rank == lsv_model.rank > 3
+    measured = [
+        read_sample(next((tmp_path / name / "testset" / "samples").glob("*.h5")), verify=False)["measurement"]
+        for name in ("own", "low")
+    ]
+    np.testing.assert_array_equal(measured[0], measured[1])
+    assert all(set(r["runs"]) == {"cm2net", "lsv-fista"} for r in runs.values())
+
+
 def test_the_demo_section_reconstructs_with_the_net_and_fista_and_scores_both(lsv_weights, tmp_path):
     """`cm2 demo` section 8 on the tiny LSV weights: one measurement of the test seed at the
     weights' geometry, the depth-coloured MIPs and a table whose scores are the evaluations'."""

@@ -89,6 +89,10 @@ class NetConfig:
     (γ = focal_gamma); border_px: patch margin left out of the volume loss (−1: the largest
     refocusing shift); detect_threshold: the validation's detection threshold on the sigmoid output.
 
+    Start — init_weights: a weights folder whose learned tensors the run starts from (fine-tuning
+    on another forward model: the refocusing comes from this config's model, see
+    :func:`~cm2optics.recon.net.train.start_from_weights`; empty: a fresh network).
+
     Runtime — epochs, out_dir, checkpoint_every (steps; 0: at epoch ends only), workers
     (DataLoader workers), threads (torch threads per process; 0: torch's default), progress.
     """
@@ -119,6 +123,7 @@ class NetConfig:
     volume_loss: str = "bce"
     pos_weight: float = 10.0
     focal_gamma: float = 2.0
+    init_weights: str = ""
     border_px: int = -1
     detect_threshold: float = 0.5
     epochs: int = 10
@@ -147,6 +152,8 @@ class NetConfig:
             raise ConfigError(
                 f"forward_model = {self.forward_model!r}: must name a model file, analytic:… or toy:gaussian"
             )
+        if not isinstance(self.init_weights, str):
+            raise ConfigError(f"init_weights = {self.init_weights!r}: must name a weights folder (or be empty)")
         _int("toy_sensor_px", self.toy_sensor_px, 16, 100_000)
         _int("seed", self.seed, 0, 2**31 - 1)
         _int("train_volumes", self.train_volumes, 1, 10_000_000)
@@ -228,10 +235,13 @@ class NetConfig:
 
     def hash(self) -> str:
         """SHA-256 (hex) of the fields that change the weights (not :data:`RUNTIME_FIELDS`; nor
-        ``ablation`` when ``none``, so that configs written before it existed keep their hash)."""
+        ``ablation`` when ``none`` nor an empty ``init_weights``, so that configs written before
+        they existed keep their hash)."""
         data = {k: v for k, v in self.to_dict().items() if k not in RUNTIME_FIELDS}
         if data["ablation"] == "none":
             del data["ablation"]
+        if not data["init_weights"]:
+            del data["init_weights"]
         return hashlib.sha256(json.dumps(data, sort_keys=True, default=str).encode()).hexdigest()
 
     def with_changes(self, **changes: Any) -> NetConfig:

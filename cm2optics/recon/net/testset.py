@@ -9,7 +9,8 @@ validation or reference volume used — and imaged
     :class:`cm2optics.emission.image.TracedSource`, given the weights' 3D-LSV model; no LSV model
     in the loop — the analogue of the paper's experiments, where the model mismatch is real);
 
-then reconstructed by the network and by FISTA with the weights' 3D-LSV model, each thresholded
+then reconstructed by the network and by FISTA with the weights' 3D-LSV model (for (b), optionally
+a model of its own, e.g. built from a traced PSF scan: the device's calibrated model), each thresholded
 at its own F1-optimal threshold, scored, and broken down against field radius, depth, size and
 density (the paper's Fig. 6) by :func:`cm2optics.recon.compare.compare_baselines`.
 
@@ -45,15 +46,23 @@ def net_test_set(
     threads: int = 1,
     reuse: bool = False,
     traced: Callable[[Any], Any] | None = None,
+    model: str | Path | None = None,
     log=print,
 ) -> dict[str, Any]:
     """Make the test set, reconstruct it with the weights and with FISTA, evaluate; returns the
     summary that ``out_dir/comparison.json`` holds (runs ``cm2net`` and ``lsv-fista``).
 
-    traced: ``traced(model)`` → the source that images the test volumes instead of the weights'
-    3D-LSV ``model`` (set (b); made in this process, never reused)."""
+    traced: ``traced(reference)`` → the source that images the test volumes instead of the 3D-LSV
+    model the runs use (set (b); made in this process, never reused). model: a 3D-LSV model file both
+    reconstructions use instead of the weights' forward model (which still images set (a)): for
+    (b) e.g. one built from a traced PSF scan of the design (``cm2 psf simulate`` → ``cm2 lsv
+    build``), the calibrated model a real device is reconstructed with; or a lower-rank build of
+    the weights' own scan, for a faster FISTA. Its geometry must be the weights' (checked by the
+    network's run); cut to the training views' sensor window and written to
+    ``out_dir/forward-model.lsv.h5``."""
+    from cm2optics.lsv.model import load_model
     from cm2optics.recon.compare import compare_baselines
-    from cm2optics.recon.net.data import forward_imaging
+    from cm2optics.recon.net.data import forward_imaging, sensor_window
     from cm2optics.recon.net.weights import load_weights
     from cm2optics.synth.imaging import Imaging
 
@@ -63,11 +72,12 @@ def net_test_set(
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     model_path = out_dir / "forward-model.lsv.h5"
-    model = forward_imaging(config).source  # the training sensor window
-    if not hasattr(model, "save"):
+    imaging_source = forward_imaging(config).source  # the training sensor window
+    source = imaging_source if model is None else sensor_window(load_model(model), config.synth.view_px)
+    if not hasattr(source, "save"):
         raise ValueError(f"{config.forward_model}: a test set needs a 3D-LSV forward model, not a toy operator")
-    if not model_path.is_file():
-        model.save(model_path)
+    if model is not None or traced is not None or not model_path.is_file():
+        source.save(model_path)
     test = config.synth.with_changes(
         view_px=0, patch_px=0, patches_per_volume=0, store_volume=False, density_per_mm2=(10.0, 100.0)
     )
@@ -75,7 +85,11 @@ def net_test_set(
         "cm2net": {"method": "net", "weights": str(Path(weights).resolve()), "preprocess": "none"},
         "lsv-fista": {"forward": "lsv", "method": "fista", "l1": 0.02, "max_iter": fista_iterations},
     }
-    imaging = Imaging(traced(model), test.grid) if traced is not None else None
+    imaging = None  # set (a) imaged by the reconstruction model itself, on Dask workers
+    if traced is not None:
+        imaging = Imaging(traced(source), test.grid)
+    elif model is not None:
+        imaging = Imaging(imaging_source, test.grid)  # set (a): the weights' own model images it
     return compare_baselines(
         model_path,
         out_dir,

@@ -54,7 +54,7 @@ from cm2optics.recon.net.data import (
 )
 from cm2optics.recon.net.loss import cm2net_loss
 from cm2optics.recon.net.model import CM2Net, build_net
-from cm2optics.recon.net.refocus import refocus_planes
+from cm2optics.recon.net.refocus import RefocusPlanes, refocus_planes
 
 __all__ = ["evaluate", "make_net", "make_optimiser", "make_scheduler", "train", "train_one_epoch"]
 
@@ -76,6 +76,38 @@ def make_net(config: NetConfig) -> tuple[CM2Net, int]:
             "use larger patches or set border_px"
         )
     return build_net(config, planes, z), border
+
+
+def start_from_weights(net: CM2Net, folder: str | Path) -> None:
+    """Fine-tuning: load the learned tensors of the weights ``folder`` (the same architecture)
+    into ``net``, keeping ``net``'s own refocusing (shifts and plane depths from its forward
+    model). The learned resampling of the refocus planes onto the output depths keeps what
+    training added to its initial linear interpolation, the interpolation moved onto ``net``'s
+    planes (the same disparity index may sit at another depth in another model)."""
+    from cm2optics.recon.net.weights import load_weights
+
+    loaded = load_weights(folder)
+    source, target = loaded.net.state_dict(), net.state_dict()
+    refocusing = {"refocus.shifts", "refocus_z_mm", "refocus_disparity_px"}
+    wrong = sorted(
+        k
+        for k in (set(source) | set(target)) - refocusing
+        if k not in source or k not in target or source[k].shape != target[k].shape
+    )
+    if wrong:
+        raise ValueError(f"init_weights {folder}: not this config's architecture ({', '.join(wrong[:4])} differ)")
+    if not torch.allclose(source["volume_z_mm"], target["volume_z_mm"]):
+        raise ValueError(f"init_weights {folder}: its output planes are not this config's")
+    state = {k: (target[k] if k in refocusing else source[k].clone()) for k in target}
+    if "resample.weight" in state:
+        z_out = target["volume_z_mm"].numpy()
+        old, new = (
+            RefocusPlanes(s["refocus_z_mm"].numpy(), s["refocus_disparity_px"].numpy(), s["refocus.shifts"].numpy())
+            for s in (source, target)
+        )
+        moved = new.resampling(z_out) - old.resampling(z_out)
+        state["resample.weight"] = state["resample.weight"] + torch.from_numpy(moved)[:, :, None, None]
+    net.load_state_dict(state)
 
 
 def make_optimiser(net: torch.nn.Module, config: NetConfig) -> torch.optim.Optimizer:
@@ -320,6 +352,8 @@ def train(
     if rank == 0:
         out.mkdir(parents=True, exist_ok=True)
     net, border = make_net(config)
+    if config.init_weights and not resume:
+        start_from_weights(net, config.init_weights)
     net.to(dev)
     optimiser = make_optimiser(net, config)
     scheduler = make_scheduler(optimiser, config)
