@@ -12,7 +12,8 @@ give the effects instead (``--scan-report``).
 
 The frame is then reconstructed twice by FISTA with 3D-LSV models built from the same
 simulator's single-source images on a small grid of nodes around the beads (:func:`lsv_model`):
-the nominal model and the corrected one. Each volume is scored against the reference emitters
+the nominal model, and the corrected one (the effects, and the frame offset the registration
+found: where the sensor sits, which the beads' coordinates fix). Each volume is scored against the reference emitters
 at its own F1-optimal threshold (``cm2 evaluate``'s default), so recall, precision, F1 and the
 localisation RMSE before and after compare the models, not the thresholds.
 """
@@ -244,10 +245,19 @@ def reconstruction_grid(frame: BeadsFrame, design: SystemDesign, binning: int) -
     return VolumeGrid((nz, nxy, nxy), (axial, lateral, lateral))
 
 
-def lsv_model(simulator: Simulator, design: SystemDesign, binning: int, values: Values, grid: VolumeGrid, rank: int):
-    """A 3D-LSV model (:class:`~cm2optics.lsv.model.LSVModel`) of ``simulator`` with ``values``:
-    its single-source images on LATERAL_NODES² × DEPTH_NODES nodes spanning ``grid``, cut around
-    the design's paraxial chief rays (Keys-interpolated windows), decomposed to ``rank``."""
+def lsv_model(
+    simulator: Simulator,
+    design: SystemDesign,
+    binning: int,
+    values: Values,
+    grid: VolumeGrid,
+    rank: int,
+    offset_px: tuple[float, float] = (0.0, 0.0),
+):
+    """A 3D-LSV model (:class:`~cm2optics.lsv.model.LSVModel`) of ``simulator`` with ``values`` and
+    the sensor displaced by ``offset_px`` (row, col): its single-source images on
+    LATERAL_NODES² × DEPTH_NODES nodes spanning ``grid``, cut around the design's paraxial chief
+    rays (Keys-interpolated windows), decomposed to ``rank``."""
     from cm2optics.lsv.build import default_patch_px, model_from_crops
     from cm2optics.lsv.kernels import sample_window
     from cm2optics.lsv.toy import AnalyticCM2, analytic_geometry
@@ -259,7 +269,7 @@ def lsv_model(simulator: Simulator, design: SystemDesign, binning: int, values: 
     geometry = analytic_geometry(AnalyticCM2.from_design(design, binning=binning), zs)
     positions = np.array([[x, y, z] for z in zs for y in ys for x in xs])
     index = np.array([[i, j, k] for k in range(len(zs)) for j in range(len(ys)) for i in range(len(xs))])
-    images = apply_image_effects(simulator.rates(positions, values), values, simulator.pixel_um)
+    images = apply_image_effects(simulator.rates(positions, values, offset_px), values, simulator.pixel_um)
     patch = (default_patch_px(binning),) * 2
     crops = np.stack(
         [
@@ -331,9 +341,10 @@ def calibrate_image(
     after = _analyse(simulator, frame, model_frame(simulator, frame, effects))
     grid = reconstruction_grid(frame, design, binning)
     volumes, evaluations = {}, {}
-    for label, values in (("before", {}), ("after", effects)):
+    offset = tuple(float(v) for v in after.registration.offset_px)
+    for label, values, shift in (("before", {}, (0.0, 0.0)), ("after", effects, offset)):
         say(f"building the {'nominal' if label == 'before' else 'corrected'} LSV model and reconstructing")
-        model = lsv_model(simulator, design, binning, values, grid, rank)
+        model = lsv_model(simulator, design, binning, values, grid, rank, shift)
         volumes[label], evaluations[label] = reconstruct_and_score(
             frame, before.registration.dark_level, model, grid, options
         )
@@ -354,6 +365,7 @@ def calibrate_image(
         "chi2_after": round(after.chi2_total, 4),
         "unexplained": describe_unexplained(after, simulator.pixel_um),
         **{f"{k}_{label}": v for label in ("before", "after") for k, v in scores[label].items()},
+        "frame_offset_px": [round(v, 3) for v in offset],
         "reconstruction": {"method": options.method, "max_iter": options.max_iter, "l1": options.l1, "rank": rank},
         "grid": grid.to_dict(),
     }
