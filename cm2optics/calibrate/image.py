@@ -56,13 +56,16 @@ LATERAL_NODES, DEPTH_NODES = 5, 3
 
 @dataclass(frozen=True)
 class BeadsFrame:
-    """A measured frame: raw counts (y, x), its exposure (ms), ADC bits and the reference emitters."""
+    """A measured frame: raw counts (y, x), the reference emitters, the exposure (ms), ADC bits, and
+    the camera's gain (counts per photo-electron; None: estimated from the frame, which a model
+    far from the data inflates)."""
 
     counts: np.ndarray
     emitters: Emitters
     exposure_ms: float = 1.0
     bit_depth: int = 16
     name: str = "frame"
+    counts_per_electron: float | None = None
 
 
 def frame_binning(shape: tuple[int, ...], design: SystemDesign) -> int:
@@ -193,7 +196,9 @@ def _analyse(simulator: Simulator, frame: BeadsFrame, rate: np.ndarray) -> Resid
     )
     model = np.broadcast_to(rate, (k,) + rate.shape)
     centres = simulator.focus_centres_px(positions)
-    return analyse_scan(data, model, positions, centres, simulator.pitch_px())
+    return analyse_scan(
+        data, model, positions, centres, simulator.pitch_px(), counts_per_electron=frame.counts_per_electron
+    )
 
 
 def _attribute(simulator: Simulator, frame: BeadsFrame, max_effects: int, say: Progress) -> Attribution:
@@ -206,7 +211,7 @@ def _attribute(simulator: Simulator, frame: BeadsFrame, max_effects: int, say: P
         frame.emitters.positions_mm(),
         counts < 2**frame.bit_depth - 1,
         library(simulator.lenslets),
-        None,
+        frame.counts_per_electron,
     )
     return attribute(problem, max_effects=max_effects, progress=say)
 

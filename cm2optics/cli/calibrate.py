@@ -124,7 +124,11 @@ def scan(
 @user_errors
 def image(
     frame: Annotated[
-        Path, typer.Argument(help="Measured beads frame (.tif or .npy; its YAML sidecar gives bit_depth, exposure_ms).")
+        Path,
+        typer.Argument(
+            help="Measured beads frame (.tif or .npy; its YAML sidecar gives bit_depth, exposure_ms and "
+            "noise.counts_per_electron, the camera's gain)."
+        ),
     ],
     emitters: Annotated[
         Path,
@@ -178,7 +182,15 @@ def image(
     counts = read_measurement(frame)
     meta = read_sidecar(frame) or {}
     table = read_emitters(emitters)
-    beads = BeadsFrame(counts, table, float(meta.get("exposure_ms", 1.0)), int(meta.get("bit_depth", 16)), frame.name)
+    noise = meta.get("noise") or {}
+    beads = BeadsFrame(
+        counts,
+        table,
+        float(meta.get("exposure_ms", 1.0)),
+        int(meta.get("bit_depth", 16)),
+        frame.name,
+        noise.get("counts_per_electron"),
+    )
     binning = frame_binning(counts.shape, design)
     check_frame(beads, design)
     effects = scan_report_effects(scan_report) if scan_report else None

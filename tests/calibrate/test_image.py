@@ -27,7 +27,7 @@ def simulator(v2) -> AnalyticSimulator:
 
 def beads_frame(simulator, values, *, count=6, half_mm=2.5, seed=0) -> BeadsFrame:
     """``count`` 20-µm beads in the focal plane within ±``half_mm``, recorded by a 12-bit sensor
-    (shot noise, 2-count read noise, 100-count dark level) at a peak of ≈ 3000 counts."""
+    (shot noise at 1 count per electron, 2-count read noise, 100-count dark level) at a peak of ≈ 3000 counts."""
     rng = np.random.default_rng(seed)
     positions = np.c_[rng.uniform(-half_mm, half_mm, (count, 2)) * 1000.0, np.zeros(count)]
     emitters = Emitters.from_positions_um(positions, np.full(count, 20.0), rng.uniform(0.7, 1.3, count))
@@ -35,7 +35,7 @@ def beads_frame(simulator, values, *, count=6, half_mm=2.5, seed=0) -> BeadsFram
     exposure = 3000.0 / float(rate.max())
     noisy = rng.poisson(rate * exposure) + rng.normal(0.0, 2.0, rate.shape) + 100.0
     counts = np.clip(np.round(noisy), 0, 4095).astype(np.float32)
-    return BeadsFrame(counts, emitters, exposure, 12, "beads")
+    return BeadsFrame(counts, emitters, exposure, 12, "beads", counts_per_electron=1.0)
 
 
 def run(simulator, frame, design):
@@ -52,6 +52,7 @@ def test_frame_simulator_is_the_weighted_sum_of_the_emitters_images(simulator):
     assert frame.focus_centres_px(positions).shape == (1, 2 * simulator.lenslets, 2)
 
 
+@pytest.mark.slow  # 1.5–5 min at load 10–20 on the 2-core machine: the attribution, two LSV builds, two FISTAs
 def test_an_undeclared_effect_is_named_and_its_false_positives_go(simulator, v2):
     doc = run(simulator, beads_frame(simulator, INJECTED), v2)
     assert [e["name"] for e in doc["effects"]] == ["mla_rotation"]
@@ -62,8 +63,35 @@ def test_an_undeclared_effect_is_named_and_its_false_positives_go(simulator, v2)
     assert doc["f1_after"] >= 0.85
 
 
+@pytest.mark.slow  # 35–60 s at load 20
 def test_a_clean_frame_yields_no_effect_and_the_same_scores(simulator, v2):
     doc = run(simulator, beads_frame(simulator, {}, seed=3), v2)
     assert doc["effects"] == []
     assert doc["f1_after"] == doc["f1_before"] >= 0.8
     assert doc["chi2_after"] < 1.2
+
+
+def test_the_binning_follows_from_the_frame_size_and_a_foreign_size_is_refused(v2):
+    from cm2optics.calibrate.image import frame_binning
+    from cm2optics.calibrate.residual import CalibrationError
+
+    assert frame_binning((2076 // 8, 3088 // 8), v2) == 8
+    assert frame_binning((2076, 3088), v2) == 1
+    with pytest.raises(CalibrationError, match="wrong sensor size"):
+        frame_binning((2076 // 8, 3088 // 4), v2)
+
+
+def test_a_scan_reports_effects_come_back_as_the_simulators_values(tmp_path):
+    import json
+
+    from cm2optics.calibrate.image import scan_report_effects
+
+    effects = [
+        {"name": "mla_rotation", "parameters": {"angle_deg": 0.5}, "uncertainties": {"angle_deg": 0.001}},
+        {"name": "lenslet_transmission", "parameters": {"lenslet": 8, "transmission": 0.6}, "uncertainties": {}},
+    ]
+    (tmp_path / "calibration.json").write_text(json.dumps({"effects": effects}))
+    assert scan_report_effects(tmp_path) == {
+        "mla_rotation": {"angle_deg": 0.5},
+        "lenslet_transmission[8]": {"transmission": 0.6},
+    }
