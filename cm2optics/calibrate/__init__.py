@@ -16,5 +16,7 @@ name the physical effect the model lacks, add it, and report the error before an
   lenslets, field, depths, share of the energy, shape) instead of a forced physical fit;
 - :mod:`.lowrank_correction`: the data-driven, non-physical low-rank correction of the foci fitted
   to that residual, with its error on positions held out of its fit;
-- :mod:`.scan`: ``cm2 calibrate scan``'s loop on a PSF scan.
+- :mod:`.scan`: ``cm2 calibrate scan``'s loop on a PSF scan;
+- :mod:`.image`: ``cm2 calibrate image``'s loop on a beads frame with its reference emitters, and
+  the reconstruction's scores with the nominal and the corrected model.
 """

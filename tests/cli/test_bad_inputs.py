@@ -58,6 +58,9 @@ def inputs(tmp_path_factory) -> dict[str, Path]:
     (root / "garbage.stl").write_bytes(os.urandom(300))
     (root / "curves.csv").write_text("wavelength_nm,aoi_deg,T\n500,0,0.5\n")
     (root / "adir.tif").mkdir()
+    np.save(root / "beads.npy", np.full((design.sensor.height_px // 16, design.sensor.width_px // 16), 100.0))
+    np.save(root / "small.npy", np.full((100, 120), 100.0))
+    np.save(root / "nan.npy", np.full((design.sensor.height_px // 16, design.sensor.width_px // 16), np.nan))
     (root / "regular").write_text("a user's file\n")
     return {
         "root": root,
@@ -74,6 +77,9 @@ def inputs(tmp_path_factory) -> dict[str, Path]:
         "garbage_stl": root / "garbage.stl",
         "curves": root / "curves.csv",
         "adir": root / "adir.tif",
+        "beads": root / "beads.npy",
+        "nan_frame": root / "nan.npy",
+        "small_frame": root / "small.npy",
         "regular": root / "regular",
         "missing": root / "missing.tif",
     }
@@ -570,7 +576,8 @@ def _input_cases() -> list[Case]:
 
 
 def _network_and_calibration_cases() -> list[Case]:
-    """`cm2 net-testset` (weights: the repository's shipped folder), `cm2 train`, `cm2 calibrate scan`."""
+    """`cm2 net-testset` (weights: the repository's shipped folder), `cm2 train`, `cm2 calibrate scan`
+    and `cm2 calibrate image` (a frame of the cm2-v2 sensor binned 16×)."""
     weights = str(SHIPPED_WEIGHTS)
     return [
         Case("net-testset", "output-is-input", ["net-testset", weights, weights], ("is the input",)),
@@ -611,6 +618,7 @@ def _network_and_calibration_cases() -> list[Case]:
             ("unknown preset",),
         ),
         *_illumination_calibration_cases(),
+        *_calibrate_image_cases(),
     ]
 
 
@@ -664,6 +672,54 @@ def _illumination_calibration_cases() -> list[Case]:
             ("not empty", "--overwrite"),
             {"k": "x"},
         ),
+    ]
+
+
+def _calibrate_image_cases() -> list[Case]:
+    """`cm2 calibrate image`: a frame or an emitter list that cannot be compared."""
+    header = "x_um,y_um,z_um,diameter_um,intensity\n"
+
+    def image(frame: str, emitters: str = "{emitters}", *extra: str) -> list[str]:
+        return ["calibrate", "image", frame, "--emitters", emitters, *extra, "--out", "{case}/r"]
+
+    return [
+        Case("calibrate image", "input-file", image("{missing}"), ("missing.tif", "no such")),
+        Case("calibrate image", "input-file", image("{nan_frame}"), ("nan.npy", "NaN")),
+        Case("calibrate image", "input-file", image("{beads}", "{garbage_csv}"), ("garbage.csv",)),
+        Case(
+            "calibrate image",
+            "input-file",
+            image("{beads}", "{case}/e.csv"),
+            ("e.csv", "missing diameter_um, intensity"),
+            {"e.csv": "x_um,y_um,z_um\n0,0,0\n"},
+        ),
+        Case(
+            "calibrate image",
+            "input-file",
+            image("{small_frame}"),
+            ("wrong sensor size", "100 × 120"),
+        ),
+        Case(
+            "calibrate image",
+            "input-file",
+            image("{beads}", "{case}/far.csv"),
+            ("outside the design's field", "row 2"),
+            {"far.csv": header + "0,0,0,10,1\n9000,0,0,10,1\n"},
+        ),
+        Case(
+            "calibrate image",
+            "input-file",
+            image("{beads}", "{case}/deep.csv"),
+            ("outside the design's field",),
+            {"deep.csv": header + "0,0,2000,10,1\n"},
+        ),
+        Case(
+            "calibrate image",
+            "input-file",
+            image("{beads}", "{emitters}", "--scan-report", "{root}"),
+            ("calibration.json",),
+        ),
+        Case("calibrate image", "output-is-input", image("{beads}")[:-1] + ["{emitters}"], ("is the input",)),
     ]
 
 
