@@ -240,6 +240,28 @@ def test_weights_round_trip_and_refuse_a_failed_hash_or_another_config(weights, 
         load_weights(other)
 
 
+def test_a_forward_model_shipped_in_the_weights_folder_is_found_there_and_checked(tmp_path, monkeypatch):
+    """reconstruction/cm2net-cpu-traced names its 3D-LSV model relative to the folder: found
+    from any directory, and refused when it is edited or missing."""
+    import shutil
+    from pathlib import Path
+
+    shipped = Path(__file__).resolve().parents[2] / "reconstruction" / "cm2net-cpu-traced"
+    monkeypatch.chdir(tmp_path)
+    loaded = load_weights(shipped)
+    assert Path(loaded.config.forward_model) == (shipped / "forward_model.lsv.h5").resolve()
+    copy = shutil.copytree(shipped, tmp_path / "copy")
+    model = copy / "forward_model.lsv.h5"
+    data = bytearray(model.read_bytes())
+    data[-3] ^= 0xFF
+    model.write_bytes(bytes(data))
+    with pytest.raises(WeightsError, match=r"forward_model\.lsv\.h5.*SHA-256"):
+        load_weights(copy)
+    model.unlink()
+    with pytest.raises(WeightsError, match=r"forward_model\.lsv\.h5: missing"):
+        load_weights(copy)
+
+
 def test_full_field_inference_checks_its_inputs_and_returns_a_volume(weights):
     from cm2optics.synth.generate import synthesize_sample
     from cm2optics.synth.imaging import Imaging

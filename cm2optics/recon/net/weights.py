@@ -8,7 +8,11 @@
                           lateral correction of the output planes (once fitted)
       config.yaml         the NetConfig that built it
       MODEL_CARD.md       data, training, metrics, geometry, intended use, limitations
-      SHA256SUMS          SHA-256 of the two files above (``sha256sum -c`` reads it)
+      SHA256SUMS          SHA-256 of the two files above and of any shipped forward model
+                          (``sha256sum -c`` reads it)
+      *.lsv.h5            optional: the 3D-LSV model the weights were trained through, when
+                          ``config.yaml``'s ``forward_model`` names it by a path relative to the
+                          folder (so the weights work from any directory)
 
 :func:`load_weights` checks the SHA-256 sums, rebuilds the network from ``config.yaml`` and the
 stored planes and refuses weights whose tensors do not match it; every failure is a
@@ -56,6 +60,7 @@ FORMAT = "cm2optics-cm2net"
 #: The weights shipped with the project: ``reconstruction/<name>`` at the top of the repository.
 SHIPPED = "cm2net-cpu"
 WEIGHTS_FILE, CONFIG_FILE, CARD_FILE, SUMS_FILE = "model.safetensors", "config.yaml", "MODEL_CARD.md", "SHA256SUMS"
+MODEL_GLOB = "*.lsv.h5"  # forward models shipped inside a weights folder
 
 
 class NetError(UserError):
@@ -197,7 +202,8 @@ def _write_tensors(folder: Path, state: dict, metadata: dict[str, str]) -> None:
 
 
 def _write_sums(folder: Path) -> None:
-    sums = "".join(f"{_sha256(folder / name)}  {name}\n" for name in (WEIGHTS_FILE, CONFIG_FILE))
+    names = (WEIGHTS_FILE, CONFIG_FILE, *sorted(p.name for p in folder.glob(MODEL_GLOB)))
+    sums = "".join(f"{_sha256(folder / name)}  {name}\n" for name in names)
     write_atomic(folder / SUMS_FILE, lambda tmp: tmp.write_text(sums, encoding="utf-8"))
 
 
@@ -220,7 +226,8 @@ def _check_sums(folder: Path) -> None:
         parts = line.split()
         if len(parts) == 2:
             listed[parts[1].lstrip("*")] = parts[0].lower()
-    for name in (WEIGHTS_FILE, CONFIG_FILE):
+    models = {p.name for p in folder.glob(MODEL_GLOB)} | {n for n in listed if n.endswith(MODEL_GLOB[1:])}
+    for name in (WEIGHTS_FILE, CONFIG_FILE, *sorted(models)):
         path = folder / name
         if not path.is_file():
             raise WeightsError(f"{path}: missing")
@@ -261,6 +268,13 @@ def load_weights(folder: str | Path, device: str = "cpu") -> LoadedNet:
         raise WeightsError(
             f"{path}: trained with config {metadata.get('config_hash', '?')[:12]}…, {CONFIG_FILE} is {config.hash()[:12]}…"
         )
+    shipped_model = folder / config.forward_model
+    if (
+        not Path(config.forward_model).is_absolute()
+        and config.forward_model.endswith(MODEL_GLOB[1:])
+        and shipped_model.is_file()
+    ):
+        config = config.with_changes(forward_model=str(shipped_model.resolve()))
     net = net_from_tensors(config, tensors, f"{path}", f"{folder / CONFIG_FILE}")
     net.to(device).eval()
     histogram = np.asarray(json.loads(metadata["histogram"]), float) if "histogram" in metadata else None
