@@ -501,7 +501,8 @@ def _finalists(problem: Problem, scored: list, kept: list[str], bic, k_now: int)
 class Guard:
     """How a candidate's fit changes the misfit (the guard of :func:`attribute`).
 
-    excess_share: the share of the χ² above the noise floor (1 per feature) it removes.
+    excess_share: the share of the χ² above the noise floor (1 per feature) it removes; with the
+        camera's gain estimated from the data the floor is not known, and the share is of all the χ².
     worsened_share: χ² added to the groups it makes worse (a focus's energy, centroid and
         width; a frame's background blocks) over χ² removed from those it makes better.
     """
@@ -523,7 +524,8 @@ def guard(problem: Problem, before: State, after: State) -> Guard:
     gained = np.nan_to_num(r_before**2 - r_after**2)
     groups = np.bincount(problem.feature_groups[use], weights=gained)
     better, worse = groups[groups > 0].sum(), -groups[groups < 0].sum()
-    excess = float(np.nansum(r_before**2)) - problem.n_features
+    floor = problem.n_features if problem.noise_known else 0.0  # with the gain estimated, no floor is known
+    excess = float(np.nansum(r_before**2)) - floor
     share = float(gained.sum() / excess) if excess > 0 else 0.0
     return Guard(share, float(worse / better) if better > 0 else math.inf)
 

@@ -19,6 +19,7 @@ def _problem(data: np.ndarray, groups: np.ndarray) -> SimpleNamespace:
         space=space,
         feature_groups=groups,
         n_features=len(data),
+        noise_known=True,
         features=lambda state: np.asarray(state.values["f"]["model"]),
     )
 
