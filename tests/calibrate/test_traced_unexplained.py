@@ -4,6 +4,7 @@ sensor is added (shot noise at the scan's gain, 2-count read noise, 100-count da
 clipping). The loop must report an unexplained residual at the right place (the ghost's offset;
 the lenslet the scratch dims) without forcing a library effect onto it (the attribution's guard),
 and the ghost's low-rank correction must lower the error on positions held out of its fit.
+The scratch case is not met yet (expected to fail, strictly: it reports when it passes).
 Slow: a 3 × 3 × 2 scan at 8× binning is traced, then calibrated."""
 
 from __future__ import annotations
@@ -47,6 +48,11 @@ def test_a_ghost_is_reported_where_it_is_and_corrected_on_held_out_positions(v2,
     _check_correction(doc)
 
 
+@pytest.mark.xfail(
+    strict=True,
+    reason="not met yet: on this traced scan the guard still keeps lenslet_transmission[2] "
+    "(χ²/n 325 → 128, seed 5; BENCHMARKS.md, issue 14 part B)",
+)
 def test_a_filter_scratch_is_left_unexplained_on_the_lenslet_it_dims(v2, clean_scan, tmp_path):
     """The scratch dims lenslet 2 (row 0, column 2) by ≈ 40 % at two source positions and ≈ 5 %
     at two more: no per-lenslet transmission, source profile or vignetting may be fitted to it."""
