@@ -7,7 +7,10 @@ foci. Each feature's noise follows from the sensor's noise model, so a misfit is
 Starting from the nominal design, every candidate effect is fitted to the residual (linearised
 by finite differences, nuisance registration parameters — offset, flux scale, dark — free
 alongside); the one that lowers the Bayesian information criterion most is kept if it lowers it
-by more than ``BIC_THRESHOLD``; all kept parameters are then refitted jointly by Gauss–Newton
+by more than ``BIC_THRESHOLD`` and passes the guard (:func:`guard`: it removes at least
+``MIN_EXCESS_SHARE`` of the χ² above the noise floor, and its fit matches the residual's pattern —
+it does not buy large gains at a few foci with losses at the others; else the next finalist is
+tried, and when none passes the rest of the residual is left unexplained); all kept parameters are then refitted jointly by Gauss–Newton
 with the simulator in the loop; and the search repeats until χ² reaches the noise floor or no
 candidate is significant. Uncertainties are the square roots of the covariance's diagonal,
 scaled by the reduced χ² where it exceeds 1.
@@ -215,6 +218,11 @@ class Problem:
         space.sigma = _feature_sigma(space, model_signal, self.noise)
         self.space = space
         self.use = np.isfinite(space.data) & np.isfinite(space.sigma) & (space.sigma > 0)
+        n, foci = centres.shape[:2]
+        focus = np.arange(n * foci)  # features: energy, centroid row, column, width per focus; then blocks
+        self.feature_groups = np.concatenate(
+            [focus, focus, focus, focus, n * foci + np.repeat(np.arange(n), BLOCKS**2)]
+        )
         self._rates: dict[tuple, np.ndarray] = {}
         self._image_rates: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
         self.expensive = frozenset(getattr(simulator, "retraced", ()))
@@ -468,19 +476,58 @@ def _criterion(problem: Problem, n: int) -> Callable[[float, int], float]:
 #: before the choice (an effect far outside its linear range, a vignetting edge moved by more
 #: than its softness, is under-scored by one linear step).
 FINALISTS = 3
+#: The guard: share of the χ² above the noise floor an effect must remove to be kept …
+MIN_EXCESS_SHARE = 0.1
+#: … and the most χ² it may add to the foci (and frames' backgrounds) it makes worse, as a share
+#: of what it removes from those it makes better: a physical effect explains the residual where
+#: it acts; a global or per-lenslet parameter stretched over a localised residual (a scratch that
+#: dims one lenslet at some source positions) trades large gains at a few foci for losses at the rest.
+MAX_WORSENED_SHARE = 0.25
 
 
-def _finalists(problem: Problem, scored: list, kept: list[str], bic, k_now: int) -> tuple[float, str, State] | None:
-    """The round's choice: the :data:`FINALISTS` best one-step candidates refined by three
-    Gauss–Newton steps each (probes are refined already), then the lowest criterion."""
-    best = None
+def _finalists(problem: Problem, scored: list, kept: list[str], bic, k_now: int) -> list[tuple[float, str, State]]:
+    """The round's candidates for the choice: the :data:`FINALISTS` best one-step candidates
+    refined by three Gauss–Newton steps each (probes are refined already), lowest criterion first."""
+    out = []
     for score, key, candidate, linear in sorted(scored, key=lambda item: item[0])[:FINALISTS]:
         if linear:
             candidate, c, _ = _refine(problem, candidate, kept + [key], iterations=3)
             score = bic(c, k_now + len(_effect(problem, key).parameters))
-        if best is None or score < best[0]:
-            best = (score, key, candidate)
-    return best
+        out.append((score, key, candidate))
+    return sorted(out, key=lambda item: item[0])
+
+
+@dataclass(frozen=True)
+class Guard:
+    """How a candidate's fit changes the misfit (the guard of :func:`attribute`).
+
+    excess_share: the share of the χ² above the noise floor (1 per feature) it removes; with the
+        camera's gain estimated from the data the floor is not known, and the share is of all the χ².
+    worsened_share: χ² added to the groups it makes worse (a focus's energy, centroid and
+        width; a frame's background blocks) over χ² removed from those it makes better.
+    """
+
+    excess_share: float
+    worsened_share: float
+
+    @property
+    def passed(self) -> bool:
+        return self.excess_share >= MIN_EXCESS_SHARE and self.worsened_share <= MAX_WORSENED_SHARE
+
+
+def guard(problem: Problem, before: State, after: State) -> Guard:
+    """The guard's figures for the fit going from ``before`` to ``after`` (:class:`Guard`)."""
+    use = problem.use
+    data, sigma = problem.space.data[use], problem.space.sigma[use]
+    r_before = (data - problem.features(before)[use]) / sigma
+    r_after = (data - problem.features(after)[use]) / sigma
+    gained = np.nan_to_num(r_before**2 - r_after**2)
+    groups = np.bincount(problem.feature_groups[use], weights=gained)
+    better, worse = groups[groups > 0].sum(), -groups[groups < 0].sum()
+    floor = problem.n_features if problem.noise_known else 0.0  # with the gain estimated, no floor is known
+    excess = float(np.nansum(r_before**2)) - floor
+    share = float(gained.sum() / excess) if excess > 0 else 0.0
+    return Guard(share, float(worse / better) if better > 0 else math.inf)
 
 
 def attribute(problem: Problem, *, max_effects: int = 6, progress: Progress | None = None) -> Attribution:
@@ -520,10 +567,21 @@ def attribute(problem: Problem, *, max_effects: int = 6, progress: Progress | No
                 else:  # a probe starts far from the answer (a halo's width): a few steps, not one
                     candidate, c, _ = _refine(problem, candidate, kept + [effect.key], iterations=3)
                 scored.append((bic(c, k_now + len(extra)), effect.key, candidate, start == effect.defaults()))
-        best = _finalists(problem, scored, kept, bic, k_now)
         current_bic = bic(chi2, k_now)
-        if best is None or current_bic - best[0] < BIC_THRESHOLD:
-            say("no further effect is significant")
+        best = None
+        for score, key, candidate in _finalists(problem, scored, kept, bic, k_now):
+            if current_bic - score < BIC_THRESHOLD:
+                break
+            check = guard(problem, state, candidate)
+            if check.passed:
+                best = (score, key, candidate)
+                break
+            say(
+                f"{key} is significant but does not match the residual (removes {check.excess_share:.0%} of the "
+                f"excess χ², adds {check.worsened_share:.0%} of its gain where it makes the fit worse): left unexplained"
+            )
+        if best is None:
+            say("no further effect is significant and matches the residual")
             break
         kept.append(best[1])
         state, chi2, cov = _refine(problem, best[2], kept)
@@ -562,4 +620,4 @@ def attribute(problem: Problem, *, max_effects: int = 6, progress: Progress | No
     )
 
 
-__all__ = ["Attribution", "Problem", "attribute"]
+__all__ = ["Attribution", "Guard", "Problem", "attribute", "guard"]

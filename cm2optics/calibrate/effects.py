@@ -41,10 +41,12 @@ class Effect:
     parameters: tuple[Parameter, ...]
     description: str
     lenslet: int | None = None  # for per-lenslet effects: which lenslet (row-major index)
+    side: str | None = None  # for per-side effects: which side of the array ("+x", "-x", "+y", "-y")
 
     @property
     def key(self) -> str:
-        return self.name if self.lenslet is None else f"{self.name}[{self.lenslet}]"
+        index = self.lenslet if self.lenslet is not None else self.side
+        return self.name if index is None else f"{self.name}[{index}]"
 
     def defaults(self) -> dict[str, float]:
         return {p.name: p.default for p in self.parameters}
@@ -61,6 +63,18 @@ GLOBAL_EFFECTS: tuple[Effect, ...] = (
         "the lenslet array displaced across the sensor",
     ),
     Effect("mla_rotation", (_p("angle_deg", 0, -3, 3, 0.05),), "the lenslet array rotated about the optical axis"),
+    Effect(
+        "mla_tilt",
+        (_p("tilt_x_deg", 0, -5, 5, 0.1), _p("tilt_y_deg", 0, -5, 5, 0.1)),
+        "the lenslet array tilted about x and y (right-handed, about the centre of its vertex plane): each "
+        "lenslet's distance from the sensor, its focus and its magnification change across the array",
+    ),
+    Effect(
+        "sensor_tilt",
+        (_p("tilt_x_deg", 0, -5, 5, 0.1), _p("tilt_y_deg", 0, -5, 5, 0.1)),
+        "the sensor tilted about x and y (right-handed, about its centre): a focus at (x, y) on it is "
+        "defocused by y·sin θx − x·sin θy and moves along its chief ray",
+    ),
     Effect(
         "mla_spacing",
         (_p("delta_mm", 0, -0.3, 0.3, 0.005),),
@@ -119,9 +133,40 @@ def per_lenslet_effects(lenslets: int) -> tuple[Effect, ...]:
     return tuple(out)
 
 
-def library(lenslets: int) -> tuple[Effect, ...]:
-    """Every candidate effect for an array of ``lenslets`` lenslets."""
-    return GLOBAL_EFFECTS + per_lenslet_effects(lenslets)
+#: The sides of the array, as the design's ``mla.partial_sides`` names them.
+SIDES = ("+x", "-x", "+y", "-y")
+
+
+def partial_lenslet_effects(pitch_mm: float) -> tuple[Effect, ...]:
+    """Partial lenslets left by dicing on one side each: a row or column of lens segments
+    ``border_mm`` wide (0 to just under the pitch, ``pitch_mm``) beside the array, each adding a
+    weak extra view of the source (the paper's false positives)."""
+    border = _p("border_mm", 0, 0, 0.95 * pitch_mm, 0.01)
+    return tuple(
+        Effect(
+            "partial_lenslets",
+            (border,),
+            f"partial lenslets on the array's {side} side add extra, weaker views (design: mla.partial_sides, "
+            "mla.partial_border_mm)",
+            side=side,
+        )
+        for side in SIDES
+    )
+
+
+def library(lenslets: int, pitch_mm: float = 1.0) -> tuple[Effect, ...]:
+    """Every candidate effect for an array of ``lenslets`` lenslets at a pitch of ``pitch_mm``."""
+    return GLOBAL_EFFECTS + per_lenslet_effects(lenslets) + partial_lenslet_effects(pitch_mm)
+
+
+def split_key(key: str) -> tuple[str, int | str | None]:
+    """An effect key's name and index: ``"lenslet_decenter[4]"`` → ("lenslet_decenter", 4),
+    ``"partial_lenslets[+x]"`` → ("partial_lenslets", "+x"), ``"mla_rotation"`` → (…, None)."""
+    name, _, index = key.partition("[")
+    if not index:
+        return name, None
+    index = index[:-1]
+    return name, index if index in SIDES else int(index)
 
 
 # ----------------------------------------------------------------------------- image-side effects

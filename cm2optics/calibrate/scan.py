@@ -29,7 +29,7 @@ from warnings import catch_warnings, simplefilter
 import numpy as np
 
 from cm2optics.calibrate.attribute import Attribution, Problem, attribute
-from cm2optics.calibrate.effects import apply_image_effects, library
+from cm2optics.calibrate.effects import apply_image_effects, library, split_key
 from cm2optics.calibrate.lowrank_correction import LowRankCorrection, fit_correction, held_out_error
 from cm2optics.calibrate.residual import CalibrationError, ResidualAnalysis, ScanData, analyse_scan
 from cm2optics.calibrate.tracer import TracerSimulator, design_with, traced_rates
@@ -143,11 +143,11 @@ def corrected_design(design: SystemDesign, attribution: Attribution) -> SystemDe
 
 def _effects_list(attribution: Attribution) -> list[dict[str, Any]]:
     """Fitted effects in the report's vocabulary: ``{name, parameters, uncertainties}`` (a
-    per-lenslet effect names its lenslet among the parameters)."""
+    per-lenslet effect names its lenslet among the parameters, a per-side effect its side)."""
     out = []
     for key, parameters in attribution.effects.items():
-        name, _, index = key.partition("[")
-        extra = {"lenslet": int(index[:-1])} if index else {}
+        name, index = split_key(key)
+        extra = {} if index is None else {"side" if isinstance(index, str) else "lenslet": index}
         out.append(
             {
                 "name": name,
@@ -272,7 +272,7 @@ def calibrate_scan(
         scan.exposure_ms[subset],
         positions[subset],
         valid,
-        library(simulator.lenslets),
+        library(simulator.lenslets, design.mla.pitch_mm),
         gain,
     )
     attribution = attribute(problem, max_effects=max_effects, progress=say)

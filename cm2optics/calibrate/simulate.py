@@ -18,8 +18,9 @@ from typing import Protocol
 
 import numpy as np
 
-from cm2optics.calibrate.effects import Effect
+from cm2optics.calibrate.effects import Effect, split_key
 from cm2optics.lsv.toy import AnalyticCM2
+from cm2optics.optics.tilt import tilt_matrix
 
 Values = dict[str, dict[str, float]]
 
@@ -51,6 +52,9 @@ OPTICAL = {
     "source_profile",
     "vignetting",
     "mla_spacing",
+    "mla_tilt",
+    "sensor_tilt",
+    "partial_lenslets",
 }
 
 
@@ -61,6 +65,13 @@ class AnalyticSimulator:
     model: the nominal analytic model (its lenslet centres are the design's).
     spacing_magnification_per_mm: d(ln m)/d(MLA–sensor spacing), 1/mm, from the design's
         first-order optics (a larger spacing images a nearer plane, larger).
+
+    A tilted array (``mla_tilt``) raises lenslet j by δ_j = y_j·sin θx − x_j·sin θy (the
+    convention of :mod:`cm2optics.optics.tilt`): its magnification × exp(k·δ_j) as for a spacing
+    change, its best focus moved by −δ_j·(1 + 1/m₀²) in object space (the lens nearer the
+    object by δ_j, its image distance longer by δ_j). Partial lenslets on a side
+    (``partial_lenslets[side]``, ``border_mm`` wide) are the cells one pitch beyond the array's
+    edge, their foci carrying border/pitch of a full lenslet's light.
     """
 
     model: AnalyticCM2
@@ -92,11 +103,16 @@ class AnalyticSimulator:
         weights = np.ones(len(centres))
         changes: dict[str, object] = {}
         falloff = 0.0
+        pitch = self.pitch_px() * self.model.pixel_um / 1000.0
         for key, p in values.items():
-            name, _, index = key.partition("[")
-            j = int(index[:-1]) if index else None
+            name, index = split_key(key)
+            if name == "partial_lenslets" and p["border_mm"] > 0:
+                extra = _partial_centres(centres[: self.lenslets], index, pitch)
+                centres = np.vstack([centres, extra])
+                weights = np.concatenate([weights, np.full(len(extra), p["border_mm"] / pitch)])
+        for key, p in values.items():
+            name, j = split_key(key)
             if name == "lenslet_pitch":
-                pitch = self.pitch_px() * self.model.pixel_um / 1000.0
                 centres = centres * (pitch + p["delta_mm"]) / pitch
             elif name == "lenslet_decenter":
                 centres[j] += (p["dx_mm"], p["dy_mm"])
@@ -110,6 +126,14 @@ class AnalyticSimulator:
                 changes["magnification"] = self.model.magnification * math.exp(
                     self.spacing_magnification_per_mm * p["delta_mm"]
                 )
+            elif name == "sensor_tilt":
+                changes["sensor_tilt_deg"] = (p["tilt_x_deg"], p["tilt_y_deg"])
+            elif name == "mla_tilt":
+                normal = tilt_matrix(p["tilt_x_deg"], p["tilt_y_deg"])[:, 2]
+                raised = -(centres @ normal[:2]) / normal[2]  # δ_j: each vertex's height change, mm
+                m0 = self.model.magnification
+                changes["lenslet_magnification"] = tuple(np.exp(self.spacing_magnification_per_mm * raised))
+                changes["lenslet_focus_mm"] = tuple(-raised * (1.0 + 1.0 / m0**2))
         for key, p in values.items():  # whole-array motions act on the (possibly perturbed) lattice
             if key == "mla_rotation":
                 a = math.radians(p["angle_deg"])
@@ -138,3 +162,13 @@ class AnalyticSimulator:
 
     def focus_centres_px(self, positions_mm: np.ndarray) -> np.ndarray:
         return np.stack([self.model.foci(*p)[0] for p in np.asarray(positions_mm, float)])
+
+
+def _partial_centres(centres: np.ndarray, side: str, pitch_mm: float) -> np.ndarray:
+    """Vertices (k, 2) mm of the partial cells one pitch beyond the array's ``side`` edge."""
+    axis = 0 if side[1] == "x" else 1
+    sign = 1.0 if side[0] == "+" else -1.0
+    edge = centres[:, axis].max() if sign > 0 else centres[:, axis].min()
+    row = centres[np.isclose(centres[:, axis], edge)].copy()
+    row[:, axis] += sign * pitch_mm
+    return row

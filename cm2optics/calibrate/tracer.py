@@ -11,6 +11,10 @@ effect (parameters)         design field
 mla_decenter (dx, dy mm)    ``as_built.mla_decenter_x_mm``, ``as_built.mla_decenter_y_mm``
 mla_rotation (angle_deg)    ``as_built.mla_rotation_deg``
 mla_spacing (delta_mm)      ``imaging.mla_to_sensor_mm`` + delta
+mla_tilt (tilt_x/y_deg)     ``as_built.mla_tilt_x_deg``, ``as_built.mla_tilt_y_deg``
+sensor_tilt (tilt_x/y_deg)  ``as_built.sensor_tilt_x_deg``, ``as_built.sensor_tilt_y_deg``
+partial_lenslets[side]      ``mla.partial_sides`` + side, ``mla.partial_border_mm`` = border
+                            (the design holds one border for every side: the widest found)
 lenslet_pitch (delta_mm)    ``as_built.lenslet_pitch_delta_mm``
 lenslet_decenter[j]         ``as_built.lenslet_decenter_mm[j]``
 lenslet_transmission[j]     ``as_built.lenslet_transmission[j]``
@@ -45,7 +49,7 @@ from multiprocessing import get_context
 
 import numpy as np
 
-from cm2optics.calibrate.effects import Effect
+from cm2optics.calibrate.effects import Effect, split_key
 from cm2optics.calibrate.simulate import OPTICAL, Values
 from cm2optics.design import SystemDesign
 from cm2optics.emission.psf import EmissionModel, Focus, PSFSettings, SensorGrid
@@ -60,7 +64,7 @@ __all__ = ["UNIT_SOURCE", "TracerSimulator", "design_with", "traced_rates"]
 UNIT_SOURCE = 1e6
 SENSOR_SIDE = {"stray_light", "pixel_crosstalk", "leakage_background"}
 #: Optical effects that change the foci's shape, traced; the others move or scale traced foci.
-RETRACED = {"mla_spacing", "vignetting", "source_profile"}
+RETRACED = {"mla_spacing", "vignetting", "source_profile", "mla_tilt", "sensor_tilt", "partial_lenslets"}
 
 
 def design_with(
@@ -74,10 +78,19 @@ def design_with(
     changes: dict[str, object] = {}
     decenter = [list(built.lenslet_offset_mm(j)) for j in range(design.mla.rows * design.mla.cols)]
     transmission = [built.transmission(j) for j in range(design.mla.rows * design.mla.cols)]
+    sides, border = list(design.mla.partial_sides), design.mla.partial_border_mm
     for key, p in values.items():
-        name, _, index = key.partition("[")
-        j = int(index[:-1]) if index else None
-        if name == "mla_decenter":
+        name, j = split_key(key)
+        if name == "partial_lenslets" and p["border_mm"] > 0:
+            sides = sides if j in sides else sides + [j]
+            border = max(border, p["border_mm"])
+            changes["mla.partial_sides"] = [str(side) for side in sides]
+            changes["mla.partial_border_mm"] = border
+        elif name in ("mla_tilt", "sensor_tilt"):
+            for axis in ("x", "y"):
+                field_name = f"as_built.{name}_{axis}_deg"
+                changes[field_name] = getattr(built, f"{name}_{axis}_deg") + p[f"tilt_{axis}_deg"]
+        elif name == "mla_decenter":
             changes["as_built.mla_decenter_x_mm"] = built.mla_decenter_x_mm + p["dx_mm"]
             changes["as_built.mla_decenter_y_mm"] = built.mla_decenter_y_mm + p["dy_mm"]
         elif name == "mla_rotation":
@@ -203,8 +216,8 @@ class TracerSimulator:
     ``lenslet_transmission`` scales it; the frame offset moves every focus. These are applied to
     the traced foci of the design without them, each focus's ePSF sampled at its moved pixel
     centres (exact for undersampled foci, where resampling the image would not be). The other
-    optical effects (``mla_spacing``, ``vignetting``, ``source_profile``) change the foci's shape
-    and are traced; a traced design's foci are cached by (design, source, position).
+    optical effects (``mla_spacing``, ``vignetting``, ``source_profile``, the tilts, partial lenslets)
+    change the foci's shape and are traced; a traced design's foci are cached by (design, source, position).
     """
 
     design: SystemDesign

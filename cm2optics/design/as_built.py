@@ -15,8 +15,10 @@ ranges, so that a fitted effect is a design value that every stage honours:
   the tracer sees it (:mod:`cm2optics.emission.optics`);
 - stray light, leakage and pixel crosstalk act on the images
   (:func:`cm2optics.calibrate.effects.apply_image_effects`, applied by ``cm2 psf simulate``);
-- the tilts are validated and recorded but not yet traced: tracing a design with a non-zero
-  tilt raises a :class:`~cm2optics.errors.UserError` (the tracer's surfaces are axis-aligned).
+- the tilts of the array (about the centre of its vertex plane) and of the sensor (about its
+  centre) are traced exactly: the emission tracer follows the rays into the tilted array's frame
+  and lands them on the tilted sensor plane (:mod:`cm2optics.emission.trace`; the convention of
+  :mod:`cm2optics.optics.tilt`).
 
 The sensor offset moves the pixel grid only: the active area's edges, where the tracer drops
 rays, stay centred on the axis (for offsets ≪ the sensor's half-width this matters only to
@@ -69,8 +71,8 @@ class AsBuilt:
         rows, y along columns), mm, ±0.2.
     mla_rotation_deg: the array rotated about the optical axis (counter-clockwise from +x to +y,
         about the central lenslet's nominal axis), degrees, ±3.
-    mla_tilt_x_deg, mla_tilt_y_deg: the array tilted about the x and y axes, degrees, ±5
-        (recorded, not yet traced).
+    mla_tilt_x_deg, mla_tilt_y_deg: the array tilted right-handedly about x, then y, about the
+        centre of its vertex plane, degrees, ±5.
     lenslet_pitch_delta_mm: lenslet pitch minus the design's ``mla.pitch_mm``, mm, ±0.05 (the
         lattice scales about the central lenslet).
     lenslet_decenter_mm: per full lenslet (row by row) its [dx, dy] within the array, mm, each
@@ -79,8 +81,8 @@ class AsBuilt:
         passes (dust, a defect), 0–1.5; empty: all 1.
     sensor_offset_x_um, sensor_offset_y_um: the sensor displaced along +x, +y relative to the
         optics, µm, ±1000 (the image moves the other way on the pixel grid).
-    sensor_tilt_x_deg, sensor_tilt_y_deg: the sensor tilted about x and y, degrees, ±5
-        (recorded, not yet traced).
+    sensor_tilt_x_deg, sensor_tilt_y_deg: the sensor tilted right-handedly about x, then y, about
+        its centre, degrees, ±5: at (x, y) it sits ≈ y·sin θx − x·sin θy above z = 0.
     stray_light_fraction: fraction of each focus's light spread into a wide Gaussian halo
         (scatter in the housing and filters), 0–0.5.
     stray_light_width_um: σ of that halo on the sensor, µm, 20–2000 (default 200).
@@ -146,12 +148,6 @@ class AsBuilt:
     @property
     def is_nominal(self) -> bool:
         return not self.changed()
-
-    @property
-    def traced_tilts(self) -> dict[str, float]:
-        """The non-zero tilts (field → degrees): not yet honoured by the tracers."""
-        names = ("mla_tilt_x_deg", "mla_tilt_y_deg", "sensor_tilt_x_deg", "sensor_tilt_y_deg")
-        return {n: getattr(self, n) for n in names if getattr(self, n) != 0}
 
     def lenslet_offset_mm(self, j: int) -> tuple[float, float]:
         """(dx, dy) of full lenslet ``j`` within the array, mm."""

@@ -20,6 +20,12 @@ absorption film       gelatin plate (``absorption_filter``), optional; its seat 
 sensor                the active area at z = 0
 ====================  ======================================================================
 
+As built, the array and the sensor may be tilted (``as_built.mla_tilt_*_deg`` about the centre
+of the array's vertex plane, ``as_built.sensor_tilt_*_deg`` about the sensor's centre; the
+convention of :mod:`cm2optics.optics.tilt`): the tracer follows the rays into the array's own
+frame for the lenslet and its flat face, and lands them on the tilted sensor plane, in its own
+axes. The housing, the mask and the film stay put.
+
 The bore is the printed MLA housing's, step by step with its corner tabs: one description,
 :mod:`cm2optics.optics.housing`, for the CAD part and this tracer. Below
 the film the housing opens as a cone onto the active area, which cannot clip a ray that lands
@@ -50,6 +56,7 @@ from cm2optics.errors import UserError
 from cm2optics.optics import first_order
 from cm2optics.optics.housing import Bore, housing_bores, mla_tabs
 from cm2optics.optics.lenslets import lens_cells
+from cm2optics.optics.tilt import tilt_matrix
 
 __all__ = ["Bore", "EmissionOptics", "Lenslet", "Plate", "emission_optics", "housing_bores", "lenslets", "mla_tabs"]
 
@@ -124,6 +131,9 @@ class EmissionOptics:
     sensor_half_x_mm: float
     sensor_half_y_mm: float
     object_plane_z_mm: float
+    mla_tilt: tuple[tuple[float, float, float], ...] = ()
+    mla_pivot_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    sensor_tilt: tuple[tuple[float, float, float], ...] = ()
 
     def lenslet_visible(self, lenslet: Lenslet) -> bool:
         """Whether any of the lenslet's aperture lies inside the mask opening."""
@@ -180,25 +190,13 @@ def _bores(design: SystemDesign, mask_half_mm: float) -> tuple[Bore, ...]:
     )
 
 
-def _check_traceable(design: SystemDesign) -> None:
-    """Refuse what the tracer cannot honour yet: tilted parts (its surfaces are axis-aligned)."""
-    tilts = design.as_built.traced_tilts
-    if tilts:
-        listed = ", ".join(f"as_built.{name} = {value:g}" for name, value in tilts.items())
-        raise UserError(
-            f"{listed}: tilts of the MLA or the sensor are recorded in the design but not yet traced "
-            "(the emission tracer's surfaces are perpendicular to the axis); set them to 0 to trace"
-        )
-
-
 def emission_optics(design: SystemDesign) -> EmissionOptics:
     """The emission path of ``design`` (see the module docstring)."""
-    filt, film = design.emission_filter, design.absorption_filter
+    filt, film, built = design.emission_filter, design.absorption_filter, design.as_built
     film_plate = None
     if film is not None:
         z0 = design.imaging.film_to_sensor_mm
         film_plate = Plate(z0, z0 + film.thickness_mm, film.width_mm / 2, film.length_mm / 2, film.material)
-    _check_traceable(design)
     z_filter = design.emission_filter_z_mm
     cells = lenslets(design)
     mask_half = design.aperture_mask.opening_mm / 2 + design.as_built.vignetting_radius_delta_mm
@@ -229,4 +227,14 @@ def emission_optics(design: SystemDesign) -> EmissionOptics:
         sensor_half_x_mm=design.sensor.active_width_mm / 2,
         sensor_half_y_mm=design.sensor.active_length_mm / 2,
         object_plane_z_mm=first_order.object_plane_z_mm(design),
+        mla_tilt=_rotation(built.mla_tilt_x_deg, built.mla_tilt_y_deg),
+        mla_pivot_mm=(built.mla_decenter_x_mm, built.mla_decenter_y_mm, design.mla_vertex_z_mm),
+        sensor_tilt=_rotation(built.sensor_tilt_x_deg, built.sensor_tilt_y_deg),
     )
+
+
+def _rotation(tilt_x_deg: float, tilt_y_deg: float) -> tuple[tuple[float, float, float], ...]:
+    """The tilt's rotation as nested tuples (empty when untilted)."""
+    if tilt_x_deg == 0 and tilt_y_deg == 0:
+        return ()
+    return tuple(tuple(float(v) for v in row) for row in tilt_matrix(tilt_x_deg, tilt_y_deg))

@@ -43,6 +43,7 @@ from cm2optics.emission.spectral import SpectralBands, spectral_bands
 from cm2optics.emission.trace import RayBatch, TracedRays, default_engine, paraxial_reach_mm, trace_rays
 from cm2optics.emission.wavefront import PupilMap, debye_fft, fft_size, fit_pupil_map, mft, solve_least_squares
 from cm2optics.optics import first_order
+from cm2optics.optics.tilt import rotate
 from cm2optics.spectra.spectrum import Spectrum
 
 #: Fraction of a lenslet's light (all bands) below which a band is left out of its focus.
@@ -652,12 +653,19 @@ class EmissionModel:
 
     def _exit_pupil(self, lenslet: int, band: int) -> np.ndarray:
         """Centre (x, y, z; mm) of a lenslet's paraxial exit pupil: its vertex (the stop) seen from
-        the air above the sensor through the PMMA and the film."""
-        cell = self.optics.lenslets[lenslet]
-        depth = self.optics.flat_z_mm + self.design.mla.thickness_mm / self._indices[band, 1]
-        if self.optics.film is not None:
-            depth -= self.optics.film.thickness_mm * (1.0 - 1.0 / self._indices[band, 2])
-        return np.array([cell.vertex_x_mm, cell.vertex_y_mm, depth])
+        the air above the sensor through the PMMA and the film; where the array or the sensor is
+        tilted, turned with the array and given in the sensor's axes (as the traced rays)."""
+        optics = self.optics
+        cell = optics.lenslets[lenslet]
+        depth = optics.flat_z_mm + self.design.mla.thickness_mm / self._indices[band, 1]
+        if optics.film is not None:
+            depth -= optics.film.thickness_mm * (1.0 - 1.0 / self._indices[band, 2])
+        point = (cell.vertex_x_mm, cell.vertex_y_mm, depth)
+        if optics.mla_tilt:
+            point = rotate(optics.mla_tilt, *point, optics.mla_pivot_mm)
+        if optics.sensor_tilt:
+            point = rotate(optics.sensor_tilt, *point, inverse=True)
+        return np.array(point, float)
 
     def _finish_geometric(self, p: _Pair, traced: TracedRays, density: np.ndarray, window: _Window) -> None:
         """Geometric branch: each cell of the launch grid is cut into s × s sub-cells (bilinear in

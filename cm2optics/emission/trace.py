@@ -16,6 +16,10 @@ the same surfaces, in closed form (plane and sphere intersections, Snell's law i
 6. the film (gelatin plate), if the design has one; rays outside it meet its opaque seat;
 7. air to the sensor plane z = 0; the ray must land on the active area.
 
+A tilted array (``optics.mla_tilt``) is traced in its own frame (steps 3–4: the rays turned
+into it and back); a tilted sensor (``optics.sensor_tilt``) is met as its plane, and the landing
+point and direction are returned in its own axes (x, y along it; z along its normal).
+
 Optical path lengths are summed in float64 (they feed the wavefront, :mod:`.wavefront`);
 refractive indices are per ray (each ray carries its band's wavelength). The ray keeps its
 geometry even where it is blocked, so that the pupil mapping stays smooth: ``traced`` says the
@@ -44,6 +48,7 @@ from cm2optics.emission.optics import EmissionOptics
 from cm2optics.optics.arrays import DrJitOps, NumpyOps
 from cm2optics.optics.backend import is_jit, mitsuba
 from cm2optics.optics.interfaces import fresnel_transmittance, refract, snell_cos_t
+from cm2optics.optics.tilt import rotate
 
 __all__ = ["ENGINES", "RayBatch", "TracedRays", "default_engine", "trace_rays"]
 
@@ -172,7 +177,11 @@ def _trace(ops: Any, optics: EmissionOptics, r: dict[str, Any], test_segment: An
     passed = passed & _inside(ops, px, py, -filt.half_x_mm, filt.half_x_mm, -filt.half_y_mm, filt.half_y_mm)
     # Out of the glass: the original direction (parallel faces).
 
-    # 3. The lenslet's sphere.
+    # 3. The lenslet's sphere (in the array's own frame where it is tilted).
+    px0, py0, pz0, dx0, dy0, dz0 = px, py, pz, dx, dy, dz
+    if optics.mla_tilt:
+        px, py, pz = rotate(optics.mla_tilt, px, py, pz, optics.mla_pivot_mm, inverse=True)
+        dx, dy, dz = rotate(optics.mla_tilt, dx, dy, dz, inverse=True)
     radius = optics.radius_mm
     cx, cy, cz = r["cx"], r["cy"], optics.vertex_z_mm - radius
     ox, oy, oz = px - cx, py - cy, pz - cz
@@ -183,7 +192,7 @@ def _trace(ops: Any, optics: EmissionOptics, r: dict[str, Any], test_segment: An
     t = -b - ops.sqrt(ops.maximum(disc, 0.0))
     hx, hy, hz = px + t * dx, py + t * dy, pz + t * dz
     opl = opl + t
-    passed = passed & test_segment(px, py, pz, dx, dy, dz, t, optics.land_z_mm, filt.z0_mm)
+    passed = passed & test_segment(px0, py0, pz0, dx0, dy0, dz0, t, optics.land_z_mm, filt.z0_mm)
     passed = passed & _inside(ops, hx, hy, r["ax0"], r["ax1"], r["ay0"], r["ay1"])
     nx, ny, nz = (hx - cx) / radius, (hy - cy) / radius, (hz - cz) / radius
     n_lens = r["n_lens"]
@@ -200,6 +209,9 @@ def _trace(ops: Any, optics: EmissionOptics, r: dict[str, Any], test_segment: An
     ex, ey, ez, cos_i, cos_t, ok = _refract(ops, lx, ly, lz, 0.0, 0.0, 1.0, n_lens)
     traced = traced & ok
     fresnel = fresnel * fresnel_transmittance(cos_i, cos_t, n_lens, 1.0)
+    if optics.mla_tilt:  # back to the device frame
+        px, py, pz = rotate(optics.mla_tilt, px, py, pz, optics.mla_pivot_mm)
+        ex, ey, ez = rotate(optics.mla_tilt, ex, ey, ez)
     aoi_film_cos = -ez
 
     # 5-6. Air to the film, through it, and on to the sensor.
@@ -216,14 +228,20 @@ def _trace(ops: Any, optics: EmissionOptics, r: dict[str, Any], test_segment: An
         qx, qy = qx + t * fx, qy + t * fy
         opl = opl + r["n_film"] * t
         passed = passed & _inside(ops, qx, qy, -film.half_x_mm, film.half_x_mm, -film.half_y_mm, film.half_y_mm)
-        t = -film.z0_mm / ez
-        px, py = qx + t * ex, qy + t * ey
-        opl = opl + t
+        px, py, pz = qx, qy, ops.full(film.z0_mm, sx)
     else:
-        t = -optics.flat_z_mm / ez
-        passed = passed & test_segment(px, py, pz, ex, ey, ez, t, 0.0, optics.flat_z_mm)
+        passed = passed & test_segment(px, py, pz, ex, ey, ez, -pz / ez, 0.0, optics.flat_z_mm)
+    # 7. The sensor: the plane z = 0, or its tilted plane n·p = 0 read in its own axes.
+    if optics.sensor_tilt:
+        (n0,), (n1,), (n2,) = (row[2:] for row in optics.sensor_tilt)  # its normal: R's third column
+        t = -(n0 * px + n1 * py + n2 * pz) / (n0 * ex + n1 * ey + n2 * ez)
+        px, py, pz = px + t * ex, py + t * ey, pz + t * ez
+        px, py, _ = rotate(optics.sensor_tilt, px, py, pz, inverse=True)
+        ex, ey, ez = rotate(optics.sensor_tilt, ex, ey, ez, inverse=True)
+    else:
+        t = -pz / ez
         px, py = px + t * ex, py + t * ey
-        opl = opl + t
+    opl = opl + t
     sh_x, sh_y = optics.sensor_half_x_mm, optics.sensor_half_y_mm
     passed = passed & _inside(ops, px, py, -sh_x, sh_x, -sh_y, sh_y) & traced
     return {

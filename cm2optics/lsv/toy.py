@@ -42,6 +42,7 @@ from cm2optics.formats.scan import ScanMeta, write_scan
 from cm2optics.formats.volume import VolumeGrid
 from cm2optics.lsv.lsi import DepthwiseConvOperator
 from cm2optics.optics import first_order
+from cm2optics.optics.tilt import tilt_matrix
 
 __all__ = [
     "AnalyticCM2",
@@ -76,6 +77,14 @@ class AnalyticCM2:
         its nominal position).
     field_curvature_per_mm: κ, lenslet j's best focus lies at ``z = κ·ρ²`` (mm, ρ its off-axis
         distance in mm): the defocus blur grows with ``|z − κ·ρ²|`` (0: a flat focal plane).
+    lenslet_magnification: (J,) factor on m(z) per lenslet (empty: all 1), e.g. a lenslet moved
+        along the axis by a tilted array.
+    lenslet_focus_mm: (J,) extra object-space z of each lenslet's best focus, mm (empty: all 0).
+    sensor_tilt_deg: (θx, θy) the sensor tilted right-handedly about x, then y, about its centre,
+        degrees: at (x, y) it sits ``h = y·sin θx − x·sin θy`` higher (towards the lenslets), so
+        each focus meets it early along its chief ray (from the vertex, ``m₀·D`` above the sensor:
+        the paraxial image distance) and is defocused by ``h/m²`` in object space; its position is
+        read in the sensor's own (tilted) axes.
     """
 
     magnification: float
@@ -95,6 +104,9 @@ class AnalyticCM2:
     vignetting_soft_mm: float = 0.25
     offset_px: tuple[float, float] = (0.0, 0.0)
     field_curvature_per_mm: float = 0.0
+    lenslet_magnification: tuple[float, ...] = ()
+    lenslet_focus_mm: tuple[float, ...] = ()
+    sensor_tilt_deg: tuple[float, float] = (0.0, 0.0)
 
     def __post_init__(self) -> None:
         if self.sigma0_um is None:
@@ -127,15 +139,21 @@ class AnalyticCM2:
         """Centres (J, 2) as (row, col) pixels, covariances (J, 2, 2) in pixels², and fluxes (J,)
         (sum over the image of each focus) of a unit point source."""
         c = np.asarray(self.lenslet_centres_mm, float)
-        m = float(self.magnification_at(z_mm))
+        m = float(self.magnification_at(z_mm)) * (
+            np.asarray(self.lenslet_magnification) if self.lenslet_magnification else np.ones(len(c))
+        )
         rel = np.array([x_mm, y_mm]) - c  # source relative to each lenslet axis, mm
         rho = np.hypot(rel[:, 0], rel[:, 1])
-        s_mm = c - m * rel
+        s_mm = c - m[:, None] * rel
         direction = -rel / np.maximum(rho, 1e-9)[:, None]  # on the sensor the image is inverted
         s_mm = s_mm + direction * (self.distortion_um_per_mm3 * rho**3 / 1000.0)[:, None]
+        defocus_mm = z_mm - self.field_curvature_per_mm * rho**2  # from each lenslet's best focus
+        if self.lenslet_focus_mm:
+            defocus_mm = defocus_mm - np.asarray(self.lenslet_focus_mm, float)
+        if self.sensor_tilt_deg != (0.0, 0.0):
+            s_mm, defocus_mm = self._on_tilted_sensor(c, s_mm, m, defocus_mm)
         row = (self.shape[0] - 1) / 2.0 + self.offset_px[0] + s_mm[:, 1] * 1000.0 / self.pixel_um
         col = (self.shape[1] - 1) / 2.0 + self.offset_px[1] + s_mm[:, 0] * 1000.0 / self.pixel_um
-        defocus_mm = z_mm - self.field_curvature_per_mm * rho**2  # from each lenslet's best focus
         sigma_um = np.hypot(self.sigma0_um, 0.5 * self.object_na * np.abs(defocus_mm) * 1000.0 * m)
         sigma_t = sigma_um / self.pixel_um
         sigma_r = sigma_t * (1.0 + self.aberration_per_mm2 * rho**2)
@@ -150,6 +168,22 @@ class AnalyticCM2:
         vignetting = 1.0 / (1.0 + np.exp((rho - self.vignetting_mm) / self.vignetting_soft_mm))
         flux = cos4 * vignetting * (self.reduced_distance_mm / (self.reduced_distance_mm - z_mm)) ** 2
         return np.stack([row, col], axis=1), cov, flux
+
+    def _on_tilted_sensor(
+        self, vertices: np.ndarray, s_mm: np.ndarray, m: np.ndarray, defocus_mm: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Foci ``s_mm`` (J, 2) on the flat sensor moved onto the tilted one (class docstring):
+        where each chief ray, from its vertex ``m₀·D`` above the sensor, meets the tilted plane,
+        in the plane's own axes (mm), and the defocus (mm, object space) grown by h/m²."""
+        r = tilt_matrix(*self.sensor_tilt_deg)
+        normal = r[:, 2]
+        image_distance = self.magnification * self.reduced_distance_mm
+        slope = (s_mm - vertices) / image_distance  # lateral mm per mm of descent along the chief ray
+        # the plane n·p = 0 met at height h on the ray p = (s − h·slope, h): n·(s − h·slope) + n_z·h = 0
+        h = -(s_mm @ normal[:2]) / (normal[2] - slope @ normal[:2])
+        hit = np.column_stack([s_mm - h[:, None] * slope, h])
+        local = hit @ r[:, :2]  # coordinates along the tilted sensor's own x and y axes
+        return local, defocus_mm + h / m**2
 
     def focus_window(
         self, x_mm: float, y_mm: float, z_mm: float, j: int, centre: np.ndarray, shape: tuple[int, int]

@@ -187,7 +187,8 @@ def test_calibrate_scan_end_to_end(simulator, positions, tmp_path, monkeypatch, 
 # ----------------------------------------------------------------------------- the injection matrix
 # Every library effect alone at two magnitudes, pairs of effects, clean data: the tool is not told
 # what was injected. Tolerances (the documented recovery accuracy on this 18-position scan):
-# rotation ± 0.05°, spacing ± 5 µm, decentres ± 5 µm, source half-angle ± 2°; the others as given.
+# rotation ± 0.05°, spacing ± 5 µm, decentres ± 5 µm, source half-angle ± 2°, MLA and sensor tilts
+# ± 0.05°, partial lenslets' border ± 20 µm; the others as given.
 # Crosstalk below ≈ 0.1 leaves χ² under the 1.2 floor on this scan (0.05: χ² 1.08) and is not sought.
 
 
@@ -217,12 +218,25 @@ SINGLE = {
         ({"dx_mm": 0.01, "dy_mm": 0.0}, {"dx_mm": -0.02, "dy_mm": 0.015}),
         {"dx_mm": 0.005, "dy_mm": 0.005},
     ),
+    "mla_tilt": (
+        ({"tilt_x_deg": 0.3, "tilt_y_deg": 0.0}, {"tilt_x_deg": -1.0, "tilt_y_deg": 1.5}),
+        {"tilt_x_deg": 0.05, "tilt_y_deg": 0.05},
+    ),
+    "sensor_tilt": (
+        ({"tilt_x_deg": 0.0, "tilt_y_deg": 0.3}, {"tilt_x_deg": 0.8, "tilt_y_deg": -1.0}),
+        {"tilt_x_deg": 0.05, "tilt_y_deg": 0.05},
+    ),
+    "partial_lenslets[+x]": (({"border_mm": 0.1}, {"border_mm": 0.4}), {"border_mm": 0.02}),
+    "partial_lenslets[-y]": (({"border_mm": 0.2}, {"border_mm": 0.6}), {"border_mm": 0.02}),
 }
 PAIRS = [
     ({"mla_rotation": {"angle_deg": 0.3}, "lenslet_transmission[4]": {"transmission": 0.7}}),
     ({"mla_spacing": {"delta_mm": 0.02}, "stray_light": {"fraction": 0.1, "width_um": 300.0}}),
     ({"source_profile": {"falloff_per_rad2": 10.0}, "leakage_background": {"counts_per_ms": 0.1}}),
     ({"lenslet_decenter[6]": {"dx_mm": 0.015, "dy_mm": -0.01}, "pixel_crosstalk": {"fraction": 0.1}}),
+    # the paper's two effects: a narrow source and a column of partial lenslets
+    ({"source_profile": {"falloff_per_rad2": 10.0}, "partial_lenslets[+x]": {"border_mm": 0.3}}),
+    ({"sensor_tilt": {"tilt_x_deg": 0.5, "tilt_y_deg": 0.0}, "mla_rotation": {"angle_deg": -0.3}}),
 ]
 
 

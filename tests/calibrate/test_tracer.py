@@ -50,10 +50,17 @@ def test_protocol_and_mapping(simulator: TracerSimulator, v2: SystemDesign):
             "mla_rotation": {"angle_deg": 0.4},
             "lenslet_transmission[3]": {"transmission": 0.5},
             "lenslet_decenter[8]": {"dx_mm": 0.01, "dy_mm": 0.0},
+            "mla_tilt": {"tilt_x_deg": 0.5, "tilt_y_deg": -0.2},
+            "sensor_tilt": {"tilt_x_deg": 0.0, "tilt_y_deg": 1.0},
+            "partial_lenslets[+x]": {"border_mm": 0.3},
+            "partial_lenslets[-y]": {"border_mm": 0.0},  # absent: no partial cells on −y
         },
         offset_px=(1.0, -2.0),
         pitch_um=19.2,
     )
+    assert (built.as_built.mla_tilt_x_deg, built.as_built.mla_tilt_y_deg) == (0.5, -0.2)
+    assert (built.as_built.sensor_tilt_x_deg, built.as_built.sensor_tilt_y_deg) == (0.0, 1.0)
+    assert [str(side) for side in built.mla.partial_sides] == ["+x"] and built.mla.partial_border_mm == 0.3
     assert built.imaging.mla_to_sensor_mm == pytest.approx(v2.imaging.mla_to_sensor_mm + 0.02)
     assert built.as_built.mla_rotation_deg == 0.4 and built.as_built.transmission(3) == 0.5
     assert built.as_built.lenslet_offset_mm(8) == (0.01, 0.0)
