@@ -105,13 +105,7 @@ def scan(
     if as_json:
         print(json.dumps({k: v for k, v in doc.items() if k not in ("before", "after")}, indent=2, ensure_ascii=False))
         return
-    typer.echo(
-        f"NMSE {doc['nmse_before']:.4g} → {doc['nmse_after']:.4g}, χ² {doc['chi2_before']:.3g} → {doc['chi2_after']:.3g}"
-    )
-    for effect in doc["effects"]:
-        typer.echo(f"  {effect['name']}: {effect['parameters']} ± {effect['uncertainties']}")
-    for item in doc["unexplained"]:
-        typer.echo(f"  unexplained: {item['description']}")
+    _echo_fit(doc)
     if "correction" in doc:
         held = doc["correction"]["held_out"]
         typer.echo(
@@ -214,11 +208,7 @@ def image(
     if as_json:
         print(json.dumps(doc, indent=2, ensure_ascii=False))
         return
-    typer.echo(
-        f"NMSE {doc['nmse_before']:.4g} → {doc['nmse_after']:.4g}, χ² {doc['chi2_before']:.3g} → {doc['chi2_after']:.3g}"
-    )
-    for effect in doc["effects"]:
-        typer.echo(f"  {effect['name']}: {effect['parameters']} ± {effect['uncertainties']}")
+    _echo_fit(doc)
     typer.echo(
         f"F1 {doc['f1_before']:.3f} → {doc['f1_after']:.3f} (recall {doc['recall_before']:.3f} → "
         f"{doc['recall_after']:.3f}, precision {doc['precision_before']:.3f} → {doc['precision_after']:.3f}; "
@@ -285,13 +275,7 @@ def illumination(
     if as_json:
         print(json.dumps(doc, indent=2, ensure_ascii=False))
         return
-    typer.echo(
-        f"NMSE {doc['nmse_before']:.4g} → {doc['nmse_after']:.4g}, χ² {doc['chi2_before']:.3g} → {doc['chi2_after']:.3g}"
-    )
-    for effect in doc["effects"]:
-        typer.echo(f"  {effect['name']}[{effect['unit']}]: {effect['parameters']} ± {effect['uncertainties']}")
-    for item in doc["unexplained"]:
-        typer.echo(f"  unexplained: {item['description']}")
+    _echo_fit(doc)
     typer.echo(f"report: {report}")
 
 
@@ -341,3 +325,15 @@ def paper(
         typer.echo(f"  {factor['name']}: × {factor['value']:.3f} ± {100 * factor['uncertainty']:.0f} %")
     typer.echo(f"  {power['description']}")
     typer.echo(f"report: {report}")
+
+
+def _echo_fit(doc: dict) -> None:
+    """The lines every calibration prints: error before → after, the effects, what is unexplained."""
+    typer.echo(
+        f"NMSE {doc['nmse_before']:.4g} → {doc['nmse_after']:.4g}, χ² {doc['chi2_before']:.3g} → {doc['chi2_after']:.3g}"
+    )
+    for effect in doc["effects"]:
+        unit = f"[{effect['unit']}]" if "unit" in effect else ""
+        typer.echo(f"  {effect['name']}{unit}: {effect['parameters']} ± {effect['uncertainties']}")
+    for item in doc["unexplained"]:
+        typer.echo(f"  unexplained: {item['description']}")

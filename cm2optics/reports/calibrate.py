@@ -17,7 +17,7 @@ from cm2optics.calibrate.scan import ScanCalibration
 from cm2optics.formats.atomic import write_atomic, write_json_atomic
 from cm2optics.reports.document import Report
 
-__all__ = ["write_calibration_report"]
+__all__ = ["unexplained_section", "write_calibration_report"]
 
 
 def _save(fig: Figure, path: Path) -> None:
@@ -124,19 +124,24 @@ def write_calibration_report(result: ScanCalibration, folder: str | Path) -> Pat
     report.heading("Effects found")
     rows = [[e["name"], e["parameters"], e["uncertainties"]] for e in doc["effects"]]
     report.table(["effect", "parameters", "± (1σ)"], rows or [["none", "—", "—"]])
-    report.heading("Unexplained residual")
-    if doc["unexplained"]:
-        report.table(
-            ["lenslets", "field (mm)", "depths (mm)", "energy fraction", "description"],
-            [
-                [u["lenslets"], u["field_mm"], u["depths_mm"], u["energy_fraction"], u["description"]]
-                for u in doc["unexplained"]
-            ],
-        )
-    else:
-        report.paragraph("None: the corrected model explains the data to the noise.")
+    unexplained_section(report, doc["unexplained"], "data")
     report.figure("residual_montage.png", "Data and residuals before and after, images with the largest misfit")
     report.figure("field_maps.png", "Energy ratio and centroid error against field position, before and after")
     if result.correction is not None:
         _correction_section(report, result, folder)
     return report.write(folder)
+
+
+def unexplained_section(report: Report, unexplained: list[dict], what: str) -> None:
+    """The report's "Unexplained residual" heading and table (``what``: "data", "frame", …)."""
+    report.heading("Unexplained residual")
+    if unexplained:
+        report.table(
+            ["lenslets", "field (mm)", "depths (mm)", "energy fraction", "description"],
+            [
+                [u["lenslets"], u["field_mm"], u["depths_mm"], u["energy_fraction"], u["description"]]
+                for u in unexplained
+            ],
+        )
+    else:
+        report.paragraph(f"None: the corrected model explains the {what} to the noise.")

@@ -11,7 +11,7 @@ from pathlib import Path
 from cm2optics.calibrate.image import ImageCalibration
 from cm2optics.formats.atomic import write_json_atomic
 from cm2optics.metrics.plots import plot_overlay
-from cm2optics.reports.calibrate import _montage
+from cm2optics.reports.calibrate import _montage, unexplained_section
 from cm2optics.reports.document import Report
 
 __all__ = ["write_image_report"]
@@ -78,15 +78,5 @@ def write_image_report(result: ImageCalibration, folder: str | Path) -> Path:
     )
     report.figure("detections_after.png", "Corrected model: maximum projections, matched, missed, false")
     report.figure("residual_maps.png", "The frame, its residual against the nominal and the corrected model")
-    report.heading("Unexplained residual")
-    if doc["unexplained"]:
-        report.table(
-            ["lenslets", "field (mm)", "depths (mm)", "energy fraction", "description"],
-            [
-                [u["lenslets"], u["field_mm"], u["depths_mm"], u["energy_fraction"], u["description"]]
-                for u in doc["unexplained"]
-            ],
-        )
-    else:
-        report.paragraph("None: the corrected model explains the frame to the noise.")
+    unexplained_section(report, doc["unexplained"], "frame")
     return report.write(folder)
