@@ -31,7 +31,7 @@ import numpy as np
 from cm2optics.calibrate.attribute import Attribution, Problem, attribute
 from cm2optics.calibrate.effects import apply_image_effects, library
 from cm2optics.calibrate.residual import CalibrationError, ResidualAnalysis, ScanData, analyse_scan
-from cm2optics.calibrate.scan import _effects_list, corrected_design
+from cm2optics.calibrate.scan import corrected_design, effects_document
 from cm2optics.calibrate.simulate import Simulator, Values
 from cm2optics.calibrate.unexplained import describe_unexplained
 from cm2optics.design import SystemDesign
@@ -362,7 +362,7 @@ def calibrate_image(
         "corrected_design_hash": corrected.parameter_hash(),
         "emitters": len(frame.emitters),
         "binning": binning,
-        "effects": _effects_list(attribution),
+        "effects": effects_document(attribution),
         "effects_from": "attribution" if effects is attribution.effects else "scan report",
         "nmse_before": round(before.nmse_total, 6),
         "nmse_after": round(after.nmse_total, 6),

@@ -38,7 +38,7 @@ from cm2optics.design import SystemDesign
 from cm2optics.emission.source import AngularProfile, PointSource
 from cm2optics.formats.scan import PSFScan, grid_index, read_scan
 
-__all__ = ["ScanCalibration", "calibrate_scan", "corrected_design", "fit_subset"]
+__all__ = ["ScanCalibration", "calibrate_scan", "corrected_design", "effects_document", "fit_subset"]
 
 #: A scan whose foci spread differs from the design's by more than this was taken on another design.
 MAGNIFICATION_TOLERANCE = 0.10
@@ -141,7 +141,7 @@ def corrected_design(design: SystemDesign, attribution: Attribution) -> SystemDe
     return changed.with_changes(fields) if fields else changed
 
 
-def _effects_list(attribution: Attribution) -> list[dict[str, Any]]:
+def effects_document(attribution: Attribution) -> list[dict[str, Any]]:
     """Fitted effects in the report's vocabulary: ``{name, parameters, uncertainties}`` (a
     per-lenslet effect names its lenslet among the parameters, a per-side effect its side)."""
     out = []
@@ -163,7 +163,7 @@ def _summary(
 ) -> dict[str, Any]:
     """The report's headline keys: effects, NMSE and χ² before and after, what stays unexplained."""
     return {
-        "effects": _effects_list(attribution),
+        "effects": effects_document(attribution),
         "nmse_before": round(before.nmse_total, 6),
         "nmse_after": round(after.nmse_total, 6),
         "chi2_before": round(before.chi2_total, 4),

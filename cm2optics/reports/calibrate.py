@@ -17,7 +17,7 @@ from cm2optics.calibrate.scan import ScanCalibration
 from cm2optics.formats.atomic import write_atomic, write_json_atomic
 from cm2optics.reports.document import Report
 
-__all__ = ["unexplained_section", "write_calibration_report"]
+__all__ = ["residual_montage", "unexplained_section", "write_calibration_report"]
 
 
 def _save(fig: Figure, path: Path) -> None:
@@ -25,7 +25,7 @@ def _save(fig: Figure, path: Path) -> None:
     write_atomic(path, lambda tmp: fig.savefig(tmp, dpi=110, format="png"))
 
 
-def _montage(before: ResidualAnalysis, after: ResidualAnalysis, path: Path, count: int = 4) -> None:
+def residual_montage(before: ResidualAnalysis, after: ResidualAnalysis, path: Path, count: int = 4) -> None:
     """Data, residual before and residual after for the images with the largest misfit before."""
     order = np.argsort(np.nan_to_num(before.chi2, nan=-1.0))[::-1][:count]
     fig = Figure(figsize=(9, 2.6 * len(order)))
@@ -114,7 +114,7 @@ def write_calibration_report(result: ScanCalibration, folder: str | Path) -> Pat
     doc = result.document
     write_json_atomic(folder / "calibration.json", doc)
     result.corrected_design.save(folder / "corrected-design.yaml")
-    _montage(result.before, result.after, folder / "residual_montage.png")
+    residual_montage(result.before, result.after, folder / "residual_montage.png")
     _field_maps(result.before, result.after, folder / "field_maps.png")
     report = Report(f"Calibration of {doc['design']} against {doc['scan']}")
     report.paragraph(

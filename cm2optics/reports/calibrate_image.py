@@ -11,7 +11,7 @@ from pathlib import Path
 from cm2optics.calibrate.image import ImageCalibration
 from cm2optics.formats.atomic import write_json_atomic
 from cm2optics.metrics.plots import plot_overlay
-from cm2optics.reports.calibrate import _montage, unexplained_section
+from cm2optics.reports.calibrate import residual_montage, unexplained_section
 from cm2optics.reports.document import Report
 
 __all__ = ["write_image_report"]
@@ -45,7 +45,7 @@ def write_image_report(result: ImageCalibration, folder: str | Path) -> Path:
     doc = result.document
     write_json_atomic(folder / "calibration.json", doc)
     result.corrected_design.save(folder / "corrected-design.yaml")
-    _montage(result.before, result.after, folder / "residual_maps.png", count=1)
+    residual_montage(result.before, result.after, folder / "residual_maps.png", count=1)
     for key in ("before", "after"):
         plot_overlay(
             result.volumes[key],
