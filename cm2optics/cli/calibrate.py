@@ -289,7 +289,8 @@ def paper(
     overwrite: OverwriteOption = False,
     as_json: JsonOption = False,
 ) -> None:
-    """The paper's own measurements as residuals of the model: (a) the excitation power.
+    """The paper's own measurements as residuals of the model: (a) the excitation power, (b) the
+    hybrid filter's SBR gain, (c) the de-magnification and the calibration source's edge drop.
 
     The paper measured up to 75 mW over the 8-mm field at 350 mA; the design is traced as cm2
     illum run traces it, and its power multiplied by a chain of factors, each with its value, 1σ
@@ -297,23 +298,40 @@ def paper(
     from the spectrum and CIE V(λ), the power meter's aperture and angular response at the
     traced rays' incidence, the printed surface error by re-traces) or assumed it (thermal
     droop, the filter's coating); what remains is the unexplained ratio. The paper's numbers
-    are inputs with their place in shared/paper. Writes paper.json, excitation_power.png and
-    report.html into --out. JSON key: excitation_power (measured_mw, predicted_mw, factors,
-    explained_mw, remaining_ratio, description).
+    are inputs with their place in shared/paper. (b) models the bead phantom per pixel: a bead's
+    peak against the leakage, the beads' own light in their foci's wings and the resin's
+    autofluorescence, with and without the film (assumed parameters with ranges). (c) traces the
+    central focus for a source stepped across the field: magnification (first order, traced,
+    the MLA–sensor spacing for the paper's 4.15-µm pixel) and the energy drop, with the source
+    half-angle that reproduces the paper's 85 %. Writes paper.json, excitation_power.png,
+    sbr_phantom.png, edge_drop.png and report.html into --out. JSON keys: excitation_power
+    (measured_mw, predicted_mw, factors, explained_mw, remaining_ratio, description), sbr_gain
+    (gain, gain_by_terms, gain_range, sbr, leakage_factor_for_measured_gain, description),
+    magnification (traced_magnification, chief_ray_magnification, paper_magnification,
+    mla_to_sensor_for_paper_mm, description), edge_drop (relative_energy_*,
+    source_profile_half_angle_deg, description).
     """
     from cm2optics.calibrate.paper import excitation_power_chain
+    from cm2optics.calibrate.paper_field import field_residuals
+    from cm2optics.calibrate.paper_sbr import phantom_sbr
     from cm2optics.design import load_preset
     from cm2optics.errors import UserError
     from cm2optics.formats.outputs import claim_folder
     from cm2optics.reports.calibrate_paper import write_paper_report
 
     design = load_preset(preset)
-    if design.collimator is None:
-        raise UserError(f"--preset {preset}: the paper's measurements are of a design with collimators (cm2-v2)")
+    if design.collimator is None or design.absorption_filter is None:
+        raise UserError(
+            f"--preset {preset}: the paper's measurements are of a design with collimators and a hybrid filter (cm2-v2)"
+        )
     if rays < 10_000:
         raise UserError(f"--rays = {rays}: must be ≥ 10000")
     check_output(out, command="calibrate paper", kind="folder", inputs=[preset], overwrite=overwrite)
-    document = {"excitation_power": excitation_power_chain(design, rays=rays, seed=seed)}
+    document = {
+        "excitation_power": excitation_power_chain(design, rays=rays, seed=seed),
+        "sbr_gain": phantom_sbr(design),
+        **field_residuals(design),
+    }
     claim_folder(out, "calibrate paper")
     report = write_paper_report(document, out)
     if as_json:
@@ -324,6 +342,8 @@ def paper(
     for factor in power["factors"]:
         typer.echo(f"  {factor['name']}: × {factor['value']:.3f} ± {100 * factor['uncertainty']:.0f} %")
     typer.echo(f"  {power['description']}")
+    for key, title in (("sbr_gain", "SBR gain"), ("magnification", "magnification"), ("edge_drop", "edge drop")):
+        typer.echo(f"{title}: {document[key]['description']}")
     typer.echo(f"report: {report}")
 
 
