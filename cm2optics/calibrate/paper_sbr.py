@@ -78,6 +78,7 @@ WING_DEPTHS = 5
 CURVE_POINTS = 25
 
 _TERMS = ("leakage", "beads", "autofluorescence")
+_DENSITY = PAPER["bead_density_per_mm2"]
 
 
 def _bead_light(design: SystemDesign, diameter_um: float, thickness_mm: float) -> dict[str, Any]:
@@ -110,14 +111,16 @@ def sbr_terms(
     resin_autofluorescence_per_mm: float,
     diffuse_reflectance: float,
     wing_level: float,
+    density_per_mm2: float = _DENSITY["value"],
 ) -> dict[str, dict[str, float]]:
     """Per chain (``interference_only``, ``hybrid``): the bead's peak pixel (``signal``) and each
     background term per pixel, photoelectrons per excitation photon delivered to the field.
-    ``traced``: the design's numbers (:func:`_traced`); the rest as in :data:`ASSUMPTIONS`."""
+    ``traced``: the design's numbers (:func:`_traced`); the rest as in :data:`ASSUMPTIONS`;
+    ``density_per_mm2``: beads per mm² of the phantom (default: the paper's estimate)."""
     field_area = math.pi * (traced["field_mm"] / 2) ** 2
     phantom_area = math.pi * (PAPER["phantom_diameter_mm"]["value"] / 2) ** 2
     cross_section = math.pi * (PAPER["bead_diameter_um"]["value"] * 1e-3 / 2) ** 2
-    beads = PAPER["bead_density_per_mm2"]["value"] * phantom_area
+    beads = density_per_mm2 * phantom_area
     out = {}
     for chain in ("interference_only", "hybrid"):
         collected = traced["signal_per_absorbed"][chain]  # detected per photon absorbed at the peak
@@ -168,18 +171,19 @@ def sbr_summary(traced: dict[str, Any]) -> dict[str, Any]:
     measured = PAPER["sbr_gain"]["value"]
     combos = [("leakage",), ("leakage", "beads"), ("leakage", "autofluorescence"), _TERMS]
     gains = {"+".join(c): _gain(terms, c) for c in combos}
+    ranges = {k: a["range"] for k, a in ASSUMPTIONS.items()} | {"density_per_mm2": _DENSITY["range"]}
     corners = [
-        _gain(sbr_terms(traced, **dict(zip(ASSUMPTIONS, values, strict=True))), _TERMS)
-        for values in itertools.product(*(a["range"] for a in ASSUMPTIONS.values()))
+        _gain(sbr_terms(traced, **dict(zip(ranges, values, strict=True))), _TERMS)
+        for values in itertools.product(*ranges.values())
     ]
     i, h = terms["interference_only"], terms["hybrid"]
     rejection = i["leakage"] / h["leakage"]
     transmission = h["signal"] / i["signal"]
     in_band = i["beads"] + i["autofluorescence"]
-    # gain G = t(L + B)/(L/R + tB) (R: the film's leakage rejection) solved for the leakage L (both chains scaled alike) giving the measured gain:
-    # G(L/R + tB) = t(L + B)  ⇒  L = B t (G − 1) / (t − G/R), B the in-band terms (interference-only chain).
+    # The gain G = t(L + B)/(L/R + tB), with L the leakage and B the in-band terms of the
+    # interference-only chain, t the film's in-band transmission, R its leakage rejection, so
+    # the measured G needs L = B t (G − 1)/(t − G/R), or allows B up to L (t − G/R)/(t (G − 1)).
     leakage_needed = in_band * transmission * (measured - 1) / (transmission - measured / rejection)
-    # the largest in-band level that still leaves the measured gain, less the beads' light at its bound
     autofluorescence_room = (
         i["leakage"] * (transmission - measured / rejection) / (transmission * (measured - 1)) - i["beads"]
     )

@@ -135,7 +135,7 @@ def _field_section(report: Report, mag: dict[str, Any], edge: dict[str, Any]) ->
     report.heading("(c) De-magnification and the edge drop")
     report.paragraph(f"Paper: {mag['paper_object_pixel_source']}. {mag['description']}.")
     report.table(
-        ["magnification", "|m|", "object pixel (µm)"],
+        ["magnification", "value", "object pixel (µm)"],
         [
             [
                 "paraxial",
