@@ -127,32 +127,72 @@ def run_demo(
     out_dir = Path(out_dir)
     console = Console(stderr=True)
     report = Report(f"cm2optics demo — {design.name}")
-    console.print("[bold]1/9[/] design optics")
-    _design_section(report, design)
-    console.print("[bold]2/9[/] CAD export and checks")
-    _cad_section(report, design, out_dir)
-    console.print("[bold]3/9[/] spectra, filters and SBR")
-    add_spectra_section(report, design, out_dir, title="3. Spectra, filters and the hybrid emission filter")
-    console.print("[bold]4/9[/] illumination")
-    add_illumination_section(report, design, out_dir, heading="4. Illumination")
-    console.print("[bold]5/9[/] PSFs and the calibration scan")
-    scan = add_psf_section(report, design, out_dir, title="5. PSFs and calibration scans")
-    console.print(
-        "[bold]6/9[/] 3D-LSV forward model" + (" (analytic fallback)" if analytic else " from the traced scan")
+    timings: list[tuple[str, float]] = []
+
+    def stage(number: int, label: str, run: Callable[[], object]) -> object:
+        console.print(f"[bold]{number}/9[/] {label}")
+        start = time.perf_counter()
+        result = run()
+        timings.append((f"{number}. {label}", time.perf_counter() - start))
+        console.print(f"    {label}: {timings[-1][1]:.1f} s")
+        return result
+
+    stage(1, "design optics", lambda: _design_section(report, design))
+    stage(2, "CAD export and checks", lambda: _cad_section(report, design, out_dir))
+    stage(
+        3,
+        "spectra, filters and SBR",
+        lambda: add_spectra_section(
+            report, design, out_dir, title="3. Spectra, filters and the hybrid emission filter"
+        ),
+    )
+    stage(4, "illumination", lambda: add_illumination_section(report, design, out_dir, heading="4. Illumination"))
+    scan = stage(
+        5,
+        "PSFs and the calibration scan",
+        lambda: add_psf_section(report, design, out_dir, title="5. PSFs and calibration scans"),
     )
     title = "6. The 3D-LSV forward model"
     if analytic:
-        add_lsv_section(report, design, None, out_dir, title=title + " (analytic fallback)")
-    else:
-        traced = _traced_in_model_units(design)
-        add_lsv_section(
-            report, design, scan, out_dir, rank=48, title=title, oversample=CHAIN_SCAN["oversample"], traced=traced
+        stage(
+            6,
+            "3D-LSV forward model (analytic fallback)",
+            lambda: add_lsv_section(report, design, None, out_dir, title=title + " (analytic fallback)"),
         )
-    console.print("[bold]7/9[/] synthetic volume, model-based reconstruction, metrics")
+    else:
+        stage(
+            6,
+            "3D-LSV forward model from the traced scan",
+            lambda: add_lsv_section(
+                report,
+                design,
+                scan,
+                out_dir,
+                rank=48,
+                title=title,
+                oversample=CHAIN_SCAN["oversample"],
+                traced=_traced_in_model_units(design),
+            ),
+        )
     model = None if analytic else out_dir / "lsv" / "model.h5"
-    add_baseline_section(report, design, model, out_dir, title="7. Synthetic data, baselines and metrics")
-    console.print("[bold]8/9[/] CM²Net with the shipped weights beside FISTA")
-    add_net_section(report, out_dir, weights=weights, title="8. CM²Net")
-    console.print("[bold]9/9[/] calibration loop on a scan with an undeclared effect")
-    add_calibration_section(report, design, out_dir, title="9. Calibration: an effect nobody declared, found")
+    stage(
+        7,
+        "synthetic volume, model-based reconstruction, metrics",
+        lambda: add_baseline_section(report, design, model, out_dir, title="7. Synthetic data, baselines and metrics"),
+    )
+    stage(
+        8,
+        "CM²Net with the shipped weights beside FISTA",
+        lambda: add_net_section(report, out_dir, weights=weights, title="8. CM²Net"),
+    )
+    stage(
+        9,
+        "calibration loop on a scan with an undeclared effect",
+        lambda: add_calibration_section(
+            report, design, out_dir, title="9. Calibration: an effect nobody declared, found"
+        ),
+    )
+    report.heading("Run time")
+    report.paragraph(f"Each section's wall time on this run ({sum(t for _, t in timings):.0f} s in all).")
+    report.table(["section", "time s"], [[label, f"{seconds:.1f}"] for label, seconds in timings])
     return report.write(out_dir)
