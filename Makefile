@@ -12,10 +12,8 @@ $(SYSTEM): scripts/install-system-deps.sh
 	bash scripts/install-system-deps.sh
 	@mkdir -p $(VENV) && touch $@
 
-$(STAMP): pyproject.toml
-	test -x $(PY) || python3 -m venv $(VENV)
-	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e '.[test]'
+$(STAMP): pyproject.toml scripts/install-python-deps.sh
+	bash scripts/install-python-deps.sh $(VENV)
 	touch $@
 
 demo: setup
