@@ -272,17 +272,26 @@ def _optimize_gradient(
         inputs=inputs,
         show_progress=not as_json,
     )
-    if as_json:
-        print(json.dumps(result, indent=2, ensure_ascii=False))
-        return
-    out.print_json(json.dumps(result, ensure_ascii=False))
-    verdict = "meets" if result["meets_uniformity"] else "does NOT meet"
-    out.print(
-        f"gradient: {result['rays_traced']} rays traced in {iterations} steps; built part: delivered "
-        f"{result['delivered_fraction']:.1%} ± {result['delivered_fraction_stderr']:.2%}, CV "
-        f"{result['uniformity_cv']:.1%} ({verdict} CV ≤ {max_cv:.0%}); collimator printable: "
-        f"{result['printability']['printable']}"
+    _echo_optimized(
+        result,
+        as_json,
+        lambda verdict: (
+            f"gradient: {result['rays_traced']} rays traced in {iterations} steps; built part: delivered "
+            f"{result['delivered_fraction']:.1%} ± {result['delivered_fraction_stderr']:.2%}, CV "
+            f"{result['uniformity_cv']:.1%} ({verdict} CV ≤ {max_cv:.0%}); collimator printable: "
+            f"{result['printability']['printable']}"
+        ),
     )
+
+
+def _echo_optimized(summary: dict[str, Any], as_json: bool, line: Any) -> None:
+    """Print an optimisation's summary: as JSON, or as a table and the one-line verdict
+    ``line(verdict)`` (verdict: whether the design meets the CV limit)."""
+    if as_json:
+        print(json.dumps(summary, indent=2, ensure_ascii=False))
+        return
+    out.print_json(json.dumps(summary, ensure_ascii=False))
+    out.print(line("meets" if summary["meets_uniformity"] else "does NOT meet"))
 
 
 @illum_app.command("optimize")
@@ -393,21 +402,21 @@ def optimize(
         fixed_profile=fixed_profile,
     )
     summary = {k: v for k, v in result.items() if k != "candidates"}  # every candidate is in sweep.json
-    if as_json:
-        print(json.dumps(summary, indent=2, ensure_ascii=False))
-        return
-    out.print_json(json.dumps(summary, ensure_ascii=False))
-    verdict = "meets" if summary["meets_uniformity"] else "does NOT meet"
-    out.print(
-        f"best: delivered {summary['delivered_fraction']:.1%} ± {summary['delivered_fraction_stderr']:.2%}, "
-        f"CV {summary['uniformity_cv']:.1%} ({verdict} CV ≤ {max_cv:.0%}); étendue/filter bound "
-        f"{summary['etendue_bound']['delivered_bound']:.1%}; best symmetric beam at this CV "
-        f"{summary['uniform_beam_bound']['delivered_bound']:.1%}; collimator printable: {summary['printability']['printable']}"
-        + (
-            ""
-            if summary["base_plate_printable"] is None
-            else f"; base plate printable: {summary['base_plate_printable']}"
-        )
+    _echo_optimized(
+        summary,
+        as_json,
+        lambda verdict: (
+            f"best: delivered {summary['delivered_fraction']:.1%} ± {summary['delivered_fraction_stderr']:.2%}, "
+            f"CV {summary['uniformity_cv']:.1%} ({verdict} CV ≤ {max_cv:.0%}); étendue/filter bound "
+            f"{summary['etendue_bound']['delivered_bound']:.1%}; best symmetric beam at this CV "
+            f"{summary['uniform_beam_bound']['delivered_bound']:.1%}; collimator printable: "
+            f"{summary['printability']['printable']}"
+            + (
+                ""
+                if summary["base_plate_printable"] is None
+                else f"; base plate printable: {summary['base_plate_printable']}"
+            )
+        ),
     )
 
 
