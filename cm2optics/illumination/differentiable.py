@@ -21,10 +21,9 @@ the mesh of the current coefficients, with three changes that make the objective
 
 Not differentiated: changes of visibility (a ray moving across an edge — the housing's aperture,
 the filter's edge — or between TIR and refraction), whose boundary terms would need edge
-sampling or a reparameterisation. For terms that move the beam's edge across the aperture
-symmetrically (Noll 4, 11) they dominate: against finite differences of this same objective
-(2 × 10⁴ rays, h = 0.5 µm) dCV′/dc₁₁ is 4.3e-3 here and 1.4e-3 there, dD/dc₄ −7e-5 and
-+2.1e-4; for astigmatism and coma (Noll 6, 7) the two agree (the test).
+sampling or a reparameterisation. Against finite differences of this same objective (2 × 10⁴ rays, h = 0.5 µm) the gradient is
+not yet verified: it agreed for Noll 6 and 7 in one setting and not in another, nor for the
+symmetric terms 4 and 11 (BENCHMARKS.md, the slow test).
 
 Objective (maximised), the sweep's ranking (:mod:`.optimize`) on these smooth figures:
 ``J = D − 2 max(0, CV′ − max_cv)``, ``D`` the weight in the bins centred inside the field
