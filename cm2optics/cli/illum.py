@@ -227,6 +227,73 @@ def _check_optimize_options(
             raise UserError(f"{path}: no such file")
 
 
+def _optimize_gradient(
+    preset: str,
+    rays: int,
+    max_cv: float,
+    seed: int,
+    files: tuple[Path | None, ...],
+    iterations: int,
+    learning_rate_um: float,
+    free_aim: bool,
+    out_dir: Path,
+    overwrite: bool,
+    as_json: bool,
+) -> None:
+    """``cm2 illum optimize --method gradient``: check its options, run the search, print the summary."""
+    from cm2optics.design import load_preset
+    from cm2optics.illumination.gradient_search import optimize_lens_gradient
+    from cm2optics.optics.backend import is_jit, mitsuba
+
+    if free_aim:
+        raise UserError("--method gradient optimises the lens's Zernike terms only: --free-aim needs --method sweep")
+    if iterations < 2:
+        raise UserError(f"--iterations = {iterations}: must be ≥ 2")
+    if not (math.isfinite(learning_rate_um) and 0 < learning_rate_um <= 15):
+        raise UserError(f"--learning-rate-um = {learning_rate_um}: must lie within 0–15 µm")
+    design = load_preset(preset)
+    if design.collimator is None:
+        raise UserError(f"design {design.name!r} has no collimator to optimise (use a preset with one, e.g. cm2-v2)")
+    mitsuba()
+    if not is_jit():
+        raise UserError(
+            "--method gradient needs Dr.Jit's LLVM or CUDA variant (no LLVM ≥ 17 found: see DRJIT_LIBLLVM_PATH)"
+        )
+    output_folder(out_dir, "illum optimize", inputs=[preset, *[f for f in files if f]], overwrite=overwrite)
+    inputs = tuple(str(f.resolve()) if f else None for f in files)
+    result = optimize_lens_gradient(
+        design,
+        out_dir,
+        rays=rays,
+        iterations=iterations,
+        learning_rate_um=learning_rate_um,
+        max_cv=max_cv,
+        seed=seed,
+        inputs=inputs,
+        show_progress=not as_json,
+    )
+    _echo_optimized(
+        result,
+        as_json,
+        lambda verdict: (
+            f"gradient: {result['rays_traced']} rays traced in {iterations} steps; built part: delivered "
+            f"{result['delivered_fraction']:.1%} ± {result['delivered_fraction_stderr']:.2%}, CV "
+            f"{result['uniformity_cv']:.1%} ({verdict} CV ≤ {max_cv:.0%}); collimator printable: "
+            f"{result['printability']['printable']}"
+        ),
+    )
+
+
+def _echo_optimized(summary: dict[str, Any], as_json: bool, line: Any) -> None:
+    """Print an optimisation's summary: as JSON, or as a table and the one-line verdict
+    ``line(verdict)`` (verdict: whether the design meets the CV limit)."""
+    if as_json:
+        print(json.dumps(summary, indent=2, ensure_ascii=False))
+        return
+    out.print_json(json.dumps(summary, ensure_ascii=False))
+    out.print(line("meets" if summary["meets_uniformity"] else "does NOT meet"))
+
+
 @illum_app.command("optimize")
 @user_errors
 def optimize(
@@ -275,6 +342,18 @@ def optimize(
     ] = Path("out/illum-opt"),
     overwrite: OverwriteOption = False,
     as_json: JsonOption = False,
+    method: Annotated[
+        str,
+        typer.Option(
+            "--method",
+            help="sweep: the Dask sweep; gradient: Adam on the lens's Zernike terms (Noll 3, 4, 6, 7, 11) with "
+            "gradients through Dr.Jit (profile and placement kept; --rays per iteration).",
+        ),
+    ] = "sweep",
+    iterations: Annotated[int, typer.Option("--iterations", help="Gradient steps (--method gradient).")] = 24,
+    learning_rate_um: Annotated[
+        float, typer.Option("--learning-rate-um", help="Adam step of the Zernike terms, µm (--method gradient).")
+    ] = 1.5,
 ) -> None:
     """Search the collimator's parameters for the largest delivered fraction whose array
     uniformity (CV inside the circle) is ≤ --max-cv, as a parallel sweep on Dask, and write
@@ -296,6 +375,13 @@ def optimize(
 
     files = (led_profile, led_spectrum, filter_table)
     _check_optimize_options(max_cv, rays, samples, rounds, workers, files)
+    if method not in ("sweep", "gradient"):
+        raise UserError(f"--method {method}: must be sweep or gradient")
+    if method == "gradient":
+        _optimize_gradient(
+            preset, rays, max_cv, seed, files, iterations, learning_rate_um, free_aim, out_dir, overwrite, as_json
+        )
+        return
     if fixed_profile and not (free_aim or freeform):
         raise UserError("--fixed-profile leaves nothing to sweep: add --free-aim and/or --freeform")
     design = load_preset(preset)
@@ -316,21 +402,21 @@ def optimize(
         fixed_profile=fixed_profile,
     )
     summary = {k: v for k, v in result.items() if k != "candidates"}  # every candidate is in sweep.json
-    if as_json:
-        print(json.dumps(summary, indent=2, ensure_ascii=False))
-        return
-    out.print_json(json.dumps(summary, ensure_ascii=False))
-    verdict = "meets" if summary["meets_uniformity"] else "does NOT meet"
-    out.print(
-        f"best: delivered {summary['delivered_fraction']:.1%} ± {summary['delivered_fraction_stderr']:.2%}, "
-        f"CV {summary['uniformity_cv']:.1%} ({verdict} CV ≤ {max_cv:.0%}); étendue/filter bound "
-        f"{summary['etendue_bound']['delivered_bound']:.1%}; best symmetric beam at this CV "
-        f"{summary['uniform_beam_bound']['delivered_bound']:.1%}; collimator printable: {summary['printability']['printable']}"
-        + (
-            ""
-            if summary["base_plate_printable"] is None
-            else f"; base plate printable: {summary['base_plate_printable']}"
-        )
+    _echo_optimized(
+        summary,
+        as_json,
+        lambda verdict: (
+            f"best: delivered {summary['delivered_fraction']:.1%} ± {summary['delivered_fraction_stderr']:.2%}, "
+            f"CV {summary['uniformity_cv']:.1%} ({verdict} CV ≤ {max_cv:.0%}); étendue/filter bound "
+            f"{summary['etendue_bound']['delivered_bound']:.1%}; best symmetric beam at this CV "
+            f"{summary['uniform_beam_bound']['delivered_bound']:.1%}; collimator printable: "
+            f"{summary['printability']['printable']}"
+            + (
+                ""
+                if summary["base_plate_printable"] is None
+                else f"; base plate printable: {summary['base_plate_printable']}"
+            )
+        ),
     )
 
 

@@ -17,10 +17,10 @@ sweeps of ``samples // 2`` points in a box half as wide around the best candidat
 (ranked by ``delivered − 2 · max(0, CV′ − max_cv)``, CV′ = √(CV² − CV_noise²) the uniformity
 with the Monte Carlo noise of the candidate's few rays taken out). Every candidate is an independent task
 (embarrassingly parallel): a local Dask cluster by default, an existing scheduler when an
-address is given. Gradients through Dr.Jit are not used: the delivered fraction of a
-faceted mesh traced with discrete reflect/refract choices is piecewise constant in the
-profile's parameters (its derivative is zero almost everywhere), so a sweep is the honest
-tool here.
+address is given. The profile and the placement are swept: the delivered fraction of a faceted
+mesh traced with discrete reflect/refract choices is piecewise constant in them. The lens's
+Zernike terms alone also have a gradient search through Dr.Jit (:mod:`.gradient_search`, on
+the smooth objective of :mod:`.differentiable`).
 
 The :data:`CONFIRMED` best candidates meeting the constraint (else the best ranked) are traced
 again with 4× the rays, and the one delivering most whose measured CV — noise included — is
@@ -48,7 +48,17 @@ import numpy as np
 from cm2optics.design import DesignError, SystemDesign, design_from_dict
 from cm2optics.illumination.bounds import etendue_bound, free_aim_bound, uniform_beam_bound
 
-__all__ = ["AIM_PARAMETERS", "PARAMETERS", "evaluate_candidate", "optimize_collimator", "search_box"]
+__all__ = [
+    "AIM_PARAMETERS",
+    "PARAMETERS",
+    "design_bounds",
+    "evaluate_candidate",
+    "export_collimator",
+    "optimize_collimator",
+    "read_inputs",
+    "search_box",
+    "trace_built_part",
+]
 
 #: The swept parameters and their ranges (mm, degrees).
 PARAMETERS: dict[str, tuple[float, float]] = {
@@ -135,7 +145,7 @@ def candidate_collimator(design: SystemDesign, values: dict[str, float], segment
 
 
 @functools.lru_cache(maxsize=4)
-def _inputs(led_profile: str | None, led_spectrum: str | None, filter_table: str | None) -> tuple[Any, Any, Any]:
+def read_inputs(led_profile: str | None, led_spectrum: str | None, filter_table: str | None) -> tuple[Any, Any, Any]:
     """(angular profile, spectrum, filter transmission) read from the files given (None: the
     design's models), once per worker process: fitting a coating table takes seconds."""
     from cm2optics.illumination.excitation import filter_from_table
@@ -189,7 +199,7 @@ def evaluate_candidate(
             feasible=False, reason=f"housing: {clashes[0]}" + (f" (+{len(clashes) - 1} more)" if clashes[1:] else "")
         )
         return entry
-    profile, spectrum, table = _inputs(*inputs)
+    profile, spectrum, table = read_inputs(*inputs)
     transmission = table if table is not None else design_filter_transmission(design)
     figures = figures_of_merit(
         trace(scene, led_source(design, profile, spectrum), rays, transmission=transmission, seed=seed), scene
@@ -295,9 +305,9 @@ def optimize_collimator(
     name = design.name if design.name.endswith("-optimised") else f"{design.name}-optimised"  # refining one: once
     improved = design.with_changes({**_changes(best["parameters"], design), "name": name})
     out_dir = Path(out_dir)
-    stl_path, checks = _export(improved, out_dir)
+    stl_path, checks = export_collimator(improved, out_dir)
     improved.save(out_dir / "design.yaml")
-    built = _trace_built_part(improved, out_dir, 4 * rays, seed + 2, inputs)
+    built = trace_built_part(improved, out_dir, 4 * rays, seed + 2, inputs)
     result = {
         "design": str(out_dir / "design.yaml"),
         "stl": str(stl_path),
@@ -317,7 +327,7 @@ def optimize_collimator(
         "base_plate_printable": None
         if "base_plate_min_wall_mm" not in best
         else bool(best["base_plate_min_wall_mm"] >= improved.mechanics.min_wall_mm - 1e-6),
-        **_bounds(improved, max_cv, inputs, free_aim),
+        **design_bounds(improved, max_cv, inputs, free_aim),
         "candidates_traced": len(candidates),
         "candidates_feasible": len(feasible),
         "candidates_meeting_uniformity": len(meeting),
@@ -340,12 +350,12 @@ _CONFIRMED_FIGURES = (
 )
 
 
-def _bounds(
+def design_bounds(
     design: SystemDesign, max_cv: float, inputs: tuple[str | None, str | None, str | None], free_aim: bool
 ) -> dict[str, Any]:
     """The result's bounds for ``design``, their spectral ceiling from the run's inputs: étendue,
     the uniform beam along the units' axes, and with ``free_aim`` re-aimed units with the finite LED."""
-    _, spectrum, table = _inputs(*inputs)
+    _, spectrum, table = read_inputs(*inputs)
     uniform = uniform_beam_bound(design, max_cv, table, spectrum=spectrum)
     free = free_aim_bound(design, max_cv, table, spectrum=spectrum) if free_aim else None
     return {
@@ -474,7 +484,7 @@ def base_plate_wall_mm(design: SystemDesign) -> float:
         return check_mesh(trimesh.load_mesh(path, force="mesh")).min_wall_mm
 
 
-def _trace_built_part(
+def trace_built_part(
     design: SystemDesign, out_dir: Path, rays: int, seed: int, inputs: tuple[str | None, str | None, str | None]
 ) -> dict[str, Any]:
     """Trace the chosen design's CAD part (the exported solid, not the sweep's revolved mesh)
@@ -485,7 +495,7 @@ def _trace_built_part(
     from cm2optics.illumination.source import led_source
     from cm2optics.illumination.tracer import trace
 
-    profile, spectrum, table = _inputs(*inputs)
+    profile, spectrum, table = read_inputs(*inputs)
     scene = build_scene(design, collimator_from_design(design))
     transmission = table if table is not None else design_filter_transmission(design)
     record = trace(scene, led_source(design, profile, spectrum), rays, transmission=transmission, seed=seed)
@@ -501,7 +511,7 @@ def _trace_built_part(
     }
 
 
-def _export(design: SystemDesign, out_dir: Path) -> tuple[Path, dict[str, Any]]:
+def export_collimator(design: SystemDesign, out_dir: Path) -> tuple[Path, dict[str, Any]]:
     """Write the design's CAD collimator as STL and STEP and check the STL for printing."""
     import trimesh
 

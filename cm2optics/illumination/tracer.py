@@ -242,28 +242,18 @@ class _Kernel:
         cos_t, _ = snell_cos_t(dr, cos_i, eta)
         return dr.select(reflect, mirror(d, facing, cos_i), refract(d, facing, eta, cos_i, cos_t))
 
-    def step(
-        self, o: Any, d: Any, ray_id: Any, depth: Any, wl: Any, n_coll: Any, n_filt: Any, passed: Any, active: Any
-    ) -> tuple:
-        """Carry every ray in ``active`` to its next surface and act there.
-
-        Returns (o, d, status, hit_x, hit_y, crossing): the new origin and direction,
-        the ray's status (``ACTIVE`` while it goes on), where it landed on the sample plane,
-        and whether it crossed its portal outwards for the first time at this step.
-        """
-        mi, dr = self.mi, self.dr
-        status = dr.zeros(mi.UInt32, dr.width(active)) if self.jit else int(Status.ACTIVE)
-        si = self.msc.scene.ray_intersect(mi.Ray3f(o, d), self.flags, False, active)
-        valid = si.is_valid()
-        status = dr.select(active & _not(valid), int(Status.ESCAPED), status)
-        active = active & valid
+    def surface(self, si: Any, d: Any, wl: Any, n_coll: Any, n_filt: Any, active: Any, ns: Any) -> dict[str, Any]:
+        """What the surface hit at ``si`` does to a ray of direction ``d`` (shading normal ``ns``):
+        role, medium, absorber group, whether the ray enters the solid, the geometric and shading
+        normals facing the ray, η = n₁/n₂, the reflectance R (Fresnel, coating, 0 on bare
+        glass, 1 under TIR) and the TIR flag."""
+        dr = self.dr
         code = self.code(si, active)
         role = code & 15
         medium = (code >> 4) & 15
         group = code >> 8
 
         ng = si.n
-        ns = si.sh_frame.n
         ns = dr.select(dr.dot(ns, ng) < 0.0, -ns, ns)
         entering = dr.dot(d, ng) < 0.0
         n_solid = dr.select(medium == int(Medium.FILTER), n_filt, n_coll)
@@ -284,8 +274,24 @@ class _Kernel:
         reflectance = dr.select(coated, 1.0 - self.coating(wl, aoi_air, active & coated), reflectance)
         reflectance = dr.select(role == int(Role.GLASS), 0.0, reflectance)
         reflectance = dr.select(tir, 1.0, reflectance)
-        reflect = mi.sample_tea_float32(ray_id, self.stream + depth, TEA_ROUNDS) < reflectance
+        return {
+            "role": role,
+            "medium": medium,
+            "group": group,
+            "entering": entering,
+            "face_g": face_g,
+            "face_s": face_s,
+            "eta": eta,
+            "reflectance": reflectance,
+            "tir": tir,
+        }
 
+    def scatter(self, d: Any, hit: dict[str, Any], reflect: Any) -> tuple[Any, Any]:
+        """(new unit direction, reflected?) of ``d`` at the surface ``hit`` (:meth:`surface`),
+        reflected where ``reflect``; a smooth normal that would send the ray to the wrong side of
+        the facet is replaced by the facet's own, and a portal lets the ray through."""
+        dr = self.dr
+        face_s, face_g, eta = hit["face_s"], hit["face_g"], hit["eta"]
         new_d = self._directions(dr, d, face_s, eta, reflect)
         # A smooth normal must not send the ray to the wrong side of the actual facet.
         side = dr.dot(new_d, face_g)
@@ -294,13 +300,34 @@ class _Kernel:
         reflect_g = reflect | snell_cos_t(dr, cos_g, eta)[1]
         new_d = dr.select(wrong, self._directions(dr, d, face_g, eta, reflect_g), new_d)
         reflect = dr.select(wrong, reflect_g, reflect)
+        new_d = dr.normalize(dr.select(hit["role"] == int(Role.PORTAL), d, new_d))
+        return new_d, reflect
+
+    def step(
+        self, o: Any, d: Any, ray_id: Any, depth: Any, wl: Any, n_coll: Any, n_filt: Any, passed: Any, active: Any
+    ) -> tuple:
+        """Carry every ray in ``active`` to its next surface and act there.
+
+        Returns (o, d, status, hit_x, hit_y, crossing): the new origin and direction,
+        the ray's status (``ACTIVE`` while it goes on), where it landed on the sample plane,
+        and whether it crossed its portal outwards for the first time at this step.
+        """
+        mi, dr = self.mi, self.dr
+        status = dr.zeros(mi.UInt32, dr.width(active)) if self.jit else int(Status.ACTIVE)
+        si = self.msc.scene.ray_intersect(mi.Ray3f(o, d), self.flags, False, active)
+        valid = si.is_valid()
+        status = dr.select(active & _not(valid), int(Status.ESCAPED), status)
+        active = active & valid
+        hit = self.surface(si, d, wl, n_coll, n_filt, active, si.sh_frame.n)
+        role, entering = hit["role"], hit["entering"]
+        reflect = mi.sample_tea_float32(ray_id, self.stream + depth, TEA_ROUNDS) < hit["reflectance"]
+        new_d, reflect = self.scatter(d, hit, reflect)
         portal = role == int(Role.PORTAL)
-        new_d = dr.normalize(dr.select(portal, d, new_d))
 
         leaving_filter = (role == int(Role.GLASS)) & _not(entering) & _not(reflect)
-        crossing = active & ((portal & (dr.dot(d, ng) > 0.0)) | leaving_filter) & _not(passed)
+        crossing = active & ((portal & (dr.dot(d, si.n) > 0.0)) | leaving_filter) & _not(passed)
         absorbed = active & (role == int(Role.ABSORBER))
-        status = dr.select(absorbed, int(Status.ABSORBED) + group, status)
+        status = dr.select(absorbed, int(Status.ABSORBED) + hit["group"], status)
         landed = active & (role == int(Role.SAMPLE))
         status = dr.select(landed, int(Status.SAMPLE), status)
         hit_x = dr.select(landed, si.p.x, math.nan)

@@ -14,12 +14,21 @@ wall below the lens edge follows with a linear blend, ``δz = S(a, φ) (z − g)
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 
 from cm2optics.optics.collimator import CollimatorProfile
 
-__all__ = ["MAX_TERMS", "displace_lens", "lens_sag_mm", "noll_indices", "zernike"]
+__all__ = [
+    "MAX_TERMS",
+    "displace_lens",
+    "lens_sag_mm",
+    "noll_indices",
+    "rim_piston_um",
+    "zernike",
+    "zernike_with_gradient",
+]
 
 #: Most Zernike terms a design may give (Noll j = 1 … 28: up to the 6th radial order).
 MAX_TERMS = 28
@@ -39,19 +48,68 @@ def noll_indices(j: int) -> tuple[int, int]:
     return n, (m if j % 2 == 0 else -m) if m else 0
 
 
+def _radial_terms(n: int, am: int) -> list[tuple[float, int]]:
+    """(weight, power of ρ) of the radial polynomial ``R_n^|m|(ρ)``."""
+    terms = []
+    for s in range((n - am) // 2 + 1):
+        weight = (-1) ** s * math.factorial(n - s)
+        weight /= math.factorial(s) * math.factorial((n + am) // 2 - s) * math.factorial((n - am) // 2 - s)
+        terms.append((weight, n - 2 * s))
+    return terms
+
+
 def zernike(j: int, rho: np.ndarray, phi: np.ndarray) -> np.ndarray:
     """Noll's ``Z_j(ρ, φ)``, unit RMS over the unit disc (dimensionless)."""
     n, m = noll_indices(j)
     am = abs(m)
     radial = np.zeros_like(rho, dtype=float)
-    for s in range((n - am) // 2 + 1):
-        weight = (-1) ** s * math.factorial(n - s)
-        weight /= math.factorial(s) * math.factorial((n + am) // 2 - s) * math.factorial((n - am) // 2 - s)
-        radial = radial + weight * rho ** (n - 2 * s)
+    for weight, power in _radial_terms(n, am):
+        radial = radial + weight * rho**power
     if m == 0:
         return math.sqrt(n + 1) * radial
     angular = np.cos(am * phi) if m > 0 else np.sin(am * phi)
     return math.sqrt(2 * (n + 1)) * radial * angular
+
+
+def zernike_with_gradient(j: int, x_mm: Any, y_mm: Any, radius_mm: float, ops: Any) -> tuple[Any, Any, Any]:
+    """``Z_j`` at (x, y) (mm) over a disc of ``radius_mm`` and its slopes ``∂Z_j/∂x``,
+    ``∂Z_j/∂y`` (1/mm), for points inside the disc. ``ops``: the array module (``numpy`` or
+    ``drjit``: ``sqrt``, ``atan2``, ``cos``, ``sin``), so the Dr.Jit gradient trace evaluates the
+    same polynomials as the CAD part."""
+    n, m = noll_indices(j)
+    am = abs(m)
+    r = ops.sqrt(x_mm * x_mm + y_mm * y_mm) + 1e-12  # finite slopes at the vertex (they are: R ∝ ρ^|m|)
+    rho = r / radius_mm
+    radial = 0.0 * rho
+    slope = 0.0 * rho  # dR/dρ
+    for weight, power in _radial_terms(n, am):
+        radial = radial + weight * rho**power
+        if power:
+            slope = slope + weight * power * rho ** (power - 1)
+    norm = math.sqrt(n + 1) if m == 0 else math.sqrt(2 * (n + 1))
+    if m == 0:
+        angular, d_angular = 1.0, 0.0
+    else:
+        phi = ops.atan2(y_mm, x_mm)
+        cos_m, sin_m = ops.cos(am * phi), ops.sin(am * phi)
+        angular, d_angular = (cos_m, -am * sin_m) if m > 0 else (sin_m, am * cos_m)
+    # ∂ρ/∂x = x / (r a), ∂φ/∂x = −y / r², ∂ρ/∂y = y / (r a), ∂φ/∂y = x / r².
+    along_r = norm * slope * angular / (r * radius_mm)
+    along_phi = norm * radial * d_angular / (r * r)
+    return norm * radial * angular, along_r * x_mm - along_phi * y_mm, along_r * y_mm + along_phi * x_mm
+
+
+def rim_piston_um(terms: tuple[int, ...], coefficients_um: Any) -> Any:
+    """The piston ``c_1`` (µm) that holds the lens's rim where it is for the rotationally
+    symmetric terms among ``terms`` (``Z_j(1) = √(n + 1)`` for m = 0): ``−Σ √(n + 1) c_j``, so
+    that these terms reshape the lens without moving its junction with the cavity wall.
+    ``coefficients_um``: floats or Dr.Jit arrays, one per term."""
+    piston = 0.0
+    for j, c in zip(terms, coefficients_um, strict=True):
+        n, m = noll_indices(j)
+        if m == 0 and j > 1:
+            piston = piston - math.sqrt(n + 1) * c
+    return piston
 
 
 def lens_sag_mm(

@@ -484,6 +484,19 @@ def _input_cases() -> list[Case]:
         ),
         Case("illum optimize", "option", ["illum", "optimize", "--max-cv", "2", "--out", "{case}/o"], ("--max-cv",)),
         Case("illum optimize", "option", ["illum", "optimize", "--samples", "1", "--out", "{case}/o"], ("--samples",)),
+        Case("illum optimize", "option", ["illum", "optimize", "--method", "newton", "--out", "{case}/o"], ("--method",)),
+        Case(
+            "illum optimize",
+            "option",
+            ["illum", "optimize", "--method", "gradient", "--free-aim", "--out", "{case}/o"],
+            ("--free-aim",),
+        ),
+        Case(
+            "illum optimize",
+            "option",
+            ["illum", "optimize", "--method", "gradient", "--iterations", "1", "--out", "{case}/o"],
+            ("--iterations",),
+        ),
         Case(
             "illum robustness", "option", ["illum", "robustness", "--samples", "1", "--out", "{case}/o"], ("--samples",)
         ),

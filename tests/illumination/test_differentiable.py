@@ -1,0 +1,88 @@
+"""Gradients of the illumination objective through Dr.Jit: the Zernike slopes, the rim-holding
+piston, the gradient against finite differences of the same objective, and the CLI's gradient search."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from cm2optics.design import load_preset
+from cm2optics.optics.freeform import lens_sag_mm, rim_piston_um, zernike, zernike_with_gradient
+
+TERMS = (3, 4, 6, 7, 11)
+
+
+def test_zernike_slopes_are_the_derivatives_of_the_polynomials():
+    rng = np.random.default_rng(0)
+    radius = 0.5
+    x, y = rng.uniform(-0.35, 0.35, (2, 200))
+    h = 1e-6
+
+    def z(j, x, y):
+        return zernike(j, np.hypot(x, y) / radius, np.arctan2(y, x))
+
+    for j in range(1, 29):
+        value, zx, zy = zernike_with_gradient(j, x, y, radius, np)
+        np.testing.assert_allclose(value, z(j, x, y), atol=1e-9)
+        np.testing.assert_allclose(zx, (z(j, x + h, y) - z(j, x - h, y)) / (2 * h), atol=2e-5)
+        np.testing.assert_allclose(zy, (z(j, x, y + h) - z(j, x, y - h)) / (2 * h), atol=2e-5)
+
+
+def test_rim_piston_holds_the_rim_of_the_symmetric_terms():
+    radius = 0.5
+    phi = np.linspace(0, 2 * np.pi, 7)
+    x, y = radius * np.cos(phi), radius * np.sin(phi)
+    c = [0.0, 4.0, -3.0, 0.0, 2.5]  # Noll 3, 4, 6, 7, 11: only 4 and 11 are symmetric
+    piston = rim_piston_um(TERMS, c)
+    assert piston == pytest.approx(-(np.sqrt(3) * 4.0 + np.sqrt(5) * 2.5))
+    symmetric = [0.0] * 11
+    symmetric[0], symmetric[3], symmetric[10] = piston, 4.0, 2.5
+    np.testing.assert_allclose(lens_sag_mm(tuple(symmetric), x, y, radius), 0.0, atol=1e-12)
+    assert lens_sag_mm(tuple(symmetric), np.array([0.0]), np.array([0.0]), radius)[0] != 0.0  # the lens moves
+
+
+@pytest.fixture(scope="module")
+def jit():
+    from cm2optics.optics.backend import is_jit, mitsuba
+
+    mitsuba()
+    if not is_jit():
+        pytest.skip("gradients need Dr.Jit's LLVM or CUDA variant")
+
+
+def _objective(base, c, start, rays):
+    from cm2optics.illumination.differentiable import smooth_objective
+    from cm2optics.illumination.excitation import design_filter_transmission
+    from cm2optics.illumination.gradient_search import lens_terms
+    from cm2optics.illumination.optimize import candidate_collimator
+    from cm2optics.illumination.source import led_source
+
+    design, mesh, _ = candidate_collimator(base, lens_terms(TERMS, c, start, base.collimator.lens_freeform_um[0]))
+    return smooth_objective(
+        design, mesh, led_source(design), design_filter_transmission(design), TERMS, rays, seed=3, max_cv=0.10
+    )
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(
+    strict=True,
+    reason="open: with the model LED and filter (seed 3) dCV′/dc₆ is −7.1e-4 here and +1.09e-3 by finite "
+    "differences (with the authors' inputs, seed 1, dJ/dc₆ and dJ/dc₇ agreed within 11 %); BENCHMARKS.md",
+)
+def test_gradient_matches_finite_differences_of_the_same_objective(jit):
+    """dD/dc and dCV′/dc from Dr.Jit against central differences (h = 0.5 µm, the mesh rebuilt,
+    the same rays) for astigmatism and coma (Noll 6, 7). Not for the symmetric terms (4, 11):
+    they move the central beam's edge across the housing's aperture, a change of visibility whose
+    boundary term the trace does not differentiate (measured: dCV′/dc₁₁ 4.3e-3 against 1.4e-3)."""
+    base = load_preset("cm2-v2")
+    start = np.array([base.collimator.lens_freeform_um[j - 1] for j in TERMS])
+    rays, h = 20_000, 0.5
+    f0 = _objective(base, start, start, rays)
+    for k in (2, 3):
+        e = np.zeros(len(TERMS))
+        e[k] = h
+        up, down = _objective(base, start + e, start, rays), _objective(base, start - e, start, rays)
+        fd_cv = (up.cv_corrected - down.cv_corrected) / (2 * h)
+        assert f0.gradient_cv[k] == pytest.approx(fd_cv, rel=0.25, abs=2e-4), TERMS[k]
+        fd_d = (up.delivered - down.delivered) / (2 * h)
+        assert f0.gradient_delivered[k] == pytest.approx(fd_d, rel=0.5, abs=5e-5), TERMS[k]
