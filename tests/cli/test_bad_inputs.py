@@ -484,7 +484,9 @@ def _input_cases() -> list[Case]:
         ),
         Case("illum optimize", "option", ["illum", "optimize", "--max-cv", "2", "--out", "{case}/o"], ("--max-cv",)),
         Case("illum optimize", "option", ["illum", "optimize", "--samples", "1", "--out", "{case}/o"], ("--samples",)),
-        Case("illum optimize", "option", ["illum", "optimize", "--method", "newton", "--out", "{case}/o"], ("--method",)),
+        Case(
+            "illum optimize", "option", ["illum", "optimize", "--method", "newton", "--out", "{case}/o"], ("--method",)
+        ),
         Case(
             "illum optimize",
             "option",
