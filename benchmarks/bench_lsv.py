@@ -32,6 +32,19 @@ repeats are printed, and the load average is shown.
     .venv/bin/python benchmarks/bench_lsv.py            # full size (≈ 5 min)
     .venv/bin/python benchmarks/bench_lsv.py --small    # binned 4×, 20 planes (≈ 1 min)
     .venv/bin/python benchmarks/bench_lsv.py --cross-coupling-px 0.13 --adjoint --repeat 1
+
+**ePSF models** (``--epsf-model MODEL.h5``, a model built with ``--oversample S``; only this part
+runs): the same volume through the ePSF operator at every sampling S' of ``--epsf-samplings``
+(:class:`cm2optics.lsv.epsf.EPSFOperator`: the whole-pixel operator on a grid S' times finer;
+S' = 1 is the whole-pixel operator of the same model, the ePSF taken at the pixel centres, and
+the largest S' = S the exact reference): forward and adjoint wall and CPU seconds, the peak
+resident memory a call adds, the operator's own memory, the ratios to S' = 1, and each
+sampling's relative error against S' = S on a dense random volume and on sparse voxels. Then why
+a cheaper exact operator is hard to get (see BENCHMARKS.md): per lenslet, the rank of the joint
+(basis, sub-pixel phase) set of whole-pixel kernels and the node PSFs' energy beyond the pixel
+Nyquist frequency.
+
+    .venv/bin/python benchmarks/bench_lsv.py --epsf-model out/lsv/model.h5 --epsf-grid 20,400
 """
 
 from __future__ import annotations
@@ -121,8 +134,14 @@ def main() -> None:
     parser.add_argument("--adjoint", action="store_true", help="also time one adjoint")
     parser.add_argument("--skip-reference", action="store_true", help="skip the reference timing and accuracy check")
     parser.add_argument("--json", type=Path, help="also write the results here")
+    parser.add_argument("--epsf-model", type=Path, help="an ePSF model file: compare its operator's samplings only")
+    parser.add_argument("--epsf-grid", default="20,400", help="ePSF volume: planes,lateral voxels (native pitch)")
+    parser.add_argument("--epsf-samplings", default="1,2,4", help="ePSF samplings S' to compare (divisors of S)")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
+    if args.epsf_model:
+        finish(epsf_comparison(args), args)
+        return
     binning, nz, n_lateral = (4, 20, 480) if args.small else (1, 80, 1920)
     results: dict[str, object] = {
         "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, torch threads {args.threads}",
@@ -284,6 +303,176 @@ def main() -> None:
     )
 
     finish(results, args)
+
+
+def epsf_comparison(args: argparse.Namespace) -> dict:
+    """The ePSF operator at each sampling S' on one volume (see the module docstring)."""
+    from cm2optics.lsv.epsf import EPSFOperator
+    from cm2optics.lsv.model import load_model
+
+    model = load_model(args.epsf_model)
+    S = model.oversample
+    if S == 1:
+        raise SystemExit(f"{args.epsf_model}: not an ePSF model (oversample 1)")
+    samplings = sorted({int(v) for v in args.epsf_samplings.split(",")} | {S})
+    planes, lateral = (int(v) for v in args.epsf_grid.split(","))
+    grid = VolumeGrid((planes, lateral, lateral), model.default_grid.voxel_um)
+    results: dict[str, object] = {
+        "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, torch threads {args.threads}",
+        "load_at_start": load(),
+        "model": str(args.epsf_model),
+        "oversample": S,
+        "sensor": list(model.sensor_shape),
+        "rank": model.rank,
+        "grid": grid.to_dict(),
+        "phase_structure": phase_structure(model),
+    }
+    print(f"ePSF model {args.epsf_model}: S = {S}, K = {model.rank}, sensor {model.sensor_shape}, volume {grid.shape}")
+    for j, entry in enumerate(results["phase_structure"]):  # type: ignore[arg-type]
+        print(
+            f"  lenslet {j}: phase functions for residual 1e-2 / 1e-3 / 1e-4: "
+            f"{' / '.join(map(str, entry['phase_rank']))} of {entry['phases']}; joint (basis, phase) rank at 1e-3 "
+            f"{entry['joint_rank_1e-3']} of {entry['kernels']} (phase 0 alone {entry['phase0_rank_1e-3']}); node PSF "
+            f"energy beyond Nyquist {entry['beyond_nyquist'][0]:.3f} (median), {entry['beyond_nyquist'][1]:.3f} (all)"
+        )
+    generator = torch.Generator().manual_seed(0)
+    dense = torch.rand(grid.shape, generator=generator)
+    sparse = torch.zeros(int(np.prod(grid.shape)))
+    sparse[torch.randperm(sparse.numel(), generator=generator)[:200]] = 1.0
+    sparse = sparse.reshape(grid.shape)
+    image = torch.rand(model.sensor_shape, generator=generator)
+    rows: dict[int, dict] = {}
+    outputs: dict[str, torch.Tensor] = {}
+    for s in samplings:
+        start = time.perf_counter()
+        op = EPSFOperator(model, grid, sampling=s)
+        row: dict = {
+            "set_up_s": time.perf_counter() - start,
+            "kept_gib": op.memory_bytes() / 2**30,
+            "accounted_gib": (op.memory_bytes() + op.transient_bytes()) / 2**30,  # the operator's own estimate
+        }
+        for name, call, data in (("forward", op.forward, dense), ("adjoint", op.adjoint, image)):
+            walls, cpus, added = [], [], 0
+            for _ in range(args.repeat):
+                before = _rss()
+                with PeakMemory() as memory:
+                    wall, cpu = time.perf_counter(), time.process_time()
+                    call(data)
+                    walls.append(time.perf_counter() - wall)
+                    cpus.append(time.process_time() - cpu)
+                added = max(added, memory.peak - before)
+            row[name] = {"seconds_best": min(walls), "cpu_s_best": min(cpus), "seconds_all": walls}
+            row[name]["memory_gib"] = added / 2**30 + row["kept_gib"]  # the call's peak increase + the operator's
+        for key, volume in (("dense", dense), ("sparse", sparse)):
+            out = op.forward(volume)
+            outputs[f"{key}_{s}"] = out
+        row["load"] = load()
+        rows[s] = row
+        del op
+        forward, adjoint = row["forward"], row["adjoint"]
+        print(
+            f"S' = {s}: set up {row['set_up_s']:.1f} s; forward {forward['seconds_best']:.1f} s "
+            f"({forward['cpu_s_best']:.1f} CPU s, {forward['memory_gib']:.2f} GiB); adjoint "
+            f"{adjoint['seconds_best']:.1f} s ({adjoint['cpu_s_best']:.1f} CPU s, {adjoint['memory_gib']:.2f} GiB); "
+            f"operator + one call by its own account {row['accounted_gib']:.3f} GiB; load {row['load']}",
+            flush=True,
+        )
+    for s, row in rows.items():  # against the exact path, S' = S (run last)
+        for key in ("dense", "sparse"):
+            exact = outputs[f"{key}_{S}"]
+            row[f"error_{key}"] = float(torch.linalg.norm(outputs[f"{key}_{s}"] - exact) / torch.linalg.norm(exact))
+        print(
+            f"S' = {s}: relative error against S' = {S}: dense {row['error_dense']:.2e}, sparse {row['error_sparse']:.2e}"
+        )
+    if 1 in rows:
+        for s, row in rows.items():
+            for name in ("forward", "adjoint"):
+                timing, whole = row[name], rows[1][name]
+                timing["cpu_ratio_to_whole_pixel"] = timing["cpu_s_best"] / whole["cpu_s_best"]
+                timing["memory_ratio_to_whole_pixel"] = timing["memory_gib"] / whole["memory_gib"]
+            row["accounted_ratio_to_whole_pixel"] = row["accounted_gib"] / rows[1]["accounted_gib"]
+            forward, adjoint = row["forward"], row["adjoint"]
+            print(
+                f"S' = {s} / whole pixels: forward CPU {forward['cpu_ratio_to_whole_pixel']:.2f}×, memory "
+                f"{forward['memory_ratio_to_whole_pixel']:.2f}×; adjoint CPU {adjoint['cpu_ratio_to_whole_pixel']:.2f}×, "
+                f"memory {adjoint['memory_ratio_to_whole_pixel']:.2f}×; by the operators' own account "
+                f"{row['accounted_ratio_to_whole_pixel']:.2f}×"
+            )
+    results["samplings"] = {str(s): row for s, row in rows.items()}
+    return results
+
+
+def _rss() -> int:
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmRSS"):
+            return int(line.split()[1]) * 1024
+    return 0
+
+
+def phase_structure(model: LSVModel) -> list[dict]:
+    """Per lenslet of an ePSF model, how much the whole-pixel kernel changes with the sub-pixel
+    phase (each node PSF sampled at the pixel centres after a shift of (py, px)/S px, S² phases):
+
+    - ``phase_rank``: how many phase functions φ_r(p), shared by every node, a kernel set
+      ``Q_g(p) ≈ Σ_r φ_r(p)·U_gr`` needs for residual energy 1e-2, 1e-3, 1e-4 (SVD of the
+      S² × (nodes·pixels) matrix): the number of image channels an operator that carries the
+      phase through the depth sums would need;
+    - ``joint_rank``: the rank of the K·S² kernels (every basis PSF at every phase, each basis PSF
+      weighted by its coefficients' RMS over the nodes) at 1e-3, beside phase 0 alone;
+    - ``beyond_nyquist``: the node PSFs' energy fraction beyond ½ cycle/px on either axis (the
+      median over the nodes, and over all nodes together): what a whole-pixel kernel cannot hold."""
+    S = model.oversample
+    K, J, hS, wS = model.basis.shape
+    h, w = hS // S, wS // S
+    fy = np.abs(np.fft.fftfreq(hS, 1.0 / S))[:, None]
+    fx = np.abs(np.fft.fftfreq(wS, 1.0 / S))[None, :]
+    beyond = (fy >= 0.5) | (fx >= 0.5)
+
+    def rank(gram: np.ndarray, tail: float) -> int:
+        energy = np.clip(np.linalg.eigvalsh(gram)[::-1], 0.0, None)
+        left = 1.0 - np.cumsum(energy) / energy.sum()
+        return int(np.argmax(left < tail)) + 1
+
+    def phases(patches: np.ndarray) -> np.ndarray:  # (n, hS, wS) → (S², n·h·w)
+        return np.stack([patches[:, py::S, px::S][:, :h, :w] for py in range(S) for px in range(S)]).reshape(S * S, -1)
+
+    out = []
+    for j in range(J):
+        basis = model.basis[:, j].astype(np.float64)
+        flat = model.lenslet_coefficients(j).astype(np.float64).reshape(K, -1).T  # (nodes, K)
+        gram = np.zeros((S * S, S * S))
+        beyond_energy, energies = [], []
+        for start in range(0, len(flat), 32):
+            nodes = np.tensordot(flat[start : start + 32], basis, axes=(1, 0))
+            samples = phases(nodes)
+            gram += samples @ samples.T
+            power = np.abs(np.fft.fft2(nodes)) ** 2
+            energies += list(power.sum(axis=(1, 2)))
+            beyond_energy += list((power * beyond).sum(axis=(1, 2)))
+        energies, beyond_energy = np.array(energies), np.array(beyond_energy)
+        lit = energies > 0
+        weighted = basis * np.sqrt((flat**2).mean(axis=0))[:, None, None]
+        kernels = phases(weighted).reshape(S * S, K, h * w)
+        joint = kernels.reshape(S * S * K, h * w)
+        out.append(
+            {
+                "phase_rank": [rank(gram, tail) for tail in (1e-2, 1e-3, 1e-4)],
+                "phases": S * S,
+                "joint_rank_1e-3": rank(_smaller_gram(joint), 1e-3),
+                "phase0_rank_1e-3": rank(_smaller_gram(kernels[0]), 1e-3),
+                "kernels": K * S * S,
+                "beyond_nyquist": [
+                    float(np.median(beyond_energy[lit] / energies[lit])),
+                    float(beyond_energy.sum() / energies.sum()),
+                ],
+            }
+        )
+    return out
+
+
+def _smaller_gram(matrix: np.ndarray) -> np.ndarray:
+    """A·Aᵀ or Aᵀ·A, whichever is smaller: the same non-zero eigenvalues (A's squared singular values)."""
+    return matrix @ matrix.T if matrix.shape[0] <= matrix.shape[1] else matrix.T @ matrix
 
 
 def cross_coupled(model: LSVModel, cross_px: float) -> LSVModel:
