@@ -9,7 +9,8 @@ by finite differences, nuisance registration parameters — offset, flux scale, 
 alongside); the one that lowers the Bayesian information criterion most is kept if it lowers it
 by more than ``BIC_THRESHOLD`` and passes the guard (:func:`guard`: it removes at least
 ``MIN_EXCESS_SHARE`` of the χ² above the noise floor, and its fit matches the residual's pattern —
-it does not buy large gains at a few foci with losses at the others; else the next finalist is
+it does not buy large gains at a few foci with losses at the others, neither in χ² nor counted
+focus by focus among those it acts on; else the next finalist is
 tried, and when none passes the rest of the residual is left unexplained); all kept parameters are then refitted jointly by Gauss–Newton
 with the simulator in the loop; and the search repeats until χ² reaches the noise floor or no
 candidate is significant. Uncertainties are the square roots of the covariance's diagonal,
@@ -483,6 +484,13 @@ MIN_EXCESS_SHARE = 0.1
 #: it acts; a global or per-lenslet parameter stretched over a localised residual (a scratch that
 #: dims one lenslet at some source positions) trades large gains at a few foci for losses at the rest.
 MAX_WORSENED_SHARE = 0.25
+#: … and, of the groups where the new effect alone moves the model by at least ``ACTS_CHI2`` (3 σ),
+#: the most it may make worse, counted group by group, not weighted by their χ²: a per-lenslet
+#: transmission predicts the same loss at every source position, and a filter scratch that dims
+#: the lenslet's view at two positions out of eight is bought with bright gains there and
+#: losses at the other six.
+MAX_CONTRADICTED_SHARE = 0.5
+ACTS_CHI2 = 9.0
 
 
 def _finalists(problem: Problem, scored: list, kept: list[str], bic, k_now: int) -> list[tuple[float, str, State]]:
@@ -505,29 +513,43 @@ class Guard:
         camera's gain estimated from the data the floor is not known, and the share is of all the χ².
     worsened_share: χ² added to the groups it makes worse (a focus's energy, centroid and
         width; a frame's background blocks) over χ² removed from those it makes better.
+    contradicted_share: of the groups the new effect alone moves by ≥ ``ACTS_CHI2`` (its values
+        set on ``before``), the share the fit makes worse (0 when it moves none).
     """
 
     excess_share: float
     worsened_share: float
+    contradicted_share: float = 0.0
 
     @property
     def passed(self) -> bool:
-        return self.excess_share >= MIN_EXCESS_SHARE and self.worsened_share <= MAX_WORSENED_SHARE
+        return (
+            self.excess_share >= MIN_EXCESS_SHARE
+            and self.worsened_share <= MAX_WORSENED_SHARE
+            and self.contradicted_share <= MAX_CONTRADICTED_SHARE
+        )
 
 
 def guard(problem: Problem, before: State, after: State) -> Guard:
     """The guard's figures for the fit going from ``before`` to ``after`` (:class:`Guard`)."""
     use = problem.use
     data, sigma = problem.space.data[use], problem.space.sigma[use]
-    r_before = (data - problem.features(before)[use]) / sigma
+    f_before = problem.features(before)
+    r_before = (data - f_before[use]) / sigma
     r_after = (data - problem.features(after)[use]) / sigma
     gained = np.nan_to_num(r_before**2 - r_after**2)
-    groups = np.bincount(problem.feature_groups[use], weights=gained)
+    group_of = problem.feature_groups[use]
+    groups = np.bincount(group_of, weights=gained)
     better, worse = groups[groups > 0].sum(), -groups[groups < 0].sum()
     floor = problem.n_features if problem.noise_known else 0.0  # with the gain estimated, no floor is known
     excess = float(np.nansum(r_before**2)) - floor
     share = float(gained.sum() / excess) if excess > 0 else 0.0
-    return Guard(share, float(worse / better) if better > 0 else math.inf)
+    alone = before.copy()  # the new effect at its fitted values, everything else as before
+    alone.values.update({k: dict(v) for k, v in after.values.items() if k not in before.values})
+    moved = np.nan_to_num(((problem.features(alone) - f_before)[use] / sigma) ** 2)
+    acts = np.bincount(group_of, weights=moved, minlength=len(groups)) >= ACTS_CHI2
+    contradicted = float(np.mean(groups[acts] < 0)) if acts.any() else 0.0
+    return Guard(share, float(worse / better) if better > 0 else math.inf, contradicted)
 
 
 def attribute(problem: Problem, *, max_effects: int = 6, progress: Progress | None = None) -> Attribution:
@@ -578,7 +600,8 @@ def attribute(problem: Problem, *, max_effects: int = 6, progress: Progress | No
                 break
             say(
                 f"{key} is significant but does not match the residual (removes {check.excess_share:.0%} of the "
-                f"excess χ², adds {check.worsened_share:.0%} of its gain where it makes the fit worse): left unexplained"
+                f"excess χ², adds {check.worsened_share:.0%} of its gain where it makes the fit worse, makes "
+                f"{check.contradicted_share:.0%} of the foci it acts on worse): left unexplained"
             )
         if best is None:
             say("no further effect is significant and matches the residual")

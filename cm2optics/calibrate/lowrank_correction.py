@@ -10,9 +10,14 @@ r_i):
 K_k small convolution kernels (2·:data:`KERNEL_HALF_PX` + 1 px square) shared by all foci, acting
 on the model's own sampled focus — so a focus ≈ 1 px wide keeps its sub-pixel phase, which a
 pattern cut around the nearest pixel would not — and c_k(j, r) per lenslet a smooth function of
-the position: the mean of its fitted weights plus a Gaussian-kernel ridge regression over
-(x, y, z) with length scales of :data:`KERNEL_STEPS` grid steps per axis, so that positions not in
-the fit (the rest of the grid, the LSV model's interpolation points) get a correction. A delta
+the position: a Gaussian-kernel ridge regression over (x, y, z) of its fitted weights (about
+their mean, or about zero), so that positions not in the fit (the rest of the grid, the LSV
+model's interpolation points) get a correction. Its length scales (lateral and depth, each one of
+:data:`KERNEL_STEPS` grid steps) and whether it is centred on the mean are chosen by the
+regression's closed-form leave-one-out error over the fit's positions: a ghost present at every
+position wants the mean and long scales, a loss confined to a few source positions (a scratch on
+a filter, seen through one lenslet from a small part of the field) wants short lateral scales
+and no mean, which would spread the loss over positions that do not have it. A delta
 kernel is a change of the focus's energy, a displaced blurred one a ghost, a wide one a halo.
 
 The kernels and weights are fitted to the residual patches (2·:data:`PATCH_HALF_PX` + 1 px around
@@ -29,6 +34,7 @@ after, with the NMSE a perfect model would leave (the noise model's variance).
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -48,8 +54,8 @@ KERNEL_HALF_PX = 7
 PATCH_HALF_PX = 12
 #: Foci handled at once when their shifted copies are formed (memory: 1.1 MB each at the defaults).
 CHUNK = 64
-#: Kernel length scale of the weights' regression over positions, in grid steps of each axis.
-KERNEL_STEPS = 1.5
+#: Kernel length scales of the weights' regression over positions tried, in grid steps of an axis.
+KERNEL_STEPS = (0.5, 1.0, 1.5, 3.0)
 #: Ridge of that regression, relative to the kernel's diagonal (1).
 RIDGE = 0.1
 #: Ridge on the convolution kernels, relative to the mean diagonal of their normal matrix.
@@ -73,7 +79,8 @@ class LowRankCorrection:
 
     kernels: (K, s, s) convolution kernels. positions_mm: (M, 3) the fit's positions.
     coefficients: (M, J, K) fitted weights, valid where ``fitted`` (M, J). scale_mm: (3,) length
-    scales of the weights' regression (inf: an axis the fit does not vary along).
+    scales of the weights' regression (inf: an axis the fit does not vary along). centred: ()
+    bool, whether the regression is about each lenslet's mean weights (else about zero).
     explained_share: (K,) share of the fitted residual's weighted energy each term removes.
     """
 
@@ -83,6 +90,7 @@ class LowRankCorrection:
     fitted: np.ndarray
     scale_mm: np.ndarray
     explained_share: np.ndarray
+    centred: np.ndarray = np.True_
     physical: bool = False
 
     def weights(self, positions_mm: np.ndarray) -> np.ndarray:
@@ -94,7 +102,7 @@ class LowRankCorrection:
             if not rows.any():
                 continue
             known = self.coefficients[rows, j]
-            mean = known.mean(axis=0)
+            mean = known.mean(axis=0) if bool(self.centred) else np.zeros(known.shape[1])
             gram = _kernel(self.positions_mm[rows], self.positions_mm[rows], self.scale_mm)
             dual = np.linalg.solve(gram + RIDGE * np.eye(len(gram)), known - mean)
             out[:, j] = mean + _kernel(positions, self.positions_mm[rows], self.scale_mm) @ dual
@@ -125,6 +133,7 @@ class LowRankCorrection:
             "fit_positions": int(len(self.positions_mm)),
             "explained_share": [round(float(s), 4) for s in self.explained_share],
             "weights_scale_mm": [None if not np.isfinite(s) else round(float(s), 4) for s in self.scale_mm],
+            "weights_centred": bool(self.centred),
         }
 
     def save(self, path: str | Path) -> Path:
@@ -147,7 +156,7 @@ class LowRankCorrection:
 
 
 #: The arrays a saved correction holds.
-ARRAYS = ("kernels", "positions_mm", "coefficients", "fitted", "scale_mm", "explained_share")
+ARRAYS = ("kernels", "positions_mm", "coefficients", "fitted", "scale_mm", "explained_share", "centred")
 
 
 def _kernel(a: np.ndarray, b: np.ndarray, scale_mm: np.ndarray) -> np.ndarray:
@@ -156,15 +165,50 @@ def _kernel(a: np.ndarray, b: np.ndarray, scale_mm: np.ndarray) -> np.ndarray:
     return np.exp(-0.5 * np.sum(d**2, axis=-1))
 
 
-def _scale_mm(positions_mm: np.ndarray) -> np.ndarray:
-    """Length scales: :data:`KERNEL_STEPS` × the median step between distinct values of each
-    axis (inf for an axis with one value)."""
+def _grid_steps_mm(positions_mm: np.ndarray) -> np.ndarray:
+    """(3,) the median step between distinct values of each axis (inf for an axis with one value)."""
     out = np.full(3, np.inf)
     for axis in range(3):
         values = np.unique(np.round(positions_mm[:, axis], 6))
         if len(values) > 1:
-            out[axis] = KERNEL_STEPS * float(np.median(np.diff(values)))
+            out[axis] = float(np.median(np.diff(values)))
     return out
+
+
+def _leave_one_out_error(
+    positions_mm: np.ndarray, coefficients: np.ndarray, fitted: np.ndarray, scale_mm: np.ndarray, centred: bool
+) -> float:
+    """Sum over lenslets, terms and positions of the squared error of each fitted weight predicted
+    by the regression of the others (closed form of a linear smoother: (y − ŷ)ᵢ / (1 − Hᵢᵢ))."""
+    total = 0.0
+    for j in range(coefficients.shape[1]):
+        rows = fitted[:, j]
+        n = int(rows.sum())
+        if n < 3:
+            continue
+        gram = _kernel(positions_mm[rows], positions_mm[rows], scale_mm)
+        hat = gram @ np.linalg.inv(gram + RIDGE * np.eye(n))
+        if centred:  # ŷ = m + A (y − m), m the mean: H = C + A (I − C), C = 11ᵀ/n
+            hat = 1.0 / n + hat - hat.mean(axis=1, keepdims=True)
+        y = coefficients[rows, j]
+        leave = np.maximum(1.0 - np.diag(hat), 1e-6)
+        total += float(np.sum(((y - hat @ y) / leave[:, None]) ** 2))
+    return total
+
+
+def _regression(positions_mm: np.ndarray, coefficients: np.ndarray, fitted: np.ndarray) -> tuple[np.ndarray, bool]:
+    """The weights' regression with the least leave-one-out error: length scales (lateral x and y
+    together, depth alone; :data:`KERNEL_STEPS` grid steps each) and whether it is centred."""
+    steps = _grid_steps_mm(positions_mm)
+    best = (math.inf, steps * KERNEL_STEPS[-1], True)
+    for lateral in KERNEL_STEPS:
+        for depth in KERNEL_STEPS:
+            scale = steps * np.array([lateral, lateral, depth])
+            for centred in (True, False):
+                error = _leave_one_out_error(positions_mm, coefficients, fitted, scale, centred)
+                if error < best[0]:
+                    best = (error, scale, centred)
+    return best[1], best[2]
 
 
 @dataclass(frozen=True)
@@ -244,13 +288,16 @@ def _fit(foci: _Foci, keep: np.ndarray, positions_mm: np.ndarray, rank: int) -> 
     coefficients[keep] = weights
     images = keep.any(axis=1)
     side = 2 * KERNEL_HALF_PX + 1
+    fit_positions = np.asarray(positions_mm, float)[images]
+    scale, centred = _regression(fit_positions, coefficients[images], keep[images])
     return LowRankCorrection(
         kernels=kernels.reshape(rank, side, side),
-        positions_mm=np.asarray(positions_mm, float)[images],
+        positions_mm=fit_positions,
         coefficients=coefficients[images],
         fitted=keep[images],
-        scale_mm=_scale_mm(np.asarray(positions_mm, float)),
+        scale_mm=scale,
         explained_share=removed / max(float(np.sum(targets**2)), 1e-30),
+        centred=np.bool_(centred),
     )
 
 

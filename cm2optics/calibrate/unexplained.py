@@ -4,7 +4,11 @@ After the attribution, every focus of every image is tested against the noise mo
 of the residual (2·half + 1 px square around the model focus) has χ² = Σ r²/σ² over n pixels;
 a focus is *flagged* when that χ² exceeds n by more than :data:`Z_FLAG` standard deviations
 (√(2n)) and its reduced χ² exceeds :data:`REDUCED_FLAG`; a lenslet counts when at least
-:data:`MIN_FOCI` of its foci are flagged. Clean data flag nothing.
+:data:`MIN_FOCI` of its foci are flagged. Clean data flag nothing. A change of energy common to
+the foci is no signature: the registration's one flux scale is a least-squares fit over every
+pixel, and a few bright foci dimmed by a local loss (a scratch) pull it, so that every other
+focus looks a few per cent too bright; the patches are compared with the model scaled by the
+median data/model energy ratio of the bright foci (:data:`COMMON_FOCI` of their image's brightest).
 
 Flagged foci are grouped: when most lenslets are flagged in most images the residual is common
 to all foci (one entry); otherwise each flagged lenslet is one entry. Each entry says where
@@ -37,6 +41,8 @@ REDUCED_FLAG = 1.5
 #: A lenslet flagged in fewer foci than this is no signature: one focus at the field's edge can
 #: hold the model's own local error (a corner focus after a fitted 0.5° rotation, traced scan).
 MIN_FOCI = 2
+#: Foci at least this share of their image's brightest (model) give the common energy ratio.
+COMMON_FOCI = 0.1
 #: Largest ghost offset sought, px.
 GHOST_REACH_PX = 8
 #: A displaced copy is named when it explains this share of the mean residual patch…
@@ -46,13 +52,18 @@ GHOST_GAIN = 0.3
 
 
 def flagged_foci(after: ResidualAnalysis, half: int = PATCH_HALF_PX) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(N, J) flagged foci (module docstring), and the residual and model-signal patches
-    (N, J, 2·half + 1, 2·half + 1) in counts."""
+    """(N, J) flagged foci (module docstring), and the residual (against the model at the foci's
+    common energy ratio) and model-signal patches (N, J, 2·half + 1, 2·half + 1) in counts."""
     model_signal = after.model_counts - after.registration.dark_level
     centres = after.model.centroid_px
     residual, inside = focus_patches(after.residual_counts, centres, half)
     model, _ = focus_patches(model_signal, centres, half)
     variance = after.noise.variance(model)
+    energy = model.sum(axis=(-2, -1))
+    bright = after.used[:, None] & inside & (energy >= COMMON_FOCI * np.max(energy, axis=1, keepdims=True))
+    if bright.any():  # the residual against the model at the foci's common energy ratio
+        ratio = np.median(1.0 + residual.sum(axis=(-2, -1))[bright] / np.maximum(energy[bright], 1e-30))
+        residual = residual - (ratio - 1.0) * model
     pixels = float((2 * half + 1) ** 2)
     chi2 = np.sum(residual**2 / variance, axis=(-2, -1))
     z = (chi2 - pixels) / np.sqrt(2.0 * pixels)
