@@ -53,7 +53,8 @@ def net_test_set(
     summary that ``out_dir/comparison.json`` holds (runs ``cm2net`` and ``lsv-fista``).
 
     traced: ``traced(reference)`` → the source that images the test volumes instead of the 3D-LSV
-    model the runs use (set (b); made in this process, never reused). model: a 3D-LSV model file both
+    model the runs use (set (b); made in this process, reused when the saved set records the same
+    traced design, binning and sensor window). model: a 3D-LSV model file both
     reconstructions use instead of the weights' forward model (which still images set (a)): for
     (b) e.g. one built from a traced PSF scan of the design (``cm2 psf simulate`` → ``cm2 lsv
     build``), the calibrated model a real device is reconstructed with; or a lower-rank build of
@@ -99,7 +100,7 @@ def net_test_set(
         runs=runs,
         workers=workers,
         threads=threads,
-        reuse=reuse and traced is None,
+        reuse=reuse,
         log=log,
         imaging=imaging,
     )
