@@ -63,6 +63,11 @@ def test_the_test_set_uses_a_seed_no_training_volume_used_and_scores_net_and_fis
         if tp:
             np.testing.assert_allclose(run["f1"], 2 * tp / (2 * tp + fp + fn), rtol=1e-6)
     assert (tmp_path / "a" / "comparison.md").read_text().count("cm2net") >= 1
+    # fista_iterations=0: the network alone; reuse: its reconstructions of the same set are not remade
+    made_at = (tmp_path / "a" / "cm2net" / "run.json").stat().st_mtime_ns
+    alone = net_test_set(lsv_weights, tmp_path / "a", n_volumes=2, fista_iterations=0, workers=0, reuse=True, log=None)
+    assert set(alone["runs"]) == {"cm2net"} and alone["runs"]["cm2net"]["f1"] == summary["runs"]["cm2net"]["f1"]
+    assert (tmp_path / "a" / "cm2net" / "run.json").stat().st_mtime_ns == made_at
 
 
 @pytest.mark.slow  # two test sets with both runs: ≈ 3 min at load 20
