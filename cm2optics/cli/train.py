@@ -143,8 +143,18 @@ def net_testset_command(
     ] = None,
     n_volumes: Annotated[int, typer.Option("--n-volumes", min=1, help="Test volumes.")] = 10,
     seed: Annotated[int, typer.Option("--seed", min=0, help="Seed of the test volumes (never the run's).")] = 1_000_003,
-    fista_iterations: Annotated[int, typer.Option("--fista-iterations", min=1, help="FISTA iterations.")] = 60,
+    fista_iterations: Annotated[
+        int, typer.Option("--fista-iterations", min=0, help="FISTA iterations (0: score the network alone).")
+    ] = 60,
     workers: Annotated[int, typer.Option("--workers", min=0, help="Dask workers making set (a).")] = 1,
+    reuse: Annotated[
+        bool,
+        typer.Option(
+            "--reuse",
+            help="Reuse the reconstructions already in OUT made with the same options on the same test set (the "
+            "test set itself is reused whenever it matches): e.g. score other weights beside a FISTA run already made.",
+        ),
+    ] = False,
     overwrite: OverwriteOption = False,
     as_json: JsonOption = False,
 ) -> None:
@@ -174,6 +184,7 @@ def net_testset_command(
         seed=seed,
         fista_iterations=fista_iterations,
         workers=workers,
+        reuse=reuse,
         traced=factory,
         model=model,
         log=(lambda _: None) if as_json else typer.echo,

@@ -237,11 +237,12 @@ def _test_set(
 ) -> tuple[dict[str, Any], list[str], list, list[float]]:
     """The test set in ``out_dir/testset`` (made, or reused when it matches): its manifest, the
     sample paths, the true emitters of each sample and each sample's density (per mm²).
-    ``model_path``: a model file, or an in-process imaging (made here, never reused)."""
+    ``model_path``: a model file, or an in-process imaging (made here; reused only when its source
+    states a provenance, e.g. the traced design, binning and sensor window, and that matches)."""
     from cm2optics.synth.dataset import make_dataset, read_sample
 
     in_process = not isinstance(model_path, str | Path)
-    manifest = None if in_process else _reusable_testset(out_dir / "testset", config, seed, n_volumes, model_path)
+    manifest = _reusable_testset(out_dir / "testset", config, seed, n_volumes, _model_description(model_path))
     if manifest is None:
         manifest = make_dataset(
             config,
@@ -413,19 +414,33 @@ def _reusable_run(folder: Path, run: dict[str, Any], samples: list[str]) -> dict
     return result if all(Path(r["volume"]).is_file() for r in result["records"]) else None
 
 
+def _model_description(model: Any) -> dict[str, Any] | None:
+    """What a test set's manifest must record of the model that imaged it for the set to be
+    reused: a model file's path, or an in-process source's kind and provenance (``None``: a source
+    that states no provenance is never reused)."""
+    if isinstance(model, str | Path):
+        return {"path": str(model)}
+    provenance = dict(getattr(model.source, "provenance", None) or {})
+    if not provenance:
+        return None
+    return json.loads(json.dumps({"kind": type(model.source).__name__, "provenance": provenance}))
+
+
 def _reusable_testset(
-    folder: Path, config: SynthConfig, seed: int, n_volumes: int, model_path: Path
+    folder: Path, config: SynthConfig, seed: int, n_volumes: int, model: dict[str, Any] | None
 ) -> dict[str, Any] | None:
-    """The manifest of a test set already made with the same recipe, seed, size and model."""
+    """The manifest of a test set already made with the same recipe, seed, size and model
+    (``model``: :func:`_model_description`)."""
     path = folder / "manifest.json"
-    if not path.is_file():
+    if model is None or not path.is_file():
         return None
     manifest = json.loads(path.read_text())
+    recorded = manifest.get("model", {})
     same = (
         manifest.get("config") == json.loads(json.dumps(config.to_dict()))
         and manifest.get("seed") == seed
         and manifest.get("n_volumes") == n_volumes
-        and manifest.get("model", {}).get("path") == str(model_path)
+        and all(recorded.get(k) == v for k, v in model.items())
     )
     files = all((folder / "samples" / s["file"]).is_file() for s in manifest.get("samples", []))
     return manifest if same and files else None

@@ -256,7 +256,8 @@ def _model_reference(model: str | Path | Imaging, config: SynthConfig) -> tuple[
     """What the workers load (the model file's absolute path, or the in-process model) and the
     manifest's description of it; a model file is loaded once here, to fail early."""
     if isinstance(model, Imaging):
-        return model, {"path": None, "kind": type(model.source).__name__}
+        provenance = dict(getattr(model.source, "provenance", None) or {})
+        return model, {"path": None, "kind": type(model.source).__name__, "provenance": provenance}
     model_path = Path(model).resolve()
     imaging = load_imaging(model_path, config.grid, config.render)  # fail early, in this process
     return str(model_path), {

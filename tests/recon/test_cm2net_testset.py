@@ -7,11 +7,13 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 from tiny_net import tiny
 
+from cm2optics.recon.compare import _model_description, _reusable_testset
 from cm2optics.recon.net.data import VALIDATION_SEED_OFFSET
 from cm2optics.recon.net.testset import TEST_SEED, net_test_set
 from cm2optics.recon.net.train import make_net
@@ -61,6 +63,11 @@ def test_the_test_set_uses_a_seed_no_training_volume_used_and_scores_net_and_fis
         if tp:
             np.testing.assert_allclose(run["f1"], 2 * tp / (2 * tp + fp + fn), rtol=1e-6)
     assert (tmp_path / "a" / "comparison.md").read_text().count("cm2net") >= 1
+    # fista_iterations=0: the network alone; reuse: its reconstructions of the same set are not remade
+    made_at = (tmp_path / "a" / "cm2net" / "run.json").stat().st_mtime_ns
+    alone = net_test_set(lsv_weights, tmp_path / "a", n_volumes=2, fista_iterations=0, workers=0, reuse=True, log=None)
+    assert set(alone["runs"]) == {"cm2net"} and alone["runs"]["cm2net"]["f1"] == summary["runs"]["cm2net"]["f1"]
+    assert (tmp_path / "a" / "cm2net" / "run.json").stat().st_mtime_ns == made_at
 
 
 @pytest.mark.slow  # two test sets with both runs: ≈ 3 min at load 20
@@ -179,13 +186,16 @@ def test_a_traced_point_lands_on_the_reference_models_chief_rays(analytic_weight
 
 
 def test_cm2_net_testset_traced_scores_the_net_and_fista_on_traced_measurements(
-    analytic_weights, lsv_weights, tmp_path
+    analytic_weights, lsv_weights, v2, tmp_path
 ):
     """`cm2 net-testset W OUT --traced`: issue 15's set (b) on one traced volume at the paper's
-    densities, both runs scored; misuse is one line (exit 2)."""
+    densities, both runs scored, and reused by a second call with --reuse (the traced set and the
+    runs, when the traced design, binning and window are the same); misuse is one line (exit 2)."""
     from typer.testing import CliRunner
 
     from cm2optics.cli import app
+    from cm2optics.emission.image import TracedSource
+    from cm2optics.recon.net.data import forward_imaging
 
     runner = CliRunner()
     out = tmp_path / "b"
@@ -199,6 +209,27 @@ def test_cm2_net_testset_traced_scores_the_net_and_fista_on_traced_measurements(
         run = summary["runs"][name]
         assert 0.0 <= run["f1"] <= 1.0 and run["n_tp"] + run["n_fn"] == summary["n_emitters"]
     assert json.loads(result.stdout)["cm2net"]["f1"] == summary["runs"]["cm2net"]["f1"]
+    manifest = json.loads((out / "testset" / "manifest.json").read_text())
+    traced = manifest["model"]["provenance"]
+    top, left, bottom, right = traced["sensor_window"]
+    assert (traced["traced"], traced["binning"]) == ("cm2-v2", 8) and bottom > top and right > left
+    sample = next((out / "testset" / "samples").glob("*.h5"))
+    traced_at, fista_at = sample.stat().st_mtime_ns, (out / "lsv-fista" / "run.json").stat().st_mtime_ns
+    again = runner.invoke(app, [*args, "--traced", "--reuse", "--overwrite", "--json"])
+    assert again.exit_code == 0, again.output
+    assert sample.stat().st_mtime_ns == traced_at and (out / "lsv-fista" / "run.json").stat().st_mtime_ns == fista_at
+    assert json.loads(again.stdout) == json.loads(result.stdout)
+    # another binning (or design, or window) is another test set; a source without provenance is never reused
+    config, reference = SynthConfig.from_dict(summary["config"]), forward_imaging(load_weights(analytic_weights).config)
+    for source, reused in (
+        (TracedSource(v2, reference.source, 8), True),
+        (TracedSource(v2, reference.source, 4), False),
+        (SimpleNamespace(provenance={}), False),
+    ):
+        found = _reusable_testset(
+            out / "testset", config, TEST_SEED, 1, _model_description(SimpleNamespace(source=source))
+        )
+        assert (found is not None) == reused, source
     for extra, weights, message in (
         (["--binning", "8"], analytic_weights, "--traced"),
         (["--traced"], lsv_weights, "--preset and --binning"),

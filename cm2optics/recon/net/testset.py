@@ -50,10 +50,12 @@ def net_test_set(
     log=print,
 ) -> dict[str, Any]:
     """Make the test set, reconstruct it with the weights and with FISTA, evaluate; returns the
-    summary that ``out_dir/comparison.json`` holds (runs ``cm2net`` and ``lsv-fista``).
+    summary that ``out_dir/comparison.json`` holds (runs ``cm2net`` and ``lsv-fista``; the network
+    alone when ``fista_iterations`` is 0).
 
     traced: ``traced(reference)`` → the source that images the test volumes instead of the 3D-LSV
-    model the runs use (set (b); made in this process, never reused). model: a 3D-LSV model file both
+    model the runs use (set (b); made in this process, reused when the saved set records the same
+    traced design, binning and sensor window). model: a 3D-LSV model file both
     reconstructions use instead of the weights' forward model (which still images set (a)): for
     (b) e.g. one built from a traced PSF scan of the design (``cm2 psf simulate`` → ``cm2 lsv
     build``), the calibrated model a real device is reconstructed with; or a lower-rank build of
@@ -85,6 +87,8 @@ def net_test_set(
         "cm2net": {"method": "net", "weights": str(Path(weights).resolve()), "preprocess": "none"},
         "lsv-fista": {"forward": "lsv", "method": "fista", "l1": 0.02, "max_iter": fista_iterations},
     }
+    if fista_iterations == 0:
+        del runs["lsv-fista"]
     imaging = None  # set (a) imaged by the reconstruction model itself, on Dask workers
     if traced is not None:
         imaging = Imaging(traced(source), test.grid)
@@ -99,7 +103,7 @@ def net_test_set(
         runs=runs,
         workers=workers,
         threads=threads,
-        reuse=reuse and traced is None,
+        reuse=reuse,
         log=log,
         imaging=imaging,
     )
