@@ -29,7 +29,7 @@ depths ``--patch-axial-mm`` apart around the focal plane (``cm2 psf simulate --p
 patch off the axis gets the column x = 0 and row y = 0 as well, from which the build fits the
 geometry: the foci of a point 3 mm off the axis are not all on the sensor) and
 draws the emitters inside the patch's central half (x, y uniform, z uniform over the inner 80 % of
-the depths), one group. ``--extra-model NAME=PATH`` (repeatable) compares further models (e.g.
+the depths), one group; ``X,Y,Z`` centres its depths on Z (z = 0 is added for the geometry fit). ``--extra-model NAME=PATH`` (repeatable) compares further models (e.g.
 one from the full-field scan) on the same emitters.
 
     python benchmarks/bench_lsv_heldout.py --binning 2 --grid 9x9x11 --out /tmp/heldout
@@ -64,15 +64,23 @@ def run(args: list[str]) -> dict:
 
 
 def patch_positions(args: argparse.Namespace) -> np.ndarray:
-    """(N, 3) x, y, z (mm) of the patch scan: a full grid around ``--patch-center-mm``, with x = 0
-    and y = 0 added where the patch lacks them (the build fits the geometry from the on-axis stack,
-    whose image must show all the foci)."""
-    cx, cy = (float(v) for v in args.patch_center_mm.split(","))
+    """(N, 3) x, y, z (mm) of the patch scan: a full grid around ``--patch-center-mm``, with x = 0,
+    y = 0 and z = 0 added where the patch lacks them (the build fits the geometry from the on-axis
+    stack, whose in-focus image must show all the foci)."""
     lateral = args.patch_spacing_mm * (np.arange(args.patch_nodes) - (args.patch_nodes - 1) / 2)
-    xs, ys = (np.union1d(np.round(c + lateral, 6), [0.0]) for c in (cx, cy))
     axial = args.patch_axial_mm * (np.arange(args.patch_depths) - (args.patch_depths - 1) / 2)
-    z, y, x = np.meshgrid(axial, ys, xs, indexing="ij")
+    offsets = (lateral, lateral, axial)
+    xs, ys, zs = (np.union1d(np.round(c + d, 6), [0.0]) for c, d in zip(patch_center(args), offsets, strict=True))
+    z, y, x = np.meshgrid(zs, ys, xs, indexing="ij")
     return np.round(np.stack([x.ravel(), y.ravel(), z.ravel()], axis=1), 6)
+
+
+def patch_center(args: argparse.Namespace) -> tuple[float, float, float]:
+    """``--patch-center-mm`` as (x, y, z) mm (z = 0 when it gives only X,Y)."""
+    values = [float(v) for v in args.patch_center_mm.split(",")]
+    if len(values) not in (2, 3):
+        raise SystemExit(f"--patch-center-mm {args.patch_center_mm!r}: give X,Y or X,Y,Z (mm)")
+    return (*values, 0.0) if len(values) == 2 else tuple(values)
 
 
 def emitters(args: argparse.Namespace, zs: tuple[float, float]) -> list[tuple[str, float, tuple[float, float, float]]]:
@@ -82,11 +90,12 @@ def emitters(args: argparse.Namespace, zs: tuple[float, float]) -> list[tuple[st
     margin = 0.1 * (z1 - z0)
     out = []
     if args.patch_center_mm:
-        cx, cy = (float(v) for v in args.patch_center_mm.split(","))
+        cx, cy, cz = patch_center(args)
         half = args.patch_spacing_mm * (args.patch_nodes - 1) / 4  # the patch's central half
+        depth = 0.8 * args.patch_axial_mm * (args.patch_depths - 1) / 2  # the inner 80 % of its depths
         for _ in range(args.per_radius):
             x, y = (c + float(v) for c, v in zip((cx, cy), rng.uniform(-half, half, 2), strict=True))
-            z = float(rng.uniform(z0 + margin, z1 - margin))
+            z = float(rng.uniform(cz - depth, cz + depth))
             group = f"patch {args.patch_center_mm} mm, {args.patch_spacing_mm:g} mm"
             out.append((group, math.hypot(cx, cy), (round(x, 6), round(y, 6), round(z, 6))))
         return out
@@ -176,11 +185,12 @@ def bench_binning(args: argparse.Namespace, binning: int, design) -> dict:
             command += ["--out", str(path), *interpolation]
             if args.patch_px:
                 command += ["--patch-px", str(args.patch_px)]
-            summary = run(command)
+            run(command)
             seconds[f"build {name}"] = time.perf_counter() - start
-            keys = ("nmse_calibration", "patch_px", "epsf", "focal_surface", "rotation")
-            build_info[name] = {k: summary.get(k) for k in keys}
         models[name] = load_model(path)
+        provenance = models[name].provenance  # also for a model built by an earlier run
+        keys = ("svd", "epsf", "focal_surface", "rotation", "seconds")
+        build_info[name] = {"model": str(path), **{k: provenance.get(k) for k in keys}}
     if "oversample 1" in models:
         models["LSI"] = lsi_model(models["oversample 1"])
     for extra in args.extra_model:
@@ -255,7 +265,7 @@ def main() -> None:
         help="models to build: whole (oversample 1, with the LSI baseline), fixed-depth, fixed-orientation, "
         "epsf (synthetic ePSF, the defaults), estimated (ePSF estimated from the frames)",
     )
-    parser.add_argument("--patch-center-mm", help="X,Y: scan a patch around this point instead of --grid")
+    parser.add_argument("--patch-center-mm", help="X,Y or X,Y,Z: scan a patch around this point instead of --grid")
     parser.add_argument("--patch-spacing-mm", type=float, default=0.2, help="lateral node spacing of the patch")
     parser.add_argument("--patch-nodes", type=int, default=5, help="lateral nodes per side of the patch")
     parser.add_argument("--patch-depths", type=int, default=5, help="depths of the patch")
