@@ -18,10 +18,22 @@ depth-wise LSI baseline; on axis and at r = 1, 2, 3 mm, per binning.
    (:func:`cm2optics.emission.image.render_emitters`, float, no 16-bit rounding; ``--via-cli``
    runs the command itself). *Models*: :meth:`LSVModel.point_image` (exact sub-pixel placement).
 
-Error per emitter: ‖m − t/u‖ / ‖t/u‖ with u the total of the traced in-focus on-axis emitter
-(the model's unit: flux counts), plus the shape error (best scale) and the flux ratio.
+Error per emitter: ‖m − t/u‖ / ‖t/u‖ with u the total of the traced emitter at the point where the
+model is scaled to a unit total (the in-focus on-axis point, clamped into the model's grid: for a
+patch scan off axis, its node nearest that point), plus the shape error (best scale) and the flux
+ratio.
+
+**Patch scans** (the node density needed, measured): ``--patch-center-mm X,Y --patch-spacing-mm H``
+scans ``--patch-nodes`` × ``--patch-nodes`` lateral nodes H apart around (X, Y) at ``--patch-depths``
+depths ``--patch-axial-mm`` apart around the focal plane (``cm2 psf simulate --positions``; a
+patch off the axis gets the column x = 0 and row y = 0 as well, from which the build fits the
+geometry: the foci of a point 3 mm off the axis are not all on the sensor) and
+draws the emitters inside the patch's central half (x, y uniform, z uniform over the inner 80 % of
+the depths), one group; ``X,Y,Z`` centres its depths on Z (z = 0 is added for the geometry fit). ``--extra-model NAME=PATH`` (repeatable) compares further models (e.g.
+one from the full-field scan) on the same emitters.
 
     python benchmarks/bench_lsv_heldout.py --binning 2 --grid 9x9x11 --out /tmp/heldout
+    python benchmarks/bench_lsv_heldout.py --patch-center-mm 3,0 --patch-spacing-mm 0.2 --variants whole,epsf --out /tmp/p3
 """
 
 from __future__ import annotations
@@ -51,11 +63,42 @@ def run(args: list[str]) -> dict:
     return json.loads(result.stdout)
 
 
+def patch_positions(args: argparse.Namespace) -> np.ndarray:
+    """(N, 3) x, y, z (mm) of the patch scan: a full grid around ``--patch-center-mm``, with x = 0,
+    y = 0 and z = 0 added where the patch lacks them (the build fits the geometry from the on-axis
+    stack, whose in-focus image must show all the foci)."""
+    lateral = args.patch_spacing_mm * (np.arange(args.patch_nodes) - (args.patch_nodes - 1) / 2)
+    axial = args.patch_axial_mm * (np.arange(args.patch_depths) - (args.patch_depths - 1) / 2)
+    offsets = (lateral, lateral, axial)
+    xs, ys, zs = (np.union1d(np.round(c + d, 6), [0.0]) for c, d in zip(patch_center(args), offsets, strict=True))
+    z, y, x = np.meshgrid(zs, ys, xs, indexing="ij")
+    return np.round(np.stack([x.ravel(), y.ravel(), z.ravel()], axis=1), 6)
+
+
+def patch_center(args: argparse.Namespace) -> tuple[float, float, float]:
+    """``--patch-center-mm`` as (x, y, z) mm (z = 0 when it gives only X,Y)."""
+    values = [float(v) for v in args.patch_center_mm.split(",")]
+    if len(values) not in (2, 3):
+        raise SystemExit(f"--patch-center-mm {args.patch_center_mm!r}: give X,Y or X,Y,Z (mm)")
+    return (*values, 0.0) if len(values) == 2 else tuple(values)
+
+
 def emitters(args: argparse.Namespace, zs: tuple[float, float]) -> list[tuple[str, float, tuple[float, float, float]]]:
+    """Seeded emitter positions (mm): per radius of ``--radii``, or inside the patch of a patch scan."""
     rng = np.random.default_rng(args.seed)
     z0, z1 = zs
     margin = 0.1 * (z1 - z0)
     out = []
+    if args.patch_center_mm:
+        cx, cy, cz = patch_center(args)
+        half = args.patch_spacing_mm * (args.patch_nodes - 1) / 4  # the patch's central half
+        depth = 0.8 * args.patch_axial_mm * (args.patch_depths - 1) / 2  # the inner 80 % of its depths
+        for _ in range(args.per_radius):
+            x, y = (c + float(v) for c, v in zip((cx, cy), rng.uniform(-half, half, 2), strict=True))
+            z = float(rng.uniform(cz - depth, cz + depth))
+            group = f"patch {args.patch_center_mm} mm, {args.patch_spacing_mm:g} mm"
+            out.append((group, math.hypot(cx, cy), (round(x, 6), round(y, 6), round(z, 6))))
+        return out
     for r in [float(v) for v in args.radii.split(",")]:
         for _ in range(args.per_radius):
             z = float(rng.uniform(z0 + margin, z1 - margin))
@@ -102,7 +145,13 @@ def bench_binning(args: argparse.Namespace, binning: int, design) -> dict:
         scan.symlink_to(Path(args.scan).resolve())
     if not (scan / "epsf.h5").is_file():
         start = time.perf_counter()
-        command = ["psf", "simulate", "--grid", args.grid, "--binning", str(binning), "--oversample", "4"]
+        command = ["psf", "simulate", "--binning", str(binning), "--oversample", "4"]
+        if args.patch_center_mm:
+            csv = root / "patch_positions.csv"
+            np.savetxt(csv, patch_positions(args), fmt="%.6f", delimiter=",", header="x_mm,y_mm,z_mm", comments="")
+            command += ["--positions", str(csv)]
+        else:
+            command += ["--grid", args.grid]
         command += ["--profile", "isotropic", "--pinhole-um", str(args.diameter_um), "--out", str(scan)]
         if args.workers:
             command += ["--workers", str(args.workers)]
@@ -115,17 +164,20 @@ def bench_binning(args: argparse.Namespace, binning: int, design) -> dict:
         for item in scan.iterdir():
             if item.name != "epsf.h5":
                 (frames / item.name).symlink_to(item.resolve())
-    builds = {  # name: scan folder, oversample, interpolation (build options)
-        "oversample 1": (scan, 1, ["--focal-surface"]),
-        "oversample 4 (synthetic ePSF), fixed depth": (scan, 4, ["--fixed-depth", "--rotate", "off"]),
-        "oversample 4 (synthetic ePSF), fixed orientation": (scan, 4, ["--focal-surface", "--rotate", "off"]),
-        "oversample 4 (synthetic ePSF)": (scan, 4, ["--focal-surface"]),
-        "oversample 4 (estimated from frames)": (frames, 4, ["--focal-surface"]),
-    }
-    if args.skip_estimate:
-        del builds["oversample 4 (estimated from frames)"]
+    builds = {  # name: variant, scan folder, oversample, interpolation (build options)
+        "oversample 1": ("whole", scan, 1, ["--focal-surface"]),
+        "oversample 4 (synthetic ePSF), fixed depth": ("fixed-depth", scan, 4, ["--fixed-depth", "--rotate", "off"]),
+        "oversample 4 (synthetic ePSF), fixed orientation": (
+            "fixed-orientation", scan, 4, ["--focal-surface", "--rotate", "off"],
+        ),
+        "oversample 4 (synthetic ePSF)": ("epsf", scan, 4, ["--focal-surface"]),
+        "oversample 4 (estimated from frames)": ("estimated", frames, 4, ["--focal-surface"]),
+    }  # fmt: skip
+    variants = set(args.variants.split(","))
     models, build_info = {}, {}
-    for name, (folder, S, interpolation) in builds.items():
+    for name, (variant, folder, S, interpolation) in builds.items():
+        if variant not in variants:
+            continue
         path = root / f"model_S{S}_{folder.name}_{'_'.join(a.strip('-') for a in interpolation)}.h5"
         if not path.is_file():
             start = time.perf_counter()
@@ -133,21 +185,30 @@ def bench_binning(args: argparse.Namespace, binning: int, design) -> dict:
             command += ["--out", str(path), *interpolation]
             if args.patch_px:
                 command += ["--patch-px", str(args.patch_px)]
-            summary = run(command)
+            run(command)
             seconds[f"build {name}"] = time.perf_counter() - start
-            keys = ("nmse_calibration", "patch_px", "epsf", "focal_surface", "rotation")
-            build_info[name] = {k: summary.get(k) for k in keys}
         models[name] = load_model(path)
-    models["LSI"] = lsi_model(models["oversample 1"])
-    zs = models["oversample 1"].grid_z_mm
-    unit = float(traced(design, binning, (0.0, 0.0, 0.0), args.diameter_um, args.via_cli, root).sum())
+        provenance = models[name].provenance  # also for a model built by an earlier run
+        keys = ("svd", "epsf", "focal_surface", "rotation", "seconds")
+        build_info[name] = {"model": str(path), **{k: provenance.get(k) for k in keys}}
+    if "oversample 1" in models:
+        models["LSI"] = lsi_model(models["oversample 1"])
+    for extra in args.extra_model:
+        name, _, path = extra.partition("=")
+        models[name] = load_model(Path(path))
+    zs = next(iter(models.values())).grid_z_mm
+    units = {}  # the traced total at each model's unit point (x, y, z mm)
+    for model in models.values():
+        reference = unit_point(model)
+        if reference not in units:
+            units[reference] = float(traced(design, binning, reference, args.diameter_um, args.via_cli, root).sum())
     rows = []
     start = time.perf_counter()
     for group, r, position in emitters(args, (float(zs[0]), float(zs[-1]))):
-        t = traced(design, binning, position, args.diameter_um, args.via_cli, root) / unit
+        t = traced(design, binning, position, args.diameter_um, args.via_cli, root)
         row = {"group": group, "r_mm": r, "position_mm": position}
         for name, model in models.items():
-            row[name] = image_errors(model.point_image(*position), t)
+            row[name] = image_errors(model.point_image(*position), t / units[unit_point(model)])
         rows.append(row)
         print(
             f"  bin {binning} {group:6s} {position}: "
@@ -169,7 +230,18 @@ def bench_binning(args: argparse.Namespace, binning: int, design) -> dict:
             }
             for name in models
         }
-    return {"binning": binning, "summary": summary, "rows": rows, "builds": build_info, "seconds": seconds}
+    units_json = {str(k): v for k, v in units.items()}
+    return {
+        "binning": binning, "summary": summary, "rows": rows, "builds": build_info, "seconds": seconds,
+        "units": units_json,
+    }  # fmt: skip
+
+
+def unit_point(model) -> tuple[float, float, float]:
+    """The point (x, y, z mm) whose image the model scales to a unit total: the in-focus on-axis
+    point clamped into its calibration grid."""
+    axes = (model.grid_x_mm, model.grid_y_mm, model.grid_z_mm)
+    return tuple(float(np.clip(0.0, axis[0], axis[-1])) for axis in axes)
 
 
 def main() -> None:
@@ -187,7 +259,20 @@ def main() -> None:
         "--scan", help="use this scan folder (made with `cm2 psf simulate --oversample 4`) instead of simulating one"
     )
     parser.add_argument("--workers", type=int, default=2)
-    parser.add_argument("--skip-estimate", action="store_true", help="leave out the basis estimated from frames")
+    parser.add_argument(
+        "--variants",
+        default="whole,fixed-depth,fixed-orientation,epsf,estimated",
+        help="models to build: whole (oversample 1, with the LSI baseline), fixed-depth, fixed-orientation, "
+        "epsf (synthetic ePSF, the defaults), estimated (ePSF estimated from the frames)",
+    )
+    parser.add_argument("--patch-center-mm", help="X,Y or X,Y,Z: scan a patch around this point instead of --grid")
+    parser.add_argument("--patch-spacing-mm", type=float, default=0.2, help="lateral node spacing of the patch")
+    parser.add_argument("--patch-nodes", type=int, default=5, help="lateral nodes per side of the patch")
+    parser.add_argument("--patch-depths", type=int, default=5, help="depths of the patch")
+    parser.add_argument("--patch-axial-mm", type=float, default=0.1, help="axial node spacing of the patch")
+    parser.add_argument(
+        "--extra-model", action="append", default=[], help="NAME=PATH: a further model to compare (repeatable)"
+    )
     parser.add_argument("--via-cli", action="store_true", help="trace through `cm2 psf image` (16-bit files)")
     parser.add_argument("--out", default="out/bench-lsv-heldout")
     args = parser.parse_args()
