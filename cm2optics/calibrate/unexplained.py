@@ -43,6 +43,12 @@ REDUCED_FLAG = 1.5
 MIN_FOCI = 2
 #: Foci at least this share of their image's brightest (model) give the common energy ratio.
 COMMON_FOCI = 0.1
+#: Flagged foci whose energies all change less than this (relative) differ in shape or position,
+#: not in energy: no loss is named then.
+ENERGY_UNCHANGED = 0.02
+#: A "copy" holding more than this share of the energy one pixel from the focus is the focus
+#: itself displaced (sub-pixel shifts fit best as a copy at one pixel), not a ghost.
+DISPLACED_SHARE = 0.3
 #: Largest ghost offset sought, px.
 GHOST_REACH_PX = 8
 #: A displaced copy is named when it explains this share of the mean residual patch…
@@ -113,8 +119,16 @@ def _entry(
         f"{int(mask.sum())} foci in {len(where)} of {int(after.used.sum())} images, largest at field "
         f"{np.hypot(worst[0], worst[1]):.2f} mm: x, y, z = {worst[0]:.3g}, {worst[1]:.3g}, {worst[2]:.3g} mm"
     )
-    if shape is None:
-        low, high = float(change.min()), float(change.max())
+    low, high = float(change.min()), float(change.max())
+    if shape is None and max(abs(low), abs(high)) < ENERGY_UNCHANGED:
+        dx, dy = _displacement_px(residual[mask], model[mask])
+        description = (
+            f"the foci of lenslet{'s' if len(lenslets) > 1 else ''} {[int(j) for j in lenslets]} differ from the "
+            f"model in shape or position, not in energy ({low:+.1%} to {high:+.1%}; mean displacement "
+            f"({dx:+.2f}, {dy:+.2f}) px) ({count}): a local aberration or focus position the design's "
+            f"parameters do not reach"
+        )
+    elif shape is None:
         description = (
             f"the foci of lenslet{'s' if len(lenslets) > 1 else ''} {[int(j) for j in lenslets]} change in "
             f"energy by {low:+.1%} to {high:+.1%} ({count}) while the other positions match: a loss that "
@@ -132,12 +146,25 @@ def _entry(
     }
 
 
+def _displacement_px(residual: np.ndarray, model: np.ndarray) -> tuple[float, float]:
+    """Mean displacement (x, y) px of foci whose residual patches (M, P, P) against their model
+    patches is a small shift d: residual ≈ −d·∇model, so its first moment over the model's total is d."""
+    half = residual.shape[-1] // 2
+    offsets = np.arange(-half, half + 1, dtype=float)
+    total = max(float(model.sum()), 1e-30)
+    return float((residual * offsets[None, None, :]).sum() / total), float(
+        (residual * offsets[None, :, None]).sum() / total
+    )
+
+
 def _shape(residual: np.ndarray, energy: np.ndarray, model: np.ndarray, pixel_um: float) -> str | None:
     """A displaced copy of the foci read from the mean residual patch R relative to the foci's
     energy (residual, model: (F, w, w) counts; energy (F,)): R is fitted by a·M + b·M shifted
     by d (M the mean model focus) for every integer d within :data:`GHOST_REACH_PX`; the best d
     is named when it explains :data:`GHOST_EXPLAINS` of R and :data:`GHOST_GAIN` more than a·M
-    alone (a change of energy). None otherwise."""
+    alone (a change of energy), and when it is a copy rather than the focus itself displaced (a
+    copy of more than :data:`DISPLACED_SHARE` of the energy within one pixel's offset is the
+    focus moved). None otherwise."""
     relative = residual.sum(axis=0) / energy.sum()
     focus = model.sum(axis=0) / energy.sum()
     total = float(np.sum(relative**2))
@@ -157,7 +184,11 @@ def _shape(residual: np.ndarray, energy: np.ndarray, model: np.ndarray, pixel_um
             if coefficients[1] > 0 and explained > best[0]:
                 best = (explained, float(coefficients[1]), (dr, dc))
     explained, share, (dr, dc) = best
-    if explained < GHOST_EXPLAINS * total or explained - alone < GHOST_GAIN * total:
+    if (
+        explained < GHOST_EXPLAINS * total
+        or explained - alone < GHOST_GAIN * total
+        or (share > DISPLACED_SHARE and max(abs(dr), abs(dc)) <= 1)
+    ):
         return None
     return (
         f"a displaced copy of the foci (a ghost): {share:.1%} of each focus's energy at ({dr:+d}, {dc:+d}) px "

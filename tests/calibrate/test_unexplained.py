@@ -42,6 +42,10 @@ def _rates(simulator, positions, case):
         for i in range(len(rate)):
             moved = shift(rate[i].astype(np.float64), GHOST["offset_px"], order=1)
             rate[i] += GHOST["share"] * gaussian_filter(moved, GHOST["sigma_px"]).astype(rate.dtype)
+    if case == "displaced":  # lenslet 2 off by 10 µm in x for sources at x > 0.5 mm only
+        for i in np.flatnonzero(positions[:, 0] > 0.5):
+            values = {f"lenslet_decenter[{SCRATCHED}]": {"dx_mm": 0.01, "dy_mm": 0.0}}
+            rate[i] = simulator.rates(positions[i : i + 1], values)[0]
     if case == "scratch":
         for i, loss in enumerate(scratch_loss(positions)):
             values = {f"lenslet_transmission[{SCRATCHED}]": {"transmission": 1.0 - loss}}
@@ -101,6 +105,25 @@ def test_a_position_dependent_loss_is_located(simulator, positions, analyses):
     assert entries[0]["field_mm"][1] == pytest.approx(field.max(), abs=1e-3)
     assert entries[0]["depths_mm"] == [-0.3, 0.3]
     assert "not a constant lenslet transmission" in entries[0]["description"]
+
+
+def test_a_position_dependent_shift_is_described_as_such(simulator, positions, analyses):
+    entries = describe_unexplained(analyses("displaced"), simulator.pixel_um)
+    assert [e["lenslets"] for e in entries] == [[SCRATCHED]], entries
+    description = entries[0]["description"]
+    assert "shape or position, not in energy" in description and "loss" not in description
+    dx, dy = (float(v) for v in description.split("mean displacement (")[1].split(") px")[0].split(","))
+    # the shift in the noiseless images: lenslet 2's focus centroid at a shifted position
+    position = positions[[int(np.flatnonzero((positions[:, 0] == 0.75) & (positions[:, 1] == 0.0))[0])]]
+    row, col = np.round(simulator.focus_centres_px(position)[0, SCRATCHED]).astype(int)
+    images = [
+        simulator.rates(position, values)[0][row - 16 : row + 17, col - 16 : col + 17]
+        for values in ({}, {f"lenslet_decenter[{SCRATCHED}]": {"dx_mm": 0.01, "dy_mm": 0.0}})
+    ]
+    offsets = np.arange(-16, 17)
+    true_dx = (images[1] * offsets).sum() / images[1].sum() - (images[0] * offsets).sum() / images[0].sum()
+    assert true_dx > 0.2
+    assert dx == pytest.approx(true_dx, rel=0.35) and abs(dy) < 0.25 * true_dx
 
 
 @pytest.mark.parametrize("case", ["ghost", "scratch"])
