@@ -10,7 +10,7 @@ py="$venv/bin/python"
 links="${UV_FIND_LINKS:-${PIP_FIND_LINKS:-$("$py" -m pip config get global.find-links 2>/dev/null || true)}}"
 find_links=()
 for link in $links; do find_links+=(--find-links "$link"); done
-if "$py" -m pip install --quiet uv && "$venv/bin/uv" pip install --quiet --python "$py" "${find_links[@]}" -e '.[test]'; then
+if "$py" -m pip install --quiet uv 2>/dev/null && "$venv/bin/uv" pip install --quiet --python "$py" "${find_links[@]}" -e '.[test]'; then
   exit 0
 fi
 echo "uv could not install the packages; installing with pip instead" >&2
