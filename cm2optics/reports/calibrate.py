@@ -17,7 +17,7 @@ from cm2optics.calibrate.scan import ScanCalibration
 from cm2optics.formats.atomic import write_atomic, write_json_atomic
 from cm2optics.reports.document import Report
 
-__all__ = ["residual_montage", "unexplained_section", "write_calibration_report"]
+__all__ = ["residual_montage", "unexplained_section", "write_calibration_documents", "write_calibration_report"]
 
 
 def _save(fig: Figure, path: Path) -> None:
@@ -106,14 +106,20 @@ def _correction_section(report: Report, result: ScanCalibration, folder: Path) -
     report.figure("correction_patterns.png", "The correction's kernels (the share of the residual each removes)")
 
 
+def write_calibration_documents(result, folder: str | Path) -> tuple[Path, dict]:
+    """Create ``folder`` and write a calibration's ``calibration.json`` and ``corrected-design.yaml``
+    (any result with ``document`` and ``corrected_design``); returns the folder and the document."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    write_json_atomic(folder / "calibration.json", result.document)
+    result.corrected_design.save(folder / "corrected-design.yaml")
+    return folder, result.document
+
+
 def write_calibration_report(result: ScanCalibration, folder: str | Path) -> Path:
     """Write ``calibration.json``, ``corrected-design.yaml``, the figures and ``report.html``/``.md``
     into ``folder``; returns the HTML report's path."""
-    folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
-    doc = result.document
-    write_json_atomic(folder / "calibration.json", doc)
-    result.corrected_design.save(folder / "corrected-design.yaml")
+    folder, doc = write_calibration_documents(result, folder)
     residual_montage(result.before, result.after, folder / "residual_montage.png")
     _field_maps(result.before, result.after, folder / "field_maps.png")
     report = Report(f"Calibration of {doc['design']} against {doc['scan']}")

@@ -13,7 +13,8 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from cm2optics.calibrate.illumination import IlluminationCalibration
-from cm2optics.formats.atomic import write_atomic, write_json_atomic
+from cm2optics.formats.atomic import write_atomic
+from cm2optics.reports.calibrate import write_calibration_documents
 from cm2optics.reports.document import Report
 
 __all__ = ["write_illumination_calibration_report"]
@@ -66,11 +67,7 @@ def _profiles(doc: dict, path: Path) -> None:
 def write_illumination_calibration_report(result: IlluminationCalibration, folder: str | Path) -> Path:
     """Write ``calibration.json``, ``corrected-design.yaml``, ``maps.png``, ``profiles.png`` and
     ``report.html``/``.md`` into ``folder``; returns the HTML report's path."""
-    folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
-    doc = result.document
-    write_json_atomic(folder / "calibration.json", doc)
-    result.corrected_design.save(folder / "corrected-design.yaml")
+    folder, doc = write_calibration_documents(result, folder)
     _maps(result, folder / "maps.png")
     _profiles(doc, folder / "profiles.png")
     report = Report(f"Illumination calibration of {doc['design']} against {doc['map']}")

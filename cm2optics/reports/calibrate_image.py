@@ -9,9 +9,8 @@ from __future__ import annotations
 from pathlib import Path
 
 from cm2optics.calibrate.image import ImageCalibration
-from cm2optics.formats.atomic import write_json_atomic
 from cm2optics.metrics.plots import plot_overlay
-from cm2optics.reports.calibrate import residual_montage, unexplained_section
+from cm2optics.reports.calibrate import residual_montage, unexplained_section, write_calibration_documents
 from cm2optics.reports.document import Report
 
 __all__ = ["write_image_report"]
@@ -40,11 +39,7 @@ def _score_rows(doc: dict) -> list[list[object]]:
 def write_image_report(result: ImageCalibration, folder: str | Path) -> Path:
     """Write ``calibration.json``, ``corrected-design.yaml``, the figures and ``report.html``/``.md``
     into ``folder``; returns the HTML report's path."""
-    folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
-    doc = result.document
-    write_json_atomic(folder / "calibration.json", doc)
-    result.corrected_design.save(folder / "corrected-design.yaml")
+    folder, doc = write_calibration_documents(result, folder)
     residual_montage(result.before, result.after, folder / "residual_maps.png", count=1)
     for key in ("before", "after"):
         plot_overlay(
