@@ -487,12 +487,12 @@ def _fit_layer_A(
 
 
 def _grid_step_px(A: np.ndarray, xs: np.ndarray, ys: np.ndarray) -> float:
-    steps = []
-    if len(xs) > 1:
-        steps.append(np.min(np.diff(xs)) * np.hypot(*A[:, 0]))
-    if len(ys) > 1:
-        steps.append(np.min(np.diff(ys)) * np.hypot(*A[:, 1]))
-    return float(min(steps)) if steps else math.inf
+    """The grid's smallest step (px) between nodes more than a pixel apart: a scan whose nodes
+    are dithered by a fraction of a pixel is checked at its node spacing (a file swapped within a
+    dither is below the comb's precision anyway)."""
+    steps = [np.diff(axis) * np.hypot(*A[:, k]) for k, axis in enumerate((xs, ys)) if len(axis) > 1]
+    coarse = [float(d.min()) for d in (d[d > 1.0] for d in steps) if d.size]
+    return min(coarse) if coarse else math.inf
 
 
 def _smooth_residual(D: np.ndarray, t: np.ndarray) -> np.ndarray:

@@ -176,6 +176,16 @@ def test_misordered_images_are_caught_by_their_content(small_scan, v2):
         build_model(small_scan, rank=8, design=v2)
 
 
+def test_the_swap_check_uses_the_node_spacing_of_a_dithered_grid():
+    from cm2optics.lsv.preprocess import _grid_step_px
+
+    A = np.array([[100.0, 0.0], [0.0, 120.0]])  # px/mm
+    regular = np.array([-0.2, 0.0, 0.2])
+    dithered = np.array([-0.2, -0.196, 0.0, 0.004, 0.2, 0.204])  # nodes 0.2 mm apart, each dithered by 0.4 px
+    assert _grid_step_px(A, regular, regular) == pytest.approx(20.0)
+    assert _grid_step_px(A, dithered, dithered) == pytest.approx(19.6)
+
+
 def test_wrong_lenslet_layout_is_refused(small_scan, v2):
     meta = yaml.safe_load((small_scan / "scan.yaml").read_text())
     meta["lenslets"] = [4, 4]
