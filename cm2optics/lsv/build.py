@@ -205,24 +205,28 @@ def _scan_crops(
     progress: Progress | None,
 ) -> np.ndarray:
     """The registered crops (N, J, patch·S, patch·S; image px / S): from epsf.h5 if S > 1 and
-    present, estimated from the whole-pixel frames if S > 1 and not, else the frames."""
+    present, estimated per node from the frames of each node and its sub-pixel dithers if S > 1
+    and the scan has dithers, else the frames (N, J, patch, patch; whole pixels: an ePSF basis is
+    then estimated jointly with the coefficients, in :func:`model_from_crops`)."""
     if oversample > 1 and (index.folder / "epsf.h5").is_file():
         from cm2optics.lsv.epsf import epsf_crops
 
-        crops = epsf_crops(index, geometry, (patch, patch), oversample, progress=progress)
         epsf_info["source"] = "synthetic ePSFs (epsf.h5)"
-    elif oversample > 1:
-        from cm2optics.lsv.epsf_estimate import local_epsf_crops, pixel_windows
+        return epsf_crops(index, geometry, (patch, patch), oversample, progress=progress)
+    if oversample > 1:
+        from cm2optics.lsv.epsf_estimate import has_dithers, local_epsf_crops, pixel_windows
 
-        windows, foci = pixel_windows(index, geometry, (patch, patch), progress=progress)
+        x, y, z = index.positions_mm.T
         depth = index.grid_index()[:, 2]
-        crops, epsf_info["estimate"] = local_epsf_crops(
-            windows, foci, depth, oversample, progress=progress, **(estimate_options or {})
-        )
+        if has_dithers(geometry.focus(x, y, z), depth):
+            windows, foci = pixel_windows(index, geometry, (patch, patch), progress=progress)
+            crops, epsf_info["estimate"] = local_epsf_crops(
+                windows, foci, depth, oversample, progress=progress, **(estimate_options or {})
+            )
+            epsf_info["source"] = "estimated from the whole-pixel frames of each node and its sub-pixel dithers"
+            return crops
         epsf_info["source"] = "estimated from the whole-pixel frames"
-    else:
-        crops = extract_crops(index, geometry, (patch, patch), progress=progress)
-    return crops
+    return extract_crops(index, geometry, (patch, patch), progress=progress)
 
 
 def _build_provenance(
@@ -334,8 +338,8 @@ def _choose_interpolation(
             record["fallback"] = message
             rotate = False
     if turn is not None:
-        # the pivots in the crops' frame: c samples per pixel (the basis may be trimmed); the chief
-        # ray at pixel h // 2 in both
+        # the pivots in the crops' frame: c samples per pixel (the basis may be trimmed, and an
+        # estimated ePSF basis is finer than its whole-pixel crops); the chief ray at pixel h // 2 in both
         c = crop_sampling
         crop_px = np.array(crops.shape[-2:]) // c
         pivots = c * (turn.pivots / model.oversample - np.array(model.patch_shape) // 2 + crop_px // 2)
@@ -403,8 +407,11 @@ def build_model(
         (:mod:`cm2optics.lsv.epsf`): from the scan's ``epsf.h5`` if it has one (synthetic scans),
         else estimated from the whole-pixel frames (:mod:`cm2optics.lsv.epsf_estimate`); a scan
         whose foci all share one sub-pixel phase falls back to whole pixels, with a warning.
-    estimate_options: options of :func:`~cm2optics.lsv.epsf_estimate.local_epsf_crops` for the
-        estimate (``within_px``, ``smoothness``, ``cg_steps``).
+    estimate_options: options of the estimate from the frames: of
+        :func:`~cm2optics.lsv.epsf_estimate.local_epsf_crops` for a scan with sub-pixel dithers
+        (``within_px``, ``smoothness``, ``cg_steps``), else of
+        :func:`~cm2optics.lsv.epsf_estimate.estimate_epsf_basis` (``iterations``, ``cg_steps``,
+        ``smoothness``).
     focal_surface: interpolate between lateral nodes at equal defocus from each lenslet's
         best-focus surface, estimated from the scan (:mod:`cm2optics.lsv.focal_surface`), on the
         grid refined ``refine`` times laterally; False: at fixed depth.
@@ -438,6 +445,7 @@ def build_model(
     options |= {"rotate": {None: "data decides", True: "on", False: "off"}[rotate]}
     options |= {"warp": {None: "data decides", True: "on", False: "off"}[warp]}
     provenance = _build_provenance(index, fit, alignment, options, epsf_info) | {"focal_surface": surface_info}
+    fine = crops.shape[-1] != patch  # fine crops (synthetic or dithered), else an ePSF basis fitted to the frames
     model, decomposition = model_from_crops(
         crops,
         gi,
@@ -451,6 +459,7 @@ def build_model(
         trim=trim,
         provenance=provenance,
         oversample=oversample,
+        frames=None if oversample == 1 or fine else (index, estimate_options),
         focal_surface=surface,
         refine=refine,
     )
@@ -461,7 +470,7 @@ def build_model(
         if refine < 2 and not (rotate is False and warp is False):
             turn_info["fallback"] = "refine 1: a turn or warp needs the refined grid"
     else:
-        model, turn_info = _choose_interpolation(model, crops, gi, rotate, warp, refine, oversample)
+        model, turn_info = _choose_interpolation(model, crops, gi, rotate, warp, refine, oversample if fine else 1)
     model.provenance["rotation"] = turn_info
     seconds["rotation"] = time.perf_counter() - start
     if model.rank < rank:
@@ -478,6 +487,12 @@ def _calibration_error(model: LSVModel, dec: Decomposition) -> dict[str, Any]:
         "nmse_calibration_svd": float(dec.nmse[model.rank]),
         "nmse_calibration_per_psf_svd": float(dec.nmse_per_psf[model.rank]),
     }
+    if svd.get("nmse_model") is None:  # an estimated ePSF basis: no model error on the whole-pixel crops
+        return {
+            "nmse_calibration": before["nmse_calibration_svd"],
+            "nmse_calibration_per_psf": before["nmse_calibration_per_psf_svd"],
+            "nmse_calibration_of": "the whole-pixel SVD (the estimated ePSF basis is finer than the frames)",
+        } | before
     return {
         "nmse_calibration": svd["nmse_model"],
         "nmse_calibration_per_psf": svd["nmse_per_psf_model"],
@@ -485,11 +500,14 @@ def _calibration_error(model: LSVModel, dec: Decomposition) -> dict[str, Any]:
     } | before
 
 
-def node_nmse(decomposition: Decomposition, crops: np.ndarray) -> tuple[float, float]:
+def node_nmse(decomposition: Decomposition, crops: np.ndarray) -> tuple[float, float] | None:
     """The error of ``coefficients · basis`` at the nodes against ``crops`` (N, J, h, w) on the
     basis's grid: ``‖X − X̂‖²_F / ‖X‖²_F`` and the mean over non-dark nodes of ``‖x_n − x̂_n‖² /
-    ‖x_n‖²`` (as :mod:`cm2optics.lsv.decompose` defines them). Float64 sums over column chunks: ``‖x‖² − 2 c·(B x) + cᵀ G c``."""
+    ‖x_n‖²`` (as :mod:`cm2optics.lsv.decompose` defines them); None if the grids differ (an
+    estimated ePSF basis). Float64 sums over column chunks: ``‖x‖² − 2 c·(B x) + cᵀ G c``."""
     basis = decomposition.basis.reshape(decomposition.rank, -1)
+    if decomposition.basis.shape[1:] != crops.shape[1:]:
+        return None
     X = crops.reshape(len(crops), -1)
     norms = np.zeros(len(X))
     projections = np.zeros((len(X), len(basis)))
@@ -525,9 +543,11 @@ def keep_node_flux(decomposition: Decomposition, crops: np.ndarray) -> tuple[Dec
     Gram matrix, b each basis PSF's flux, λ from the constraint). A rank-K truncation is optimal in
     the squared error, which faint wide halos hardly enter, so it drops their flux (on the 9×9×11
     ePSF scan the K = 64 model's node fluxes were 0.5–1.2 of their crops'). ``crops`` (N, J, h, w)
-    on the basis's grid. Returns the decomposition and each node's flux ratio before (N,)."""
+    on the basis's grid or a whole-pixel one (an estimated ePSF basis): flux = sum × the sample
+    area. Returns the decomposition and each node's flux ratio before (N,)."""
     basis = decomposition.basis.reshape(decomposition.rank, -1).astype(np.float64)
-    b = basis.sum(axis=1)  # (K,) flux of each basis PSF
+    area = (crops.shape[-2] * crops.shape[-1]) / (decomposition.basis.shape[-2] * decomposition.basis.shape[-1])
+    b = basis.sum(axis=1) * area  # (K,) flux of each basis PSF in the crops' samples
     target = crops.reshape(len(crops), -1).sum(axis=1, dtype=np.float64)
     c = decomposition.coefficients.astype(np.float64)
     modelled = c @ b
@@ -601,6 +621,7 @@ def model_from_crops(
     trim: float | None = 1e-6,
     provenance: dict[str, Any] | None = None,
     oversample: int = 1,
+    frames: tuple[Any, dict[str, Any] | None] | None = None,
     focal_surface: FocalSurface | None = None,
     refine: int = 1,
 ) -> tuple[LSVModel, Decomposition]:
@@ -615,6 +636,12 @@ def model_from_crops(
     crop_shape = crops.shape[2:]
     if trim:
         decomposition, crops = _trim(decomposition, crops, trim, S)
+    estimate: dict[str, Any] | None = None
+    if frames is not None and S > 1:  # a measured scan: the ePSF basis from whole-pixel frames
+        from cm2optics.lsv.epsf_estimate import estimate_epsf_basis
+
+        index, options = frames
+        decomposition, estimate = estimate_epsf_basis(index, geometry, decomposition, crops, S, **(options or {}))
     decomposition, flux_before = keep_node_flux(decomposition, crops)
     model_error = node_nmse(decomposition, crops)
     gi = np.asarray(grid_index)
@@ -649,12 +676,14 @@ def model_from_crops(
         "numerical_rank": numerical_rank(decomposition.singular_values),
         "nmse": float(decomposition.nmse[K]),  # the truncated SVD's, before keep_node_flux
         "nmse_per_psf": float(decomposition.nmse_per_psf[K]),
-        "nmse_model": model_error[0],  # the saved model's at its nodes
-        "nmse_per_psf_model": model_error[1],
+        "nmse_model": model_error[0] if model_error else None,  # the saved model's at its nodes
+        "nmse_per_psf_model": model_error[1] if model_error else None,
     }
     provenance["svd"]["node_flux_before"] = {  # the truncated basis's flux at the nodes / the crops' (1: kept)
         f"p{q}": round(float(v), 4) for q, v in zip((5, 50, 95), np.percentile(flux_before, [5, 50, 95]), strict=True)
     }
+    if estimate is not None:
+        provenance.setdefault("epsf", {})["estimate"] = estimate
     model = replace(
         model,
         coefficients=coefficients * np.float32(scale),

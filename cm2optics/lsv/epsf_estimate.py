@@ -1,22 +1,33 @@
 """An effective-PSF basis estimated from whole-pixel frames (measured scans).
 
-A measured scan has whole pixels only, but every calibration node sees its foci at a different
-sub-pixel phase, and nodes close together see nearly the same focus shape: together they sample
-that shape's ePSF on a grid finer than the pixels. As Anderson & King's local ePSF (PASP 2000;
-photutils' ``EPSFBuilder``), each node's fine crop is estimated per lenslet from its
-neighbourhood (:func:`neighbourhoods`: the nodes at its depth within a radius, itself included):
+A measured scan has whole pixels only. The ePSF's fine structure (the band between ½ and 1
+cycle/px that the pixels alias) can be told only from frames of one focus shape at several
+sub-pixel phases, as Anderson & King's ePSF (PASP 2000; photutils' ``EPSFBuilder``) pools many
+stars of one PSF. Neighbouring calibration nodes do not quite give that: the PSF changes shape
+between them about as fast as their phases add information (0.2-mm nodes at binning 2: NMSE 0.1
+between neighbours, against 3.6 % of the energy beyond ½ cycle/px), and a shape change linear in
+position looks like a sub-pixel shift. Sub-pixel dithers of a node do (a few µm of stage travel:
+the same shape at other phases). Two estimates, by what the scan holds:
 
-    argmin_P Σ_m ‖D_m P − y_m‖² + λ‖∇²P‖²
+* **a scan with dithers** (:func:`has_dithers`): each node's fine crop, per lenslet, from the
+  frames of the node and its dithers (:func:`neighbourhoods`: the nodes at its depth whose foci
+  lie within :data:`DITHER_PX`), :func:`local_epsf_crops`:
+  ``argmin_P Σ_m ‖D_m P − y_m‖² + λ‖∇²P‖²`` and the partition of unity (a point images to the
+  same total at any phase: the S² phase sums are equal); the crops then go through the same
+  low-rank build as a synthetic scan's ``epsf.h5``;
+* **a scan without** (:func:`estimate_epsf_basis`): the basis and the coefficients jointly,
+  alternating — the coefficients given the basis (per node, a K-term least-squares fit of its J
+  foci), the basis given the coefficients (per lenslet, ``Σ_n ‖D_n(Σ_k c_nk·B_k) − y_n‖² +
+  λ‖∇²B‖²`` by conjugate gradients), from the whole-pixel SVD upsampled (Keys); the low rank ties
+  the nodes' phases together, but K·S² fine unknowns per pixel against N nodes leave it to the
+  prior where the nodes are few.
 
-``y_m`` the whole-pixel window of the prepared image around node m's focus (not resampled), ``D_m``
-samples a fine patch at those pixels: fine coordinate ``(r − f_m)·S + S·(h//2)`` for pixel r and
-chief ray f_m, by the Keys kernel (the model's own sampling, :func:`~cm2optics.lsv.epsf.place_epsf`).
-The Laplacian prior fills the fine samples the neighbourhood's phases leave uncovered. The fine
-crops then go through the same low-rank build as a synthetic scan's ``epsf.h5``. The error of the
-estimate is the neighbours' shape change (denser nodes: smaller) against the phases they add
-(more nodes: more). Only the nodes' own pooled phases are used; a single node's shape is not
-estimated from its frames alone (S² unknowns per pixel). :func:`phase_coverage` says how many of
-the S × S fine phases the nodes visit, per lenslet; the estimate's report, per neighbourhood.
+``y_m`` is the whole-pixel window of the prepared image around frame m's focus (not resampled);
+``D_m`` samples a fine patch at those pixels: fine coordinate ``(r − f_m)·S + S·(h//2)`` for pixel
+r and chief ray f_m, by the Keys kernel (the model's own sampling,
+:func:`~cm2optics.lsv.epsf.place_epsf`); the Laplacian prior fills the fine samples the phases
+leave uncovered. :func:`phase_coverage` says how many of the S × S fine phases the nodes visit,
+per lenslet.
 """
 
 from __future__ import annotations
@@ -27,13 +38,22 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import torch
 
+from cm2optics.lsv.decompose import Decomposition
+from cm2optics.lsv.epsf import sampling_matrix
 from cm2optics.lsv.kernels import TAPS, shift_weights, split_shift
 
 if TYPE_CHECKING:  # pragma: no cover
     from cm2optics.formats.scan import ScanIndex
     from cm2optics.lsv.preprocess import Geometry
 
-__all__ = ["local_epsf_crops", "neighbourhoods", "phase_coverage", "pixel_windows"]
+__all__ = [
+    "estimate_epsf_basis",
+    "has_dithers",
+    "local_epsf_crops",
+    "neighbourhoods",
+    "phase_coverage",
+    "pixel_windows",
+]
 
 #: Positions whose foci's phases all lie within this (px) of each other share one phase.
 SINGLE_PHASE_PX = 0.02
@@ -143,6 +163,156 @@ def _laplacian(x: torch.Tensor) -> torch.Tensor:
     return p[..., :-2, 1:-1] + p[..., 2:, 1:-1] + p[..., 1:-1, :-2] + p[..., 1:-1, 2:] - 4 * x
 
 
+def _upsample(basis: np.ndarray, S: int) -> np.ndarray:
+    """Keys upsampling of (…, h, w) whole-pixel patches to (…, h·S, w·S), fine sample a at a/S."""
+    h, w = basis.shape[-2:]
+    rows = sampling_matrix(np.arange(h * S) / S, h)
+    cols = sampling_matrix(np.arange(w * S) / S, w)
+    return np.einsum("ar,...rc,bc->...ab", rows, basis.astype(np.float64), cols).astype(np.float32)
+
+
+def estimate_epsf_basis(
+    index: ScanIndex,
+    geometry: Geometry,
+    decomposition: Decomposition,
+    crops: np.ndarray,
+    oversample: int,
+    *,
+    iterations: int = 3,
+    cg_steps: int = 15,
+    smoothness: float = 1e-3,
+    keep: np.ndarray | None = None,
+    windows: tuple[np.ndarray, np.ndarray] | None = None,
+    progress=None,
+) -> tuple[Decomposition, dict[str, Any]]:
+    """Estimate an ePSF basis (K, J, h·S, w·S) and coefficients from the scan's whole-pixel
+    frames, starting from the whole-pixel ``decomposition`` of the registered ``crops`` (N, J,
+    h, w). ``smoothness``: λ of the Laplacian prior, relative to the data term's mean curvature
+    (‖C‖²/(K·S²)). ``keep``: the nodes (boolean, N) to estimate from (held-out checks; the others'
+    coefficients are returned as zeros); ``windows``: :func:`pixel_windows` already read.
+    Returns the new decomposition (orthonormal basis, singular values) and a report."""
+    start = time.perf_counter()
+    S = int(oversample)
+    K, J, h, w = decomposition.basis.shape
+    N_all = crops.shape[0]
+    y_np, foci = windows if windows is not None else pixel_windows(index, geometry, (h, w), progress=progress)
+    eps = foci - np.floor(foci)
+    keep = np.ones(N_all, bool) if keep is None else np.asarray(keep, bool)
+    y_np, eps = y_np[keep], eps[keep]
+    y = torch.as_tensor(y_np)
+    B = torch.as_tensor(_upsample(decomposition.basis, S))  # (K, J, hS, wS)
+    C = torch.as_tensor(decomposition.coefficients[keep], dtype=torch.float32)  # (N, K)
+    samplers = [_Sampler(eps[:, j], h, w, S) for j in range(J)]
+    data_energy = float((y.double() ** 2).sum())
+    # relative to the data term's scale: CᵀC (mean eigenvalue ‖C‖²/K) times DᵀD (≈ 1/S² per fine sample)
+    lam = smoothness * float((C.double() ** 2).sum()) / (K * S * S)
+    history = [_misfit(C, B, y, samplers) / data_energy]
+    for _ in range(iterations):
+        _basis_step(B, C, y, samplers, lam, cg_steps)
+        C = _coefficient_step(B, y, samplers)
+        history.append(_misfit(C, B, y, samplers) / data_energy)
+    new = _orthonormal(C, B, keep, N_all, decomposition)
+    report = {
+        "method": "alternating least squares over whole-pixel frames (ePSF basis | coefficients)",
+        "iterations": iterations,
+        "cg_steps": cg_steps,
+        "smoothness": smoothness,
+        "pixel_misfit_nmse_per_iteration": [round(v, 5) for v in history],
+        "seconds": round(time.perf_counter() - start, 2),
+        "phase_coverage": phase_coverage(geometry, index.positions_mm, S),
+    }
+    return new, report
+
+
+def _predict(C: torch.Tensor, B: torch.Tensor, sampler: _Sampler, j: int) -> torch.Tensor:
+    """Lenslet j's whole-pixel windows (N, h, w) of the fine patches C·B[:, j] (N, h·S, w·S)."""
+    K = B.shape[0]
+    N = C.shape[0]
+    fine = (C @ B[:, j].reshape(K, -1)).reshape(N, sampler.hS, sampler.wS)
+    return sampler.forward(fine, slice(0, N))
+
+
+def _misfit(C: torch.Tensor, B: torch.Tensor, y: torch.Tensor, samplers: list[_Sampler]) -> float:
+    """The summed squared misfit (frames' units²) of every lenslet's predicted windows to the frames ``y``."""
+    return sum(float(((_predict(C, B, samplers[j], j) - y[:, j]).double() ** 2).sum()) for j in range(len(samplers)))
+
+
+def _cg(normal, rhs: torch.Tensor, X: torch.Tensor, steps: int, dims: tuple[int, ...]) -> torch.Tensor:
+    """``steps`` conjugate-gradient iterations on normal(X) = rhs from X (updated in place and
+    returned); ``dims``: the axes one system spans (the others stack independent systems)."""
+    r = rhs - normal(X)
+    p = r.clone()
+    rr = (r * r).sum(dims, keepdim=True)
+    for _ in range(steps):
+        Ap = normal(p)
+        alpha = rr / (p * Ap).sum(dims, keepdim=True).clamp_min(1e-30)
+        X += alpha * p
+        r -= alpha * Ap
+        rr_new = (r * r).sum(dims, keepdim=True)
+        p = r + (rr_new / rr.clamp_min(1e-30)) * p
+        rr = rr_new
+    return X
+
+
+def _basis_step(
+    B: torch.Tensor, C: torch.Tensor, y: torch.Tensor, samplers: list[_Sampler], lam: float, cg_steps: int
+) -> None:
+    """The basis B (K, J, h·S, w·S) given the coefficients C (N, K), in place: CG per lenslet."""
+    K, _, hS, wS = B.shape
+    N = C.shape[0]
+    everything = slice(0, N)
+    # CG per lenslet on (Cᵀ D ᵀD C + λ L²) B = Cᵀ Dᵀ y
+    for j, sampler in enumerate(samplers):
+
+        def normal(X: torch.Tensor, sampler: _Sampler = sampler) -> torch.Tensor:
+            fine = (C @ X.reshape(K, -1)).reshape(N, hS, wS)
+            back = sampler.adjoint(sampler.forward(fine, everything), everything)
+            out = (C.T @ back.reshape(N, -1)).reshape(X.shape)
+            return out + lam * _laplacian(_laplacian(X))
+
+        rhs = (C.T @ sampler.adjoint(y[:, j], everything).reshape(N, -1)).reshape(K, hS, wS)
+        B[:, j] = _cg(normal, rhs, B[:, j].clone(), cg_steps, dims=(0, 1, 2))
+
+
+def _coefficient_step(B: torch.Tensor, y: torch.Tensor, samplers: list[_Sampler]) -> torch.Tensor:
+    """The coefficients (N, K) given the basis: per node, K-term least squares over its J foci."""
+    K = B.shape[0]
+    N = y.shape[0]
+    everything = slice(0, N)
+    gram = torch.zeros((N, K, K), dtype=torch.float64)
+    rhs = torch.zeros((N, K), dtype=torch.float64)
+    for j, sampler in enumerate(samplers):
+        sampled = torch.stack([sampler.forward(B[k, j].expand(N, -1, -1), everything) for k in range(K)], 1)
+        sampled = sampled.reshape(N, K, -1)  # (N, K, h·w)
+        rhs += torch.einsum("nkp,np->nk", sampled, y[:, j].reshape(N, -1)).double()
+        gram += torch.bmm(sampled, sampled.transpose(1, 2)).double()
+        del sampled
+    ridge = 1e-9 * torch.diagonal(gram, dim1=1, dim2=2).mean(-1).clamp_min(1e-300)
+    gram += ridge[:, None, None] * torch.eye(K, dtype=torch.float64)
+    return torch.linalg.solve(gram, rhs[..., None])[..., 0].float()
+
+
+def _orthonormal(
+    C: torch.Tensor, B: torch.Tensor, keep: np.ndarray, N_all: int, decomposition: Decomposition
+) -> Decomposition:
+    """C·B rewritten as an orthonormal basis and its (N_all, K) coefficients (zeros for nodes not in ``keep``)."""
+    K, J, hS, wS = B.shape
+    # back to an orthonormal basis: C·B = Q·R·B, SVD of R·B
+    Q, R = torch.linalg.qr(C.double())
+    U, s, Vt = torch.linalg.svd(R @ B.reshape(K, -1).double(), full_matrices=False)
+    basis = Vt.reshape(K, J, hS, wS).float().numpy()
+    coefficients = np.zeros((N_all, K), np.float32)
+    coefficients[keep] = (Q @ (U * s)).float().numpy()
+    singular = s.numpy()
+    return Decomposition(
+        basis=basis,
+        coefficients=coefficients,
+        singular_values=singular,
+        nmse=decomposition.nmse,
+        nmse_per_psf=decomposition.nmse_per_psf,
+    )
+
+
 def neighbourhoods(foci_px: np.ndarray, depth: np.ndarray, within_px: float = DITHER_PX) -> list[np.ndarray]:
     """Per node, the nodes (itself first) at its ``depth`` (N,) whose foci ``foci_px`` (N, J, 2)
     all lie within ``within_px`` of its own: the same focus shape, moved by a sub-pixel dither."""
@@ -152,6 +322,11 @@ def neighbourhoods(foci_px: np.ndarray, depth: np.ndarray, within_px: float = DI
         near = np.flatnonzero((depth == depth[n]) & (apart <= within_px))
         out.append(np.concatenate([[n], near[near != n]]))
     return out
+
+
+def has_dithers(foci_px: np.ndarray, depth: np.ndarray, within_px: float = DITHER_PX) -> bool:
+    """Whether any node of the scan has a sub-pixel dither (:func:`neighbourhoods` of more than one)."""
+    return any(len(group) > 1 for group in neighbourhoods(foci_px, depth, within_px))
 
 
 def local_epsf_crops(
@@ -236,7 +411,7 @@ def _solve_neighbourhoods(
         )
 
     rhs = torch.zeros(shape).index_add_(0, owner, sampler.adjoint(torch.as_tensor(y), members))
-    return _batched_cg(normal, rhs, steps).numpy()
+    return _cg(normal, rhs, torch.zeros_like(rhs), steps, dims=(1, 2)).numpy()
 
 
 def _phase_spread(P: torch.Tensor, S: int) -> torch.Tensor:
@@ -246,21 +421,3 @@ def _phase_spread(P: torch.Tensor, S: int) -> torch.Tensor:
     sums = P.reshape(G, hS // S, S, wS // S, S).sum((1, 3))  # (G, S, S)
     spread = sums - sums.mean((1, 2), keepdim=True)
     return spread[:, None, :, None, :].expand(G, hS // S, S, wS // S, S).reshape(G, hS, wS)
-
-
-def _batched_cg(normal, rhs: torch.Tensor, steps: int) -> torch.Tensor:
-    """``steps`` conjugate-gradient iterations from zero on independent systems normal(X) = rhs
-    stacked along the first axis (each with its own step lengths)."""
-    X = torch.zeros_like(rhs)
-    r = rhs.clone()
-    p = r.clone()
-    rr = (r * r).sum((1, 2), keepdim=True)
-    for _ in range(steps):
-        Ap = normal(p)
-        alpha = rr / (p * Ap).sum((1, 2), keepdim=True).clamp_min(1e-30)
-        X += alpha * p
-        r -= alpha * Ap
-        rr_new = (r * r).sum((1, 2), keepdim=True)
-        p = r + (rr_new / rr.clamp_min(1e-30)) * p
-        rr = rr_new
-    return X

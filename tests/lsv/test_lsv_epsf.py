@@ -10,7 +10,7 @@ from test_lsv_operators import SENSOR, _inner, synthetic_model
 
 from cm2optics.emission.epsf import epsf_from_subsamples
 from cm2optics.lsv.epsf import place_epsf, sampling_matrix
-from cm2optics.lsv.epsf_estimate import _Sampler, local_epsf_crops, neighbourhoods, phase_coverage
+from cm2optics.lsv.epsf_estimate import _Sampler, has_dithers, local_epsf_crops, neighbourhoods, phase_coverage
 from cm2optics.lsv.model import LSVModel, load_model
 
 S = 4
@@ -170,6 +170,7 @@ def test_neighbourhoods_pool_the_sub_pixel_dithers_of_a_node_at_its_depth():
     assert sorted(groups[5]) == [4, 5, 6, 7] and groups[5][0] == 5
     assert sorted(groups[9]) == [8, 9, 10, 11]  # the same foci at the other depth: not pooled
     assert [list(g) for g in neighbourhoods(foci, depth, within_px=0.0)] == [[n] for n in range(16)]
+    assert has_dithers(foci, depth) and not has_dithers(foci[::4], depth[::4])  # one frame per node: none
 
 
 def test_local_epsf_of_dithered_frames_is_the_pixel_integrated_focus():
@@ -203,16 +204,34 @@ def small_analytic_scan(v2, tmp_path_factory):
 def test_build_estimates_an_epsf_basis_from_whole_pixel_frames(small_analytic_scan, v2):
     from cm2optics.lsv.build import build_model
 
-    result = build_model(small_analytic_scan, rank=8, design=v2, oversample=2, estimate_options={"cg_steps": 10})
+    result = build_model(
+        small_analytic_scan, rank=8, design=v2, oversample=2, estimate_options={"iterations": 2, "cg_steps": 5}
+    )
     model = result.model
     assert model.oversample == 2 and model.basis.shape[2:] == tuple(2 * s for s in model.patch_shape)
     epsf = model.provenance["epsf"]
-    assert epsf["source"] == "estimated from the whole-pixel frames"
+    assert epsf["source"] == "estimated from the whole-pixel frames"  # no dithers: the joint fit
     assert 0 < epsf["phase_coverage"]["min_bins_visited"] <= 1
-    estimate = epsf["estimate"]  # 1-mm nodes, not dithered: every node on its own
-    assert estimate["nodes_per_neighbourhood"] == {"min": 1, "median": 1.0}
-    assert estimate["phase_bins_per_neighbourhood"]["min"] == 1
+    misfit = epsf["estimate"]["pixel_misfit_nmse_per_iteration"]
+    assert misfit[-1] < misfit[0]
     # an in-focus unit source on the axis still images to a total of 1
+    assert model.point_image(0.0, 0.0, 0.0).sum() == pytest.approx(1.0, rel=0.05)
+
+
+def test_build_pools_each_nodes_sub_pixel_dithers(v2, tmp_path):
+    from cm2optics.lsv.build import build_model
+    from cm2optics.lsv.toy import AnalyticCM2, write_analytic_scan
+
+    analytic = AnalyticCM2.from_design(v2, binning=8, sigma0_um=12.0)
+    axis = np.array([-1.0, -0.99, 0.0, 0.01, 1.0, 1.01])  # nodes 1 mm apart, dithered by 10 µm (≈ ⅓ px)
+    scan = write_analytic_scan(
+        tmp_path / "scan", analytic, axis, axis, np.array([-0.2, 0.0, 0.2]), binning=8, noise=False
+    )
+    model = build_model(scan, rank=8, design=v2, oversample=2, estimate_options={"cg_steps": 10}).model
+    epsf = model.provenance["epsf"]
+    assert epsf["source"].endswith("each node and its sub-pixel dithers")
+    assert epsf["estimate"]["nodes_per_neighbourhood"] == {"min": 4, "median": 4.0}
+    assert model.basis.shape[2:] == tuple(2 * s for s in model.patch_shape)
     assert model.point_image(0.0, 0.0, 0.0).sum() == pytest.approx(1.0, rel=0.05)
 
 
