@@ -29,7 +29,9 @@ depths ``--patch-axial-mm`` apart around the focal plane (``cm2 psf simulate --p
 patch off the axis gets the column x = 0 and row y = 0 as well, from which the build fits the
 geometry: the foci of a point 3 mm off the axis are not all on the sensor) and
 draws the emitters inside the patch's central half (x, y uniform, z uniform over the inner 80 % of
-the depths), one group; ``X,Y,Z`` centres its depths on Z (z = 0 is added for the geometry fit). ``--extra-model NAME=PATH`` (repeatable) compares further models (e.g.
+the depths), one group; ``X,Y,Z`` centres its depths on Z (z = 0 is added for the geometry fit).
+An existing patch scan is reused with ``--scan`` and the same patch options (they draw the
+emitters); a model file already in ``OUT/binB/`` (e.g. linked from an earlier run) is not rebuilt. ``--extra-model NAME=PATH`` (repeatable) compares further models (e.g.
 one from the full-field scan) on the same emitters.
 
     python benchmarks/bench_lsv_heldout.py --binning 2 --grid 9x9x11 --out /tmp/heldout
