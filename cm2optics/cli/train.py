@@ -191,6 +191,11 @@ def net_testset_command(
     )
     keys = ("recall", "precision", "f1", "rmse_lateral_um", "rmse_axial_um", "seconds_per_volume", "threshold")
     shown = {name: {k: run.get(k) for k in keys} for name, run in summary["runs"].items()}
+    shown |= {
+        f"{name} at its operating threshold": {k: run["at_operating_threshold"].get(k) for k in keys}
+        for name, run in summary["runs"].items()
+        if run.get("at_operating_threshold")
+    }
     typer.echo(json.dumps(shown, indent=1 if not as_json else 2, default=str))
 
 

@@ -87,7 +87,9 @@ class NetConfig:
     Adam and ReduceLROnPlateau on the validation loss; alpha_demix, alpha_volume: loss weights;
     volume_loss: ``bce``, ``weighted-bce`` (weight 1 + (pos_weight − 1)·target) or ``focal``
     (γ = focal_gamma); border_px: patch margin left out of the volume loss (−1: the largest
-    refocusing shift); detect_threshold: the validation's detection threshold on the sigmoid output.
+    refocusing shift); detect_threshold: the validation's detection threshold on the sigmoid output
+    (also the inference's default for weights that carry no operating threshold chosen on validation
+    volumes, :mod:`~cm2optics.recon.net.operating`).
 
     Start — init_weights: a weights folder whose learned tensors the run starts from (fine-tuning
     on another forward model: the refocusing comes from this config's model, see

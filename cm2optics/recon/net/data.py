@@ -43,6 +43,7 @@ __all__ = [
     "pixel_voxel_um",
     "sensor_window",
     "validation_items",
+    "validation_volumes",
 ]
 
 #: Offset between the training and validation data seeds.
@@ -320,3 +321,15 @@ def validation_items(config: NetConfig) -> list[Item]:
     return [
         Item(seed, v, k, density) for v in range(config.val_volumes) for k in range(config.synth.patches_per_volume)
     ]
+
+
+def validation_volumes(config: NetConfig, n_volumes: int):
+    """The first ``n_volumes`` full-field validation volumes (the run's validation seed, never a
+    test set's) imaged through the config's forward model: yields ``(sample, imaging)``."""
+    from cm2optics.synth.generate import synthesize_sample
+
+    imaging = forward_imaging(config)
+    synth = config.synth.with_changes(view_px=0, patch_px=0, patches_per_volume=0, store_volume=False)
+    seed = config.seed + VALIDATION_SEED_OFFSET
+    for index in range(n_volumes):
+        yield synthesize_sample(synth, imaging, index, seed), imaging

@@ -186,7 +186,8 @@ def reconstruct_with_net(
     weights: a weights folder (or :func:`load_weights`' result). model: the forward model (a
     3D-LSV model or its file, or an operator with chief rays; None: the one the weights were
     trained through, on its whole sensor). preprocess: ``none``, ``max`` or
-    ``histogram``. threshold: detection threshold on [0, 1] (default: the config's).
+    ``histogram``. threshold: detection threshold on [0, 1] (default: the weights' operating
+    threshold, chosen on validation volumes, else the config's).
     view_px: side of the views (default: the training views'). name: how errors call the input.
     lateral: the output planes' lateral correction (default: the one stored with the weights,
     none if they carry none; :mod:`~cm2optics.recon.net.lateral`). grid: the output grid, centred
@@ -235,7 +236,7 @@ def reconstruct_with_net(
     )
     from cm2optics.metrics import detect_emitters
 
-    threshold = config.detect_threshold if threshold is None else float(threshold)
+    threshold = loaded.threshold if threshold is None else float(threshold)
     emitters = detect_emitters(volume, grid, threshold)
     t3 = time.perf_counter()
     return NetResult(

@@ -157,19 +157,13 @@ def calibrate_weights(
     previous one (a large error can miss the matching gate). Returns the correction and the
     lateral RMSE (µm) of the matched pairs before and after."""
     from cm2optics.metrics.match import match_emitters
-    from cm2optics.recon.net.data import VALIDATION_SEED_OFFSET, forward_imaging
+    from cm2optics.recon.net.data import validation_volumes
     from cm2optics.recon.net.infer import reconstruct_with_net
     from cm2optics.recon.net.weights import load_weights, store_metadata
-    from cm2optics.synth.generate import synthesize_sample
 
     loaded = load_weights(folder)
-    config = loaded.config
-    imaging = forward_imaging(config)
-    synth = config.synth.with_changes(view_px=0, patch_px=0, patches_per_volume=0, store_volume=False)
-    seed = config.seed + VALIDATION_SEED_OFFSET
     runs = []
-    for index in range(n_volumes):
-        sample = synthesize_sample(synth, imaging, index, seed, need_volume=False)
+    for index, (sample, imaging) in enumerate(validation_volumes(loaded.config, n_volumes)):
         result = reconstruct_with_net(
             sample.measurement, loaded, imaging.source, threshold=threshold, lateral=LateralCorrection()
         )

@@ -5,7 +5,8 @@
     weights/
       model.safetensors   the state dict (refocusing planes and shifts included as buffers);
                           metadata: format, config hash, reference histogram for inference,
-                          lateral correction of the output planes (once fitted)
+                          lateral correction of the output planes (once fitted), operating
+                          threshold chosen on validation volumes (once chosen)
       config.yaml         the NetConfig that built it
       MODEL_CARD.md       data, training, metrics, geometry, intended use, limitations
       SHA256SUMS          SHA-256 of the two files above and of any shipped forward model
@@ -36,6 +37,8 @@ from cm2optics.recon.net.config import ConfigError, NetConfig, load_config
 from cm2optics.recon.net.lateral import METADATA_KEY as LATERAL_KEY
 from cm2optics.recon.net.lateral import LateralCorrection
 from cm2optics.recon.net.model import CM2Net
+from cm2optics.recon.net.operating import METADATA_KEY as OPERATING_KEY
+from cm2optics.recon.net.operating import OperatingThreshold
 from cm2optics.recon.net.refocus import RefocusPlanes
 
 __all__ = [
@@ -88,6 +91,12 @@ class LoadedNet:
     histogram: np.ndarray | None  # reference quantiles of training views (for histogram matching)
     metadata: dict[str, str]
     lateral: LateralCorrection | None = None  # the output planes' lateral correction, if fitted
+    operating: OperatingThreshold | None = None  # the detection threshold chosen on validation, if chosen
+
+    @property
+    def threshold(self) -> float:
+        """The default detection threshold: the operating one if chosen, else the config's."""
+        return self.operating.threshold if self.operating is not None else self.config.detect_threshold
 
     @property
     def planes(self) -> RefocusPlanes:
@@ -282,7 +291,11 @@ def load_weights(folder: str | Path, device: str = "cpu") -> LoadedNet:
         lateral = LateralCorrection.from_json(metadata[LATERAL_KEY]) if LATERAL_KEY in metadata else None
     except (ValueError, KeyError, TypeError) as error:
         raise WeightsError(f"{path}: unreadable {LATERAL_KEY} metadata ({error})") from None
-    return LoadedNet(net, config, folder, histogram, metadata, lateral)
+    try:
+        operating = OperatingThreshold.from_json(metadata[OPERATING_KEY]) if OPERATING_KEY in metadata else None
+    except (ValueError, KeyError, TypeError) as error:
+        raise WeightsError(f"{path}: unreadable {OPERATING_KEY} metadata ({error})") from None
+    return LoadedNet(net, config, folder, histogram, metadata, lateral, operating)
 
 
 def net_from_tensors(config: NetConfig, tensors: dict, where: str, config_name: str = CONFIG_FILE) -> CM2Net:
