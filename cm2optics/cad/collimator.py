@@ -90,11 +90,10 @@ def _section(profile: CollimatorProfile, filled: bool = False) -> cq.Workplane:
             .spline(_spline_points(lens)[1:], tangents=lens_tangents, includeCurrent=True)
             .lineTo(a, g)
         )
-    sketch = (
-        sketch.lineTo(profile.outer_radius_entry_mm, g)
-        .lineTo(*tir[0])
-        .spline(_spline_points(tir)[1:], tangents=_end_tangents(tir), includeCurrent=True)
-    )
+    sketch = sketch.lineTo(profile.outer_radius_entry_mm, g)
+    if np.hypot(tir[0, 0] - profile.outer_radius_entry_mm, tir[0, 1] - g) > 1e-9:
+        sketch = sketch.lineTo(*tir[0])  # the wall's tangent below the mouth ray (none when led_gap_mm = 0)
+    sketch = sketch.spline(_spline_points(tir)[1:], tangents=_end_tangents(tir), includeCurrent=True)
     if profile.flange_bottom_z_mm - z_end > 1e-6:
         sketch = sketch.lineTo(r_end, profile.flange_bottom_z_mm)
     return sketch.lineTo(r_end, profile.exit_z_mm).close()

@@ -334,6 +334,15 @@ def optimize(
             "freeform terms (--freeform) of the design given.",
         ),
     ] = False,
+    cone_wall: Annotated[
+        bool,
+        typer.Option(
+            "--cone-wall",
+            help="Sweep the profile with a prescribed TIR wall (collimator.tir_cone_deg, "
+            "tir_cone_curvature_per_mm, tir_max_radius_mm) around a cavity that encloses the LED at its mouth "
+            "(led_gap_mm 0–0.1), instead of the wall designed for the LED's centre.",
+        ),
+    ] = False,
     led_profile: LedProfileOption = None,
     led_spectrum: LedSpectrumOption = None,
     filter_table: FilterTableOption = None,
@@ -384,6 +393,8 @@ def optimize(
         return
     if fixed_profile and not (free_aim or freeform):
         raise UserError("--fixed-profile leaves nothing to sweep: add --free-aim and/or --freeform")
+    if fixed_profile and cone_wall:
+        raise UserError("--cone-wall sweeps the profile: it cannot go with --fixed-profile")
     design = load_preset(preset)
     check_dask_address(dask_address)
     output_folder(out_dir, "illum optimize", inputs=[preset, *[f for f in files if f]], overwrite=overwrite)
@@ -400,6 +411,7 @@ def optimize(
         inputs=inputs,
         freeform=freeform,
         fixed_profile=fixed_profile,
+        cone_wall=cone_wall,
     )
     summary = {k: v for k, v in result.items() if k != "candidates"}  # every candidate is in sweep.json
     _echo_optimized(

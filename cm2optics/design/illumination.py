@@ -65,6 +65,17 @@ class Collimator:
         normalisation, over the cavity radius) of a sag added to the lens, µm: the lens departs
         from revolution (:mod:`cm2optics.optics.freeform`); empty (the default, left out of the
         YAML) or all zero: the revolved part.
+    tir_max_radius_mm: radius at which the TIR wall stops, mm (the authors' architecture: their
+        wall ends at r ≈ 1.9 mm): the rays meant for the wall above it are not collimated, they
+        cross the side and flange unreflected; 0 (the default, left out of the YAML): the whole
+        wall, which must then fit inside the footprint.
+    tir_cone_deg, tir_cone_curvature_per_mm: a TIR wall of prescribed shape instead of the
+        designed one (0°, the default, left out of the YAML: the wall designed for the LED's
+        centre): ``r(z) = a + entry_wall_mm + tan(β) (z − g) + κ (z − g)² / 2`` from the entry
+        plane (β the cone's half-angle, degrees; κ its change of slope, 1/mm) up to
+        ``tir_max_radius_mm`` or the flange. The designed wall collimates a point source but
+        needs r ≈ 2.3–3.3 mm once the cavity encloses the 1-mm emitter; a cone of ≈ 30° inside
+        the 4-mm footprint is what the authors' part does. The lens's rays keep their design.
     """
 
     material: Material
@@ -81,6 +92,9 @@ class Collimator:
     lens_exponent: float
     tir_exponent: float
     lens_freeform_um: tuple[float, ...] = ()
+    tir_max_radius_mm: float = 0.0
+    tir_cone_deg: float = 0.0
+    tir_cone_curvature_per_mm: float = 0.0
 
     @property
     def is_freeform(self) -> bool:
@@ -114,6 +128,27 @@ class Collimator:
             list(self.lens_freeform_um),
             len(self.lens_freeform_um) <= 28 and all(abs(c) <= 200.0 for c in self.lens_freeform_um),
             "at most 28 Zernike coefficients (Noll j = 1–28), each within ±200 µm",
+        )
+        non_negative(self, "tir_max_radius_mm")
+        check(
+            "tir_max_radius_mm",
+            self.tir_max_radius_mm,
+            self.tir_max_radius_mm == 0.0
+            or self.cavity_radius_mm + self.entry_wall_mm < self.tir_max_radius_mm < self.footprint_mm / 2,
+            f"0 (the whole wall) or between cavity_radius_mm + entry_wall_mm = "
+            f"{self.cavity_radius_mm + self.entry_wall_mm} and footprint_mm/2 = {self.footprint_mm / 2}",
+        )
+        check(
+            "tir_cone_deg",
+            self.tir_cone_deg,
+            self.tir_cone_deg == 0.0 or (5.0 <= self.tir_cone_deg <= 60.0 and self.tir_spread_deg == 0.0),
+            "0 (the designed wall) or 5–60° with tir_spread_deg = 0 (a cone has no ray mapping to shape)",
+        )
+        check(
+            "tir_cone_curvature_per_mm",
+            self.tir_cone_curvature_per_mm,
+            self.tir_cone_deg != 0.0 or self.tir_cone_curvature_per_mm == 0.0,
+            "needs tir_cone_deg > 0",
         )
 
 

@@ -269,6 +269,11 @@ class SystemDesign:
             del data["led_array"]["aim_mm"]
         if self.collimator is not None and not self.collimator.is_freeform:
             del data["collimator"]["lens_freeform_um"]  # a revolved lens keeps old files and hashes
+        if self.collimator is not None and self.collimator.tir_max_radius_mm == 0.0:
+            del data["collimator"]["tir_max_radius_mm"]  # the whole TIR wall keeps old files and hashes
+        if self.collimator is not None and self.collimator.tir_cone_deg == 0.0:
+            del data["collimator"]["tir_cone_deg"]  # so does the designed wall
+            del data["collimator"]["tir_cone_curvature_per_mm"]
         changed = self.as_built.changed()
         if changed:
             data["as_built"] = changed

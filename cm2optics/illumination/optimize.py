@@ -72,6 +72,22 @@ PARAMETERS: dict[str, tuple[float, float]] = {
     "collimator.lens_exponent": (0.2, 0.6),
     "collimator.tir_exponent": (0.2, 0.6),
 }
+#: The profile swept with ``cone_wall``: the LED at (or just under) the cavity mouth, a cavity
+#: that encloses the 1-mm emitter (half-diagonal 0.707 mm) and the prescribed TIR wall
+#: (:attr:`cm2optics.design.Collimator.tir_cone_deg`) stopping at ``tir_max_radius_mm``; the lens's
+#: mapping as in :data:`PARAMETERS`, the wall's sub-beam unshaped (``tir_spread_deg`` 0).
+CONE_PARAMETERS: dict[str, tuple[float, float]] = {
+    "collimator.lens_half_angle_deg": (20.0, 40.0),
+    "collimator.cavity_radius_mm": (0.72, 0.9),
+    "collimator.led_gap_mm": (0.0, 0.1),
+    "collimator.entry_wall_mm": (0.41, 0.6),
+    "collimator.height_mm": (1.8, 2.6),
+    "collimator.lens_spread_deg": (0.0, 20.0),
+    "collimator.lens_exponent": (0.2, 0.6),
+    "collimator.tir_cone_deg": (20.0, 45.0),
+    "collimator.tir_cone_curvature_per_mm": (-0.5, 0.3),
+    "collimator.tir_max_radius_mm": (1.6, 1.95),
+}
 #: The units' placement, swept with ``free_aim``: tilt, aperture offset, aim point on the focal
 #: plane (:attr:`cm2optics.design.LEDArray.aim_mm`) and the array's azimuth against the square
 #: imaging tower (mm, degrees). A candidate whose units enter the tower, reach below its flange
@@ -95,11 +111,15 @@ CONFIRMED = 4
 SWEEP_SEGMENTS = 128
 
 
-def search_box(free_aim: bool, freeform: bool = False, fixed_profile: bool = False) -> dict[str, tuple[float, float]]:
-    """The swept parameters and their ranges: the collimator's profile (unless ``fixed_profile``),
-    the units' placement with ``free_aim``, the lens's Zernike terms with ``freeform``."""
+def search_box(
+    free_aim: bool, freeform: bool = False, fixed_profile: bool = False, cone_wall: bool = False
+) -> dict[str, tuple[float, float]]:
+    """The swept parameters and their ranges: the collimator's profile (unless ``fixed_profile``;
+    :data:`CONE_PARAMETERS` with ``cone_wall``), the units' placement with ``free_aim``, the
+    lens's Zernike terms with ``freeform``."""
+    profile = CONE_PARAMETERS if cone_wall else PARAMETERS
     return {
-        **({} if fixed_profile else PARAMETERS),
+        **({} if fixed_profile else profile),
         **(AIM_PARAMETERS if free_aim else {}),
         **(FREEFORM_PARAMETERS if freeform else {}),
     }
@@ -121,6 +141,8 @@ def _changes(values: dict[str, float], design: SystemDesign) -> dict[str, Any]:
             changes[name] = float(value)
     if any(name in values for name in PARAMETERS):
         changes["collimator.tir_crossing"] = True
+    if "collimator.tir_cone_deg" in values:
+        changes["collimator.tir_spread_deg"] = 0.0  # a prescribed wall has no ray mapping
     gap = changes.get("collimator.led_gap_mm")
     height = changes.get("collimator.height_mm")
     if gap is not None and height is not None:
@@ -262,6 +284,7 @@ def optimize_collimator(
     inputs: tuple[str | None, str | None, str | None] = (None, None, None),
     freeform: bool = False,
     fixed_profile: bool = False,
+    cone_wall: bool = False,
 ) -> dict[str, Any]:
     """Run the sweep (see the module docstring) and write ``design.yaml``, ``collimator.stl``,
     ``collimator.step``, ``irradiance.png`` and ``sweep.json`` into ``out_dir``; returns the
@@ -275,6 +298,7 @@ def optimize_collimator(
     freeform: sweep the lens's Zernike terms too (:data:`FREEFORM_PARAMETERS`).
     fixed_profile: keep the design's profile (:data:`PARAMETERS` not swept): refine its
         placement and/or freeform terms.
+    cone_wall: sweep the profile with the prescribed TIR wall (:data:`CONE_PARAMETERS`).
     inputs: paths of the LED's angular profile, spectrum and the excitation filter's coating
     table (each None: the design's model), used by every trace and by the bounds.
     """
@@ -288,7 +312,7 @@ def optimize_collimator(
     candidates: list[dict[str, Any]] = []
     start = time.perf_counter()
     try:
-        box = search_box(free_aim, freeform, fixed_profile)
+        box = search_box(free_aim, freeform, fixed_profile, cone_wall)
         if not box:
             raise ValueError("nothing to sweep: a fixed profile needs free aim and/or freeform terms")
         _sweep(client, base, box, candidates, rays, max_cv, samples, rounds, seed, threads, show_progress, inputs)

@@ -28,6 +28,10 @@ The section, from the LED upwards:
   holds while ``ψ < 180° − 2 θ_c``; the margin is smallest for the mouth ray;
 * below the mouth ray's point the outer surface continues along its tangent down to the entry
   plane, where it starts ``entry_wall_mm`` outside the cavity (the thinnest printed wall);
+* with ``tir_max_radius_mm`` the wall stops at that radius (the rays meant for its upper part
+  cross the side unreflected); with ``tir_cone_deg`` it is not designed but prescribed,
+  ``r = a + w + tan β (z − g) + κ (z − g)²/2`` (:func:`cone_wall`): the designed wall collimates
+  the LED's centre but outgrows a 4-mm footprint once the cavity encloses the 1-mm emitter;
 * above the lens-edge ray's point it continues as a cylinder up to the square flange
   (``footprint_mm`` × ``footprint_mm`` × ``flange_mm``) whose top is the flat exit face at
   ``z = g + height_mm``. Collimated rays cross the exit face at normal incidence.
@@ -69,6 +73,7 @@ __all__ = [
     "enclosed_profile",
     "Surface",
     "collimator_profile",
+    "cone_wall",
     "profile_from_parameters",
     "trace_meridional",
 ]
@@ -245,6 +250,36 @@ def _tir_surface(a: float, g: float, z_lens_edge: float, n: float, entry_wall: f
     return points, np.column_stack([ur, uz])
 
 
+def cone_wall(collimator: Collimator, n: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The prescribed TIR wall ``r(z) = a + w + tan β (z − g) + κ (z − g)²/2`` (mm) of
+    ``collimator`` (``tir_cone_deg`` β, ``tir_cone_curvature_per_mm`` κ) from the entry plane
+    up to ``tir_max_radius_mm`` or the flange's underside, with — for each point — the LED
+    angle of the ray from the LED's centre that meets it after crossing the cavity wall (rad,
+    clipped to the rays that cross it) and that ray's margin beyond the critical angle (degrees)."""
+    a, g = collimator.cavity_radius_mm, collimator.led_gap_mm
+    top = collimator.height_mm - collimator.flange_mm
+    slope0, kappa = math.tan(math.radians(collimator.tir_cone_deg)), collimator.tir_cone_curvature_per_mm
+    rise = np.linspace(0.0, top, 801)
+    r = a + collimator.entry_wall_mm + slope0 * rise + 0.5 * kappa * rise**2
+    slope = slope0 + kappa * rise
+    r, z, slope = _truncated_wall(np.column_stack([r, g + rise, slope]), collimator.tir_max_radius_mm).T
+    if np.any(slope <= 0.0):
+        raise DesignError("collimator.tir_cone_curvature_per_mm", kappa, "the cone wall turns inwards before its end")
+    # The ray crossing the cavity wall at z_w travels along u = (u_r, u_z), u_z = z_w / (n ρ):
+    # it meets the radius r at z_w + (r − a) u_z / u_r, increasing with z_w.
+    theta_max = math.atan2(a, g)
+    z_w = g + (a / math.tan(math.radians(collimator.lens_half_angle_deg)) - g) * np.linspace(0.0, 1.0, 2001)
+    uz = z_w / (n * np.hypot(a, z_w))
+    ur = np.sqrt(1.0 - uz**2)
+    reach = z_w[None, :] + (r[:, None] - a) * (uz / ur)[None, :]
+    k = np.clip(np.argmax(reach >= z[:, None], axis=1), 0, len(z_w) - 1)
+    k[reach[:, -1] < z] = len(z_w) - 1
+    theta = np.minimum(np.arctan2(a, z_w[k]), theta_max)
+    normal = np.column_stack([np.ones_like(slope), -slope]) / np.hypot(1.0, slope)[:, None]
+    incidence = np.arccos(np.clip(np.abs(ur[k] * normal[:, 0] + uz[k] * normal[:, 1]), 0.0, 1.0))
+    return r, z, theta, np.degrees(incidence - math.asin(1.0 / n))
+
+
 def profile_from_parameters(collimator: Collimator, wavelength_nm: float, samples: int = 401) -> CollimatorProfile:
     """Compute the profile of ``collimator`` for light of ``wavelength_nm``.
 
@@ -286,16 +321,20 @@ def profile_from_parameters(collimator: Collimator, wavelength_nm: float, sample
     lens_r[-1], lens_z[-1] = a, lens_edge  # exact closure on the cavity wall
 
     theta_max = math.atan2(a, g)
-    tir_theta = np.linspace(theta_max, theta_lens, samples)
-    wall_z = a / np.tan(tir_theta)
-    wall_z[0], wall_z[-1] = g, lens_edge
-    tir, u = _tir_surface(a, g, lens_edge, n, collimator.entry_wall_mm, wall_z)
-    # Incidence on the TIR surface: half the deflection from u to +z is 90° − ψ/2.
-    incidence = math.pi / 2 - np.arccos(u[:, 1]) / 2
-    margin = np.degrees(incidence - math.asin(1.0 / n))
+    if collimator.tir_cone_deg > 0.0:
+        tir_r, tir_z, tir_theta, margin = cone_wall(collimator, n)
+    else:
+        tir_theta = np.linspace(theta_max, theta_lens, samples)
+        wall_z = a / np.tan(tir_theta)
+        wall_z[0], wall_z[-1] = g, lens_edge
+        tir, u = _tir_surface(a, g, lens_edge, n, collimator.entry_wall_mm, wall_z)
+        tir_r, tir_z = tir[:, 0], tir[:, 1]
+        # Incidence on the TIR surface: half the deflection from u to +z is 90° − ψ/2.
+        incidence = math.pi / 2 - np.arccos(u[:, 1]) / 2
+        margin = np.degrees(incidence - math.asin(1.0 / n))
 
     return enclosed_profile(
-        collimator, n, wavelength_nm, (lens_r, lens_z), (tir[:, 0], tir[:, 1]), tir_theta, theta_max, margin
+        collimator, n, wavelength_nm, (lens_r, lens_z), (tir_r, tir_z), tir_theta, theta_max, margin
     )
 
 
@@ -320,7 +359,8 @@ def enclosed_profile(
     """
     a, g = collimator.cavity_radius_mm, collimator.led_gap_mm
     lens_r, lens_z = lens
-    tir_r, tir_z = tir
+    wall = np.column_stack([*tir, tir_theta, margin_deg])
+    tir_r, tir_z, tir_theta, margin_deg = _truncated_wall(wall, collimator.tir_max_radius_mm).T
     vertex, lens_edge = float(lens_z[0]), float(lens_z[-1])
     exit_z = g + collimator.height_mm
     flange_bottom = exit_z - collimator.flange_mm
@@ -366,6 +406,18 @@ def enclosed_profile(
         min_tir_margin_deg=float(margin_deg.min()),
         min_wall_mm=min(collimator.entry_wall_mm, exit_z - vertex, collimator.flange_mm),
     )
+
+
+def _truncated_wall(wall: np.ndarray, max_radius_mm: float) -> np.ndarray:
+    """The TIR wall's samples (rows of r, z in mm, then any per-sample quantities) up to where
+    it reaches ``max_radius_mm``, its last row interpolated linearly onto that radius; the whole
+    wall when ``max_radius_mm`` is 0 or not reached."""
+    beyond = np.flatnonzero(wall[:, 0] >= max_radius_mm) if max_radius_mm > 0.0 else []
+    if len(beyond) == 0 or beyond[0] == 0:
+        return wall
+    k = int(beyond[0])
+    t = (max_radius_mm - wall[k - 1, 0]) / (wall[k, 0] - wall[k - 1, 0])
+    return np.vstack([wall[:k], wall[k - 1] + t * (wall[k] - wall[k - 1])])
 
 
 def collimator_profile(design: SystemDesign, samples: int = 401) -> CollimatorProfile:

@@ -41,7 +41,7 @@ from scipy.integrate import solve_ivp
 
 from cm2optics.design import Collimator, DesignError
 from cm2optics.design.materials import refractive_index
-from cm2optics.optics.collimator import CollimatorProfile, enclosed_profile
+from cm2optics.optics.collimator import CollimatorProfile, cone_wall, enclosed_profile
 
 __all__ = ["shaped_profile"]
 
@@ -68,7 +68,10 @@ def shaped_profile(collimator: Collimator, wavelength_nm: float, samples: int = 
             "must be below the cavity mouth's ray angle",
         )
     lens_r, lens_z = _lens_curve(collimator, n, theta_l, samples)
-    tir_r, tir_z, tir_theta, margin = _tir_wall_curve(collimator, n, theta_l, theta_max, float(lens_z[-1]), samples)
+    if collimator.tir_cone_deg > 0.0:
+        tir_r, tir_z, tir_theta, margin = cone_wall(collimator, n)
+    else:
+        tir_r, tir_z, tir_theta, margin = _tir_wall_curve(collimator, n, theta_l, theta_max, float(lens_z[-1]), samples)
     return enclosed_profile(
         collimator, n, wavelength_nm, (lens_r, lens_z), (tir_r, tir_z), tir_theta, theta_max, margin
     )
