@@ -14,7 +14,7 @@ Saturated pixels and frames the caller excludes take no part.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import scipy.fft as sfft
@@ -95,47 +95,41 @@ def _correlation_offset(
     return (offset + size / 2) % size - size / 2
 
 
-@dataclass
 class _Sums:
-    """Sums over the valid pixels of the data d, the shifted model m (counts per unit flux) and
-    its gradients g_y, g_x, accumulated block by block in float64: what the linear fit of
-    scale and dark and the Gauss–Newton step of the offset need."""
+    """Sums over the valid pixels of products of the shifted model m (counts per unit flux), its
+    gradients g_y, g_x, the data d and 1: their Gram matrix, accumulated block by block in
+    float64 — what the linear fit of scale and dark and the Gauss–Newton step of the offset need."""
 
-    n: float = 0.0
-    m: float = 0.0
-    d: float = 0.0
-    mm: float = 0.0
-    md: float = 0.0
-    g: np.ndarray = field(default_factory=lambda: np.zeros(2))  # Σ g_y, Σ g_x
-    gg: np.ndarray = field(default_factory=lambda: np.zeros((2, 2)))  # Σ g_a g_b
-    gd: np.ndarray = field(default_factory=lambda: np.zeros(2))  # Σ g_a d
-    gm: np.ndarray = field(default_factory=lambda: np.zeros(2))  # Σ g_a m
+    M, GY, GX, D, ONE = range(5)
+
+    def __init__(self) -> None:
+        self.gram = np.zeros((5, 5))
 
     def add(self, data: np.ndarray, model: np.ndarray, valid: np.ndarray, gradients: bool) -> None:
-        d = data[valid].astype(np.float64)
-        m = model[valid].astype(np.float64)
-        self.n += float(m.size)
-        self.m += m.sum()
-        self.d += d.sum()
-        self.mm += m @ m
-        self.md += m @ d
+        rows = np.empty((5, int(np.count_nonzero(valid))))
+        rows[self.M] = model[valid]
         if gradients:
-            g = np.stack([gradient[valid] for gradient in np.gradient(model, axis=(-2, -1))]).astype(np.float64)
-            self.g += g.sum(axis=1)
-            self.gg += g @ g.T
-            self.gd += g @ d
-            self.gm += g @ m
+            gy, gx = np.gradient(model, axis=(-2, -1))
+            rows[self.GY], rows[self.GX] = gy[valid], gx[valid]
+        else:
+            rows[self.GY] = rows[self.GX] = 0.0
+        rows[self.D] = data[valid]
+        rows[self.ONE] = 1.0
+        self.gram += rows @ rows.T
 
     def scale_and_dark(self) -> tuple[float, float]:
         """Least-squares ``data ≈ dark + scale·model`` (normal equations)."""
-        scale = (self.n * self.md - self.m * self.d) / max(self.n * self.mm - self.m * self.m, 1e-30)
-        return float(scale), float((self.d - scale * self.m) / max(self.n, 1.0))
+        g, m, d, one = self.gram, self.M, self.D, self.ONE
+        n, sm, sd = g[one, one], g[m, one], g[d, one]
+        scale = (n * g[m, d] - sm * sd) / max(n * g[m, m] - sm * sm, 1e-30)
+        return float(scale), float((sd - scale * sm) / max(n, 1.0))
 
     def offset_step(self, scale: float, dark: float) -> np.ndarray:
         """The Gauss–Newton step of the offset (row, col) px given ``scale`` and ``dark``: the
         Jacobian of the model counts is −scale·g, the residual d − dark − scale·m."""
-        normal = scale**2 * self.gg
-        rhs = -scale * (self.gd - dark * self.g - scale * self.gm)
+        g, grad = self.gram, [self.GY, self.GX]
+        normal = scale**2 * g[np.ix_(grad, grad)]
+        rhs = -scale * (g[grad, self.D] - dark * g[grad, self.ONE] - scale * g[grad, self.M])
         return np.linalg.solve(normal + 1e-9 * np.trace(normal) * np.eye(2), rhs)
 
 

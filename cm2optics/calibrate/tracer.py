@@ -42,6 +42,7 @@ data's own flux scale against it.
 from __future__ import annotations
 
 import math
+import os
 from collections import OrderedDict
 from collections.abc import Callable, Iterator
 from concurrent.futures import ProcessPoolExecutor
@@ -393,15 +394,25 @@ def _rates_task(
     return simulator.rates(positions_mm, values), centres
 
 
+#: Niceness the tracing workers add to their own: the process that submitted them (the
+#: attribution, the analyses: the path every result waits on) keeps a core, the workers share the rest.
+WORKER_NICENESS = 5
+
+
 @contextmanager
 def tracing_pool(workers: int) -> Iterator[ProcessPoolExecutor | None]:
-    """``workers`` spawned worker processes for :func:`submit_rates` (None, and no process, for
-    ``workers`` ≤ 1; processes start with the first task submitted). On leaving, tasks not yet
-    started are dropped (an error does not wait for a whole scan's trace)."""
+    """``workers`` spawned worker processes for :func:`submit_rates`, at a lower priority than
+    this process (:data:`WORKER_NICENESS`) (None, and no process, for ``workers`` ≤ 1; processes
+    start with the first task submitted). On leaving, tasks not yet started are dropped (an
+    error does not wait for a whole scan's trace)."""
     if workers <= 1:
         yield None
         return
-    pool = ProcessPoolExecutor(workers, mp_context=get_context("spawn"))
+    # os.nice itself as the initializer: the workers' priority is lowered before they import
+    # anything (threads started later inherit it)
+    pool = ProcessPoolExecutor(
+        workers, mp_context=get_context("spawn"), initializer=os.nice, initargs=(WORKER_NICENESS,)
+    )
     try:
         yield pool
     finally:
