@@ -5,10 +5,13 @@
 1. the scan is read and checked against the design (sensor size at the scan's binning, pixel
    pitch, magnification within 10 %);
 2. the design is traced at a spread subset of the scan's positions (``fit_positions``; all of
-   them for small scans) and the attribution (:mod:`.attribute`) names the effects the
-   residual asks for, with values and uncertainties;
+   them for small scans), their frames are checked (magnification, saturated or empty frames)
+   and the attribution (:mod:`.attribute`) names the effects the residual asks for, with values
+   and uncertainties;
 3. the nominal and the corrected model are traced at every position and compared with the data
-   (:mod:`.residual`): NMSE and χ² before and after, per image and per focus;
+   (:mod:`.residual`): NMSE and χ² before and after, per image and per focus. With ``workers``
+   processes, the nominal trace runs beside the attribution and the corrected one beside the
+   analysis of the nominal: the process that waits on them keeps a core;
 4. what the effects leave unexplained, where the remaining misfit is above the noise, is
    described by its signature (lenslets, field, depths, share of the energy) instead of being
    forced into a physical fit.
