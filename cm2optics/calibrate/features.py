@@ -28,12 +28,12 @@ class FocusFeatures:
 
 
 def _windows(shape: tuple[int, int], centres: np.ndarray, half: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Row and col indices (N, J, w, w) of square windows, and which pixels lie on the frame."""
+    """Row indices (N, J, w, 1) and col indices (N, J, 1, w) of square windows (they broadcast to
+    the windows' pixels), and which pixels lie on the frame (N, J, w, w)."""
     offsets = np.arange(-half, half + 1)
     base = np.rint(centres).astype(int)
     rows = base[..., 0, None, None] + offsets[:, None]
     cols = base[..., 1, None, None] + offsets[None, :]
-    rows, cols = np.broadcast_arrays(rows, cols)
     inside = (rows >= 0) & (rows < shape[0]) & (cols >= 0) & (cols < shape[1])
     return np.clip(rows, 0, shape[0] - 1), np.clip(cols, 0, shape[1] - 1), inside
 
@@ -41,8 +41,9 @@ def _windows(shape: tuple[int, int], centres: np.ndarray, half: int) -> tuple[np
 def circular_windows(
     shape: tuple[int, int], centres: np.ndarray, radius_px: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Row and col indices (N, J, w, w) of windows around ``centres`` (N, J, 2) px, which of their
-    pixels lie within ``radius_px`` (N, J) and on the frame, and whether each whole circle does."""
+    """Row indices (N, J, w, 1) and col indices (N, J, 1, w) of windows around ``centres``
+    (N, J, 2) px, which of their pixels (N, J, w, w) lie within ``radius_px`` (N, J) and on the
+    frame, and whether each whole circle does."""
     half = int(np.ceil(np.nanmax(radius_px)))
     rows, cols, on_frame = _windows(shape, centres, half)
     distance = np.hypot(rows - centres[..., 0, None, None], cols - centres[..., 1, None, None])
@@ -82,17 +83,20 @@ def focus_features(signal: np.ndarray, centres: np.ndarray, radius_px: np.ndarra
 
 def window_features(values: np.ndarray, rows: np.ndarray, cols: np.ndarray, complete: np.ndarray) -> FocusFeatures:
     """The features of :func:`focus_features` from the window pixels themselves: ``values``
-    (N, J, w, w) signal above dark, 0 outside each circle; ``rows``, ``cols`` their pixel indices
-    and ``complete`` (N, J) whether each circle lies on the frame (:func:`circular_windows`)."""
-    energy = values.sum(axis=(-2, -1))
+    (N, J, w, w) signal above dark, 0 outside each circle; ``rows`` (N, J, w, 1), ``cols``
+    (N, J, 1, w) their pixel indices and ``complete`` (N, J) whether each circle lies on the
+    frame (:func:`circular_windows`). The moments are taken on the window's row and column sums."""
+    along_rows = values.sum(axis=-1)  # (N, J, w): the signal of each of the window's rows
+    along_cols = values.sum(axis=-2)
+    row_index, col_index = rows[..., :, 0], cols[..., 0, :]
+    energy = along_rows.sum(axis=-1)
     # moments of the signal as it is (noise below zero included), so that noise averages out
     # and data and model are measured alike
     with np.errstate(invalid="ignore", divide="ignore"):
-        row_c = (values * rows).sum(axis=(-2, -1)) / energy
-        col_c = (values * cols).sum(axis=(-2, -1)) / energy
-        second = (values * ((rows - row_c[..., None, None]) ** 2 + (cols - col_c[..., None, None]) ** 2)).sum(
-            axis=(-2, -1)
-        ) / energy
+        row_c = (along_rows * row_index).sum(axis=-1) / energy
+        col_c = (along_cols * col_index).sum(axis=-1) / energy
+        spread = (along_rows * (row_index - row_c[..., None]) ** 2).sum(axis=-1)
+        second = (spread + (along_cols * (col_index - col_c[..., None]) ** 2).sum(axis=-1)) / energy
     second = np.where(second > 0, second, np.nan)
     dark = ~complete | (energy <= 0)
     energy = np.where(complete, energy, np.nan)

@@ -62,9 +62,23 @@ def shift_spectra(spectra: np.ndarray, shape: tuple[int, int], offset_px: tuple[
     return sfft.irfft2(spectra * _ramp(shape, offset_px), s=shape, workers=-1)
 
 
-def _correlation_offset(data: np.ndarray, spectra: np.ndarray) -> np.ndarray:
-    """Whole-pixel offset from the summed cross-power spectrum, refined by a parabola per axis."""
-    cross = np.einsum("nij,nij->ij", sfft.rfft2(data, workers=-1), np.conj(spectra))
+#: Images per block of the full-stack passes (the memory of a few blocks, not of the stack).
+BLOCK = 16
+
+
+def _blocks(count: int) -> list[slice]:
+    return [slice(i, min(i + BLOCK, count)) for i in range(0, count, BLOCK)]
+
+
+def _correlation_offset(
+    data: np.ndarray, exposure: np.ndarray, valid: np.ndarray, dark: float, spectra: np.ndarray
+) -> np.ndarray:
+    """Whole-pixel offset from the summed cross-power spectrum of the dark-subtracted data per ms
+    against the model's spectra, refined by a parabola per axis."""
+    cross = np.zeros(spectra.shape[-2:], np.complex64)
+    for b in _blocks(len(data)):
+        block = np.where(valid[b], data[b] - dark, 0.0).astype(np.float32) / exposure[b]
+        cross += np.einsum("nij,nij->ij", sfft.rfft2(block, workers=-1), np.conj(spectra[b]))
     corr = sfft.irfft2(cross, s=data.shape[-2:], workers=-1)
     peak = np.array(np.unravel_index(np.argmax(corr), corr.shape))
     offset = peak.astype(float)
@@ -79,6 +93,65 @@ def _correlation_offset(data: np.ndarray, spectra: np.ndarray) -> np.ndarray:
             offset[axis] += 0.5 * (cm - cp) / denominator
     size = np.array(corr.shape, float)
     return (offset + size / 2) % size - size / 2
+
+
+class _Sums:
+    """Sums over the valid pixels of products of the shifted model m (counts per unit flux), its
+    gradients g_y, g_x, the data d and 1: their Gram matrix, accumulated block by block in
+    float64 — what the linear fit of scale and dark and the Gauss–Newton step of the offset need."""
+
+    M, GY, GX, D, ONE = range(5)
+
+    def __init__(self) -> None:
+        self.gram = np.zeros((5, 5))
+
+    def add(self, data: np.ndarray, model: np.ndarray, valid: np.ndarray, gradients: bool) -> None:
+        rows = np.empty((5, int(np.count_nonzero(valid))))
+        rows[self.M] = model[valid]
+        if gradients:
+            gy, gx = np.gradient(model, axis=(-2, -1))
+            rows[self.GY], rows[self.GX] = gy[valid], gx[valid]
+        else:
+            rows[self.GY] = rows[self.GX] = 0.0
+        rows[self.D] = data[valid]
+        rows[self.ONE] = 1.0
+        self.gram += rows @ rows.T
+
+    def scale_and_dark(self) -> tuple[float, float]:
+        """Least-squares ``data ≈ dark + scale·model`` (normal equations)."""
+        g, m, d, one = self.gram, self.M, self.D, self.ONE
+        n, sm, sd = g[one, one], g[m, one], g[d, one]
+        scale = (n * g[m, d] - sm * sd) / max(n * g[m, m] - sm * sm, 1e-30)
+        return float(scale), float((sd - scale * sm) / max(n, 1.0))
+
+    def offset_step(self, scale: float, dark: float) -> np.ndarray:
+        """The Gauss–Newton step of the offset (row, col) px given ``scale`` and ``dark``: the
+        Jacobian of the model counts is −scale·g, the residual d − dark − scale·m."""
+        g, grad = self.gram, [self.GY, self.GX]
+        normal = scale**2 * g[np.ix_(grad, grad)]
+        rhs = -scale * (g[grad, self.D] - dark * g[grad, self.ONE] - scale * g[grad, self.M])
+        return np.linalg.solve(normal + 1e-9 * np.trace(normal) * np.eye(2), rhs)
+
+
+def _shifted_sums(
+    data: np.ndarray,
+    exposure: np.ndarray,
+    spectra: np.ndarray,
+    valid: np.ndarray,
+    offset: tuple[float, float],
+    gradients: bool,
+    out: np.ndarray | None = None,
+) -> _Sums:
+    """:class:`_Sums` of the model moved by ``offset`` (row, col) px, block by block; ``out``
+    (N, y, x) float32, when given, receives the moved model in counts per unit flux."""
+    sums = _Sums()
+    shape = data.shape[-2:]
+    for b in _blocks(len(data)):
+        model = exposure[b] * shift_spectra(spectra[b], shape, offset)
+        sums.add(data[b], model, valid[b], gradients)
+        if out is not None:
+            out[b] = model
+    return sums
 
 
 def register(
@@ -96,35 +169,27 @@ def register(
     """
     data = np.asarray(data_counts, np.float32)
     rate = np.asarray(model_rate, np.float32)
-    shape = data.shape[-2:]
     exposure = np.asarray(exposure_ms, np.float32)[:, None, None]
-    spectra = sfft.rfft2(rate, workers=-1)
-    lit = valid & (rate > 1e-3 * float(rate.max()))
-    dark_guess = float(np.median(data[valid & ~lit])) if np.any(valid & ~lit) else 0.0
-    offset = _correlation_offset(np.where(valid, data - dark_guess, 0.0).astype(np.float32) / exposure, spectra)
+    spectra = np.empty(rate.shape[:-1] + (rate.shape[-1] // 2 + 1,), np.complex64)
+    threshold = 1e-3 * float(rate.max())
+    dark_pixels = []
+    for b in _blocks(len(rate)):
+        spectra[b] = sfft.rfft2(rate[b], workers=-1)
+        dark_pixels.append(data[b][valid[b] & ~(rate[b] > threshold)])
+    dark_pixels = np.concatenate(dark_pixels)
+    dark_guess = float(np.median(dark_pixels)) if dark_pixels.size else 0.0
+    del dark_pixels
+    offset = _correlation_offset(data, exposure, valid, dark_guess, spectra)
     for _ in range(OFFSET_STEPS):
-        model = exposure * shift_spectra(spectra, shape, tuple(offset))
-        scale, dark = _scale_and_dark(data, model, valid)
-        gy, gx = np.gradient(model, axis=(-2, -1))
-        residual = (data - dark - scale * model)[valid]
-        jy, jx = -scale * gy[valid], -scale * gx[valid]
-        normal = np.array([[jy @ jy, jy @ jx], [jx @ jy, jx @ jx]], float)
-        step = np.linalg.solve(normal + 1e-9 * np.trace(normal) * np.eye(2), [jy @ residual, jx @ residual])
+        sums = _shifted_sums(data, exposure, spectra, valid, tuple(offset), gradients=True)
+        scale, dark = sums.scale_and_dark()
+        step = sums.offset_step(scale, dark)
         offset = offset + np.clip(step, -0.5, 0.5)
         if np.max(np.abs(step)) < 1e-4:
             break
-    model = exposure * shift_spectra(spectra, shape, tuple(offset))
-    scale, dark = _scale_and_dark(data, model, valid)
+    model = np.empty(data.shape, np.float32)
+    scale, dark = _shifted_sums(data, exposure, spectra, valid, tuple(offset), False, out=model).scale_and_dark()
     registration = Registration((float(offset[0]), float(offset[1])), scale, dark)
-    return registration, (dark + scale * model).astype(np.float32)
-
-
-def _scale_and_dark(data: np.ndarray, model_counts: np.ndarray, valid: np.ndarray) -> tuple[float, float]:
-    """Least-squares ``data ≈ dark + scale·model`` over the valid pixels (normal equations)."""
-    m = model_counts[valid].astype(np.float64)
-    d = data[valid].astype(np.float64)
-    n = float(m.size)
-    sm, sd = m.sum(), d.sum()
-    smm, smd = m @ m, m @ d
-    scale = (n * smd - sm * sd) / max(n * smm - sm * sm, 1e-30)
-    return float(scale), float((sd - scale * sm) / n)
+    for b in _blocks(len(model)):
+        model[b] = dark + scale * model[b]
+    return registration, model

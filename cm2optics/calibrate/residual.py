@@ -105,9 +105,17 @@ def _total_chi2(a: ResidualAnalysis) -> float:
     return float(np.nanmean(a.chi2[a.used])) if np.any(a.used) else float("nan")
 
 
-def _check_inputs(data: ScanData, model_rate: np.ndarray, model_positions_mm: np.ndarray) -> None:
+def check_frames(data: ScanData) -> None:
+    """A clear error for frames that cannot be analysed at all: not a stack, NaN or infinite pixels."""
     if data.counts.ndim != 3:
         raise CalibrationError(f"the measured frames must be a stack (N, y, x); got shape {data.counts.shape}")
+    if not np.all(np.isfinite(data.counts)):
+        bad = [data.files[i] for i in np.flatnonzero(~np.isfinite(data.counts).all(axis=(-2, -1)))]
+        raise CalibrationError(f"frames with NaN or infinite pixels: {', '.join(bad[:5])}")
+
+
+def _check_inputs(data: ScanData, model_rate: np.ndarray, model_positions_mm: np.ndarray) -> None:
+    check_frames(data)
     if data.counts.shape[-2:] != model_rate.shape[-2:]:
         raise CalibrationError(
             f"wrong sensor size: the measured frames are {data.counts.shape[-2]} × {data.counts.shape[-1]} px, "
@@ -115,9 +123,6 @@ def _check_inputs(data: ScanData, model_rate: np.ndarray, model_positions_mm: np
         )
     if len(data.counts) != len(model_rate) or not np.allclose(data.positions_mm, model_positions_mm, atol=1e-6):
         raise CalibrationError("the model was simulated at other positions than the scan's positions.csv")
-    if not np.all(np.isfinite(data.counts)):
-        bad = [data.files[i] for i in np.flatnonzero(~np.isfinite(data.counts).all(axis=(-2, -1)))]
-        raise CalibrationError(f"frames with NaN or infinite pixels: {', '.join(bad[:5])}")
 
 
 def analyse_scan(

@@ -5,10 +5,13 @@
 1. the scan is read and checked against the design (sensor size at the scan's binning, pixel
    pitch, magnification within 10 %);
 2. the design is traced at a spread subset of the scan's positions (``fit_positions``; all of
-   them for small scans) and the attribution (:mod:`.attribute`) names the effects the
-   residual asks for, with values and uncertainties;
+   them for small scans), their frames are checked (magnification, saturated or empty frames)
+   and the attribution (:mod:`.attribute`) names the effects the residual asks for, with values
+   and uncertainties;
 3. the nominal and the corrected model are traced at every position and compared with the data
-   (:mod:`.residual`): NMSE and χ² before and after, per image and per focus;
+   (:mod:`.residual`): NMSE and χ² before and after, per image and per focus. With ``workers``
+   processes, the nominal trace runs beside the attribution and the corrected one beside the
+   analysis of the nominal: the process that waits on them keeps a core;
 4. what the effects leave unexplained, where the remaining misfit is above the noise, is
    described by its signature (lenslets, field, depths, share of the energy) instead of being
    forced into a physical fit.
@@ -31,8 +34,8 @@ import numpy as np
 from cm2optics.calibrate.attribute import Attribution, Problem, attribute
 from cm2optics.calibrate.effects import apply_image_effects, library, split_key
 from cm2optics.calibrate.lowrank_correction import LowRankCorrection, fit_correction, held_out_error
-from cm2optics.calibrate.residual import CalibrationError, ResidualAnalysis, ScanData, analyse_scan
-from cm2optics.calibrate.tracer import TracerSimulator, design_with, traced_rates
+from cm2optics.calibrate.residual import CalibrationError, ResidualAnalysis, ScanData, analyse_scan, check_frames
+from cm2optics.calibrate.tracer import TracerSimulator, design_with, submit_rates, tracing_pool
 from cm2optics.calibrate.unexplained import describe_unexplained
 from cm2optics.design import SystemDesign
 from cm2optics.emission.source import AngularProfile, PointSource
@@ -113,12 +116,29 @@ def fit_subset(positions_mm: np.ndarray, count: int) -> np.ndarray:
     return picked[np.round(np.linspace(0, len(picked) - 1, min(count, len(picked)))).astype(int)]
 
 
-def _model_rate(
-    simulator: TracerSimulator, positions: np.ndarray, attribution: Attribution, workers: int
-) -> np.ndarray:
-    """The model's images at every position with the fitted effects (optical ones traced by
-    ``workers`` processes, sensor-side ones applied, leakage as a uniform rate per unit flux)."""
-    rate, _ = traced_rates(simulator, positions, attribution.effects, workers=workers)
+def _usable_subset(data: ScanData, simulator: TracerSimulator, subset: np.ndarray, gain: float | None) -> np.ndarray:
+    """The fit positions ``subset`` less those left out of every fit (saturated, without light),
+    from an analysis of their frames alone against the nominal model (traced here; the
+    attribution re-uses the trace); a scan taken on another design is refused here, before the
+    attribution, and again on the whole scan."""
+    frames = ScanData(
+        data.counts[subset],
+        data.exposure_ms[subset],
+        data.positions_mm[subset],
+        tuple(data.files[i] for i in subset),
+        data.bit_depth,
+    )
+    positions = data.positions_mm[subset]
+    rate = simulator.rates(positions, {})
+    centres = simulator.focus_centres_px(positions)
+    analysis = analyse_scan(frames, rate, positions, centres, simulator.pitch_px(), counts_per_electron=gain)
+    _check_magnification(analysis)
+    return subset[analysis.used]
+
+
+def _with_image_effects(rate: np.ndarray, simulator: TracerSimulator, attribution: Attribution) -> np.ndarray:
+    """The traced images of the corrected design with the fitted sensor-side effects applied
+    (leakage as a uniform rate per unit flux)."""
     rate = apply_image_effects(rate, attribution.effects, simulator.pixel_um)
     leak = attribution.effects.get("leakage_background", {}).get("counts_per_ms", 0.0)
     return rate + np.float32(leak / max(attribution.registration.flux_scale, 1e-30))
@@ -256,29 +276,32 @@ def calibrate_scan(
     data = ScanData(scan.images, scan.exposure_ms, positions, files, scan.meta.bit_depth)
     pitch = simulator.pitch_px()
 
-    say(f"tracing the nominal design at {len(positions)} positions")
-    nominal, centres = traced_rates(simulator, positions, {}, workers=workers, with_centres=True)
-    before = analyse_scan(data, nominal, positions, centres, pitch, counts_per_electron=gain)
-    del nominal
-    _check_magnification(before)
-
+    check_frames(data)
     subset = fit_subset(positions, fit_positions)
-    subset = subset[before.used[subset]]
-    say(f"attributing the residual on {len(subset)} positions")
-    valid = scan.images[subset] < 2**scan.meta.bit_depth - 1
-    problem = Problem(
-        simulator,
-        scan.images[subset],
-        scan.exposure_ms[subset],
-        positions[subset],
-        valid,
-        library(simulator.lenslets, design.mla.pitch_mm),
-        gain,
-    )
-    attribution = attribute(problem, max_effects=max_effects, progress=say)
+    with tracing_pool(workers) as pool:
+        say(f"tracing the nominal design at {len(positions)} positions")
+        nominal_job = submit_rates(pool, simulator, positions, {}, with_centres=True, here=subset)
+        subset = _usable_subset(data, simulator, subset, gain)
+        say(f"attributing the residual on {len(subset)} positions")
+        valid = scan.images[subset] < 2**scan.meta.bit_depth - 1
+        problem = Problem(
+            simulator,
+            scan.images[subset],
+            scan.exposure_ms[subset],
+            positions[subset],
+            valid,
+            library(simulator.lenslets, design.mla.pitch_mm),
+            gain,
+        )
+        attribution = attribute(problem, max_effects=max_effects, progress=say)
 
-    say("tracing the corrected design at every position")
-    rate = _model_rate(simulator, positions, attribution, workers)
+        say("tracing the corrected design at every position")
+        corrected_job = submit_rates(pool, simulator, positions, attribution.effects, here=subset)
+        nominal, centres = nominal_job()
+        before = analyse_scan(data, nominal, positions, centres, pitch, counts_per_electron=gain)
+        del nominal
+        _check_magnification(before)
+        rate = _with_image_effects(corrected_job()[0], simulator, attribution)
     after = analyse_scan(data, rate, positions, centres, pitch, counts_per_electron=gain)
     corrected = corrected_design(design, attribution)
     document = {

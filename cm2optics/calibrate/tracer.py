@@ -42,8 +42,11 @@ data's own flux scale against it.
 from __future__ import annotations
 
 import math
+import os
 from collections import OrderedDict
+from collections.abc import Callable, Iterator
 from concurrent.futures import ProcessPoolExecutor
+from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from multiprocessing import get_context
 
@@ -58,7 +61,7 @@ from cm2optics.emission.source import AngularProfile, PointSource, ProfileKind
 from cm2optics.optics import first_order
 from cm2optics.optics.lenslets import lens_cells
 
-__all__ = ["UNIT_SOURCE", "TracerSimulator", "design_with", "traced_rates"]
+__all__ = ["UNIT_SOURCE", "TracerSimulator", "design_with", "submit_rates", "traced_rates", "tracing_pool"]
 
 #: Counts per ms of a unit source per photon detected per emitted photon.
 UNIT_SOURCE = 1e6
@@ -391,6 +394,77 @@ def _rates_task(
     return simulator.rates(positions_mm, values), centres
 
 
+#: Niceness the tracing workers add to their own: the process that submitted them (the
+#: attribution, the analyses: the path every result waits on) keeps a core, the workers share the rest.
+WORKER_NICENESS = 5
+
+
+@contextmanager
+def tracing_pool(workers: int) -> Iterator[ProcessPoolExecutor | None]:
+    """``workers`` spawned worker processes for :func:`submit_rates`, at a lower priority than
+    this process (:data:`WORKER_NICENESS`) (None, and no process, for ``workers`` ≤ 1; processes
+    start with the first task submitted). On leaving, tasks not yet started are dropped (an
+    error does not wait for a whole scan's trace)."""
+    if workers <= 1:
+        yield None
+        return
+    # os.nice itself as the initializer: the workers' priority is lowered before they import
+    # anything (threads started later inherit it)
+    pool = ProcessPoolExecutor(
+        workers, mp_context=get_context("spawn"), initializer=os.nice, initargs=(WORKER_NICENESS,)
+    )
+    try:
+        yield pool
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
+
+
+def submit_rates(
+    pool: ProcessPoolExecutor | None,
+    simulator: TracerSimulator,
+    positions_mm: np.ndarray,
+    values: Values,
+    *,
+    with_centres: bool = False,
+    here: np.ndarray | None = None,
+    chunk: int = 8,
+) -> Callable[[], tuple[np.ndarray, np.ndarray | None]]:
+    """Start ``simulator.rates(positions_mm, values)`` (and, ``with_centres``, its nominal
+    ``focus_centres_px``): the positions indexed by ``here`` (all of them without a ``pool``)
+    traced now in this process, re-using its cache, the others by the ``pool``'s processes,
+    ``chunk`` per task, with the simulator's settings and anchor as they are now. Returns the
+    function that waits for them: (images (N, y, x), centres (N, J, 2) or None), in order."""
+    positions = np.asarray(positions_mm, float).reshape(-1, 3)
+    local = (
+        np.ones(len(positions), bool)
+        if pool is None
+        else np.isin(np.arange(len(positions)), here if here is not None else [])
+    )
+    remote = np.flatnonzero(~local)
+    s = simulator
+    values = {k: dict(v) for k, v in values.items()}
+    tasks = [remote[i : i + chunk] for i in range(0, len(remote), chunk)]
+    futures = []
+    if tasks:
+        spec = (s.design, s.binning, s.source, s.settings, s.oversample, {k: dict(v) for k, v in s.anchor.items()})
+        futures = [pool.submit(_rates_task, spec, positions[task], values, with_centres) for task in tasks]
+    mine = np.flatnonzero(local)
+    rates = np.empty((len(positions),) + s.shape, np.float32)
+    centres = np.empty((len(positions), s.lenslets, 2)) if with_centres else None
+    rates[mine] = s.rates(positions[mine], values)
+    if with_centres:
+        centres[mine] = s.focus_centres_px(positions[mine])
+
+    def wait() -> tuple[np.ndarray, np.ndarray | None]:
+        for task, future in zip(tasks, futures, strict=True):
+            rates[task], task_centres = future.result()
+            if with_centres:
+                centres[task] = task_centres
+        return rates, centres
+
+    return wait
+
+
 def traced_rates(
     simulator: TracerSimulator,
     positions_mm: np.ndarray,
@@ -405,16 +479,5 @@ def traced_rates(
     traced by ``workers`` processes, ``chunk`` positions per task (for a whole scan: every
     position is traced once, so a shared cache gains nothing)."""
     positions = np.asarray(positions_mm, float).reshape(-1, 3)
-    if workers <= 1 or len(positions) <= chunk:
-        centres = simulator.focus_centres_px(positions) if with_centres else None
-        return simulator.rates(positions, values), centres
-    s = simulator
-    spec = (s.design, s.binning, s.source, s.settings, s.oversample, {k: dict(v) for k, v in s.anchor.items()})
-    with ProcessPoolExecutor(workers, mp_context=get_context("spawn")) as pool:
-        futures = [
-            pool.submit(_rates_task, spec, positions[i : i + chunk], values, with_centres)
-            for i in range(0, len(positions), chunk)
-        ]
-        parts = [future.result() for future in futures]
-    rates = np.concatenate([rate for rate, _ in parts])
-    return rates, (np.concatenate([c for _, c in parts]) if with_centres else None)
+    with tracing_pool(workers if len(positions) > chunk else 1) as pool:
+        return submit_rates(pool, simulator, positions, values, with_centres=with_centres, chunk=chunk)()

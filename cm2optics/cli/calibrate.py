@@ -36,7 +36,14 @@ def scan(
     ] = 27,
     max_effects: Annotated[int, typer.Option("--max-effects", min=1, max=12, help="Effects kept at most.")] = 6,
     workers: Annotated[
-        int, typer.Option("--workers", min=1, max=64, help="Processes tracing the model at every scan position.")
+        int,
+        typer.Option(
+            "--workers",
+            min=1,
+            max=64,
+            help="Processes tracing the model at every scan position (above 1: beside the attribution and "
+            "the analysis, at a lower priority).",
+        ),
     ] = 1,
     source_um: Annotated[
         float | None,

@@ -176,7 +176,7 @@ def test_the_source_profile_effect_multiplies_the_scans_profile():
 def test_traced_rates_over_processes_equal_this_process(v2: SystemDesign):
     """Positions traced by two worker processes (the anchor travelling with them) give the same
     images and focus centres as the same simulator in this process."""
-    from cm2optics.calibrate.tracer import traced_rates
+    from cm2optics.calibrate.tracer import submit_rates, traced_rates, tracing_pool
 
     positions = np.array([[0.0, 0.0, 0.0], [0.5, -0.3, 0.2], [-1.0, 0.8, -0.2]])
     values = {"mla_rotation": {"angle_deg": 0.3}, "lenslet_transmission[4]": {"transmission": 0.7}}
@@ -186,3 +186,8 @@ def test_traced_rates_over_processes_equal_this_process(v2: SystemDesign):
     assert here.max() > 0
     np.testing.assert_array_equal(there, here)
     np.testing.assert_array_equal(centres_there, centres_here)
+    with tracing_pool(2) as pool:  # one position here, the others in the workers, started before the wait
+        wait = submit_rates(pool, simulator, positions, values, with_centres=True, here=np.array([1]), chunk=1)
+        mixed, centres_mixed = wait()
+    np.testing.assert_array_equal(mixed, here)
+    np.testing.assert_array_equal(centres_mixed, centres_here)
