@@ -241,8 +241,6 @@ def robustness_study(
     sample's Monte Carlo noise floor taken out in quadrature: ``uniformity_cv_corrected``) and
     the share of samples whose corrected CV is ≤ ``max_cv``. ``setup``: the :class:`~cm2optics.illumination.compare.Setup` of the traces.
     ``advance`` is called after each trace (a progress bar)."""
-    if scene.collimator is None:
-        raise ValueError("the scene has no collimator: nothing to perturb but the LED (use a design with one)")
     if samples < 2:
         raise ValueError(f"samples = {samples}: must be ≥ 2 for a spread")
     nominal = _figures(scene, setup)
