@@ -25,8 +25,8 @@ Not differentiated: changes of visibility (a ray moving across an edge — the h
 the filter's edge — or between TIR and refraction), whose boundary terms would need edge
 sampling or a reparameterisation. Against finite differences of this same objective (BENCHMARKS.md:
 2·10⁴ rays, h = 0.5 µm, the same rays): dD/dc₄, dCV′/dc₄ and dD/dc₁₁ agree within 13 %, dCV′/dc₆
-within 15–30 % (its sign was wrong before the two fixes above); dCV′/dc₇ and dCV′/dc₁₁ do not
-(about 2× and 16×), and for coma the rays changing path carry about half of the finite difference. Ray by ray (defocus, three surfaces), the derivatives of the
+within 15–30 % (its sign was wrong before the two fixes above); dD/dc₇, dCV′/dc₇ and dCV′/dc₁₁
+do not (about 2×, 2× and 16×), and for coma the rays changing path carry about half of the finite difference. Ray by ray (defocus, three surfaces), the derivatives of the
 hit points and directions agree with finite differences of the rebuilt mesh within ≈ 5 %.
 
 Objective (maximised), the sweep's ranking (:mod:`.optimize`) on these smooth figures:
