@@ -54,6 +54,27 @@ FilterTableOption = Annotated[
     typer.Option("--filter-table", help="Excitation filter angle table; default: the model of excitation_filter."),
 ]
 
+#: The error ranges of ``robustness`` and of ``optimize --robust-samples``.
+LedPlacementOption = Annotated[
+    float, typer.Option("--led-placement-um", help="LED centre placement error, ± µm in each of x and y.")
+]
+UnitTiltOption = Annotated[
+    float, typer.Option("--unit-tilt-deg", help="Unit tilt error about each of its x and y axes, ± degrees.")
+]
+SurfaceRmsOption = Annotated[
+    float, typer.Option("--surface-rms-um", help="Printer surface error of the collimator, µm RMS.")
+]
+
+
+def _tolerances(led_placement_um: float, unit_tilt_deg: float, surface_rms_um: float) -> Any:
+    """The :class:`~cm2optics.illumination.robustness.Tolerances` of the options (a UserError if out of range)."""
+    from cm2optics.illumination.robustness import Tolerances
+
+    try:
+        return Tolerances(1e-3 * led_placement_um, unit_tilt_deg, surface_rms_um)
+    except ValueError as error:
+        raise UserError(f"tolerances: {error}") from None
+
 
 def _format(estimate: Any, percent: bool = False, digits: int = 3) -> str:
     value, stderr = estimate.value, estimate.stderr
@@ -363,6 +384,18 @@ def optimize(
     learning_rate_um: Annotated[
         float, typer.Option("--learning-rate-um", help="Adam step of the Zernike terms, µm (--method gradient).")
     ] = 1.5,
+    robust_samples: Annotated[
+        int,
+        typer.Option(
+            "--robust-samples",
+            help="Score every candidate on its expected delivered fraction and CV over this many drawn builds "
+            "(the errors of cm2 illum robustness; the same builds for every candidate, seeded by --seed); "
+            "0: on its nominal figures (--method sweep).",
+        ),
+    ] = 0,
+    led_placement_um: LedPlacementOption = 50.0,
+    unit_tilt_deg: UnitTiltOption = 1.0,
+    surface_rms_um: SurfaceRmsOption = 2.0,
 ) -> None:
     """Search the collimator's parameters for the largest delivered fraction whose array
     uniformity (CV inside the circle) is ≤ --max-cv, as a parallel sweep on Dask, and write
@@ -377,15 +410,23 @@ def optimize(
     (`assembly_interferences`). Reports beside it the étendue bound, the most any rotationally
     symmetric beam can deliver at that CV (`uniform_beam_bound`) and, with --free-aim, the same
     for re-aimed units and the finite LED (`free_aim_bound`); the bounds' spectral ceiling comes
-    from --filter-table and --led-spectrum when given.
+    from --filter-table and --led-spectrum when given. With --robust-samples N every candidate is
+    also traced as N built devices (LED placement, unit tilt and printer surface errors, drawn
+    as cm2 illum robustness draws them, the same N for every candidate) and ranked on
+    E[delivered] − 2 max(0, E[CV′] − max CV) (`robust` in the result).
     """
     from cm2optics.design import load_preset
-    from cm2optics.illumination.optimize import optimize_collimator
+    from cm2optics.illumination.optimize import RobustScoring, optimize_collimator
 
     files = (led_profile, led_spectrum, filter_table)
     _check_optimize_options(max_cv, rays, samples, rounds, workers, files)
     if method not in ("sweep", "gradient"):
         raise UserError(f"--method {method}: must be sweep or gradient")
+    if not 0 <= robust_samples <= 1000:
+        raise UserError(f"--robust-samples = {robust_samples}: must lie within 0–1000")
+    tolerances = _tolerances(led_placement_um, unit_tilt_deg, surface_rms_um)
+    if method == "gradient" and robust_samples:
+        raise UserError("--robust-samples scores the sweep's candidates: it needs --method sweep")
     if method == "gradient":
         _optimize_gradient(
             preset, rays, max_cv, seed, files, iterations, learning_rate_um, free_aim, out_dir, overwrite, as_json
@@ -412,6 +453,7 @@ def optimize(
         freeform=freeform,
         fixed_profile=fixed_profile,
         cone_wall=cone_wall,
+        robust=RobustScoring(robust_samples, tolerances, seed) if robust_samples else None,
     )
     summary = {k: v for k, v in result.items() if k != "candidates"}  # every candidate is in sweep.json
     _echo_optimized(
@@ -449,15 +491,9 @@ def robustness(
     ] = None,
     samples: Annotated[int, typer.Option("--samples", help="Monte Carlo samples (≥ 2).")] = 32,
     rays: Annotated[int, typer.Option("--rays", "-n", help="LED rays per sample, split over the LEDs.")] = 200_000,
-    led_placement_um: Annotated[
-        float, typer.Option("--led-placement-um", help="LED centre placement error, ± µm in each of x and y.")
-    ] = 50.0,
-    unit_tilt_deg: Annotated[
-        float, typer.Option("--unit-tilt-deg", help="Unit tilt error about each of its x and y axes, ± degrees.")
-    ] = 1.0,
-    surface_rms_um: Annotated[
-        float, typer.Option("--surface-rms-um", help="Printer surface error of the collimator, µm RMS.")
-    ] = 2.0,
+    led_placement_um: LedPlacementOption = 50.0,
+    unit_tilt_deg: UnitTiltOption = 1.0,
+    surface_rms_um: SurfaceRmsOption = 2.0,
     max_cv: Annotated[float, typer.Option("--max-cv", help="Uniformity limit counted in the report (0–1).")] = 0.10,
     led_profile: LedProfileOption = None,
     led_spectrum: LedSpectrumOption = None,
@@ -484,7 +520,7 @@ def robustness(
     from cm2optics.formats.atomic import write_json_atomic
     from cm2optics.illumination.compare import setup_from_options, stl_collimator
     from cm2optics.illumination.geometry import build_scene, collimator_from_design
-    from cm2optics.illumination.robustness import Tolerances, robustness_study, write_robustness_png
+    from cm2optics.illumination.robustness import robustness_study, write_robustness_png
     from cm2optics.optics.backend import mitsuba
     from cm2optics.progress import progress_bar
 
@@ -494,10 +530,7 @@ def robustness(
         raise UserError(f"--rays = {rays}: must lie within 1000–100000000")
     if not 0 < max_cv < 1:
         raise UserError(f"--max-cv = {max_cv}: must lie within 0–1")
-    try:
-        tolerances = Tolerances(1e-3 * led_placement_um, unit_tilt_deg, surface_rms_um)
-    except ValueError as error:
-        raise UserError(f"tolerances: {error}") from None
+    tolerances = _tolerances(led_placement_um, unit_tilt_deg, surface_rms_um)
     files = (collimator, led_profile, led_spectrum, filter_table)
     for path in files:
         if path is not None and not path.is_file():

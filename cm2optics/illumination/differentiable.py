@@ -6,12 +6,14 @@ the mesh of the current coefficients, with three changes that make the objective
 
 * **attached geometry.** Mitsuba's hit points follow the (attached) rays. On the collimator the
   smooth normal is interpolated again in Dr.Jit, from the attached hit point's barycentric
-  weights of its facet's corner normals; on the lens the Zernike sag ``S = Σ c_j Z_j`` adds its
+  weights of its facet's corner normals; on the lens (a facet inside the cavity whose outward
+  normal faces the LED — not the exit face above it) the Zernike sag ``S = Σ c_j Z_j`` adds its
   own change of height and slope (:func:`cm2optics.optics.freeform.zernike_with_gradient`):
-  the normal ``∝ (−f_x − δS_x, −f_y − δS_y, 1)``, the hit point moved along the ray by
-  ``δt = δS / (d_z − f_x d_x − f_y d_y)`` (implicit function, LED frame; ``f`` the lens
-  height, its slopes from the shading normal). Values stay exactly the mesh trace's: only the
-  derivatives are attached (``x + (y − detach(y))``);
+  the hit point moves along the ray by ``δt = δS / (d_z − f_x d_x − f_y d_y)`` (implicit
+  function, LED frame; ``f`` the lens height, its slopes from the shading normal), the base
+  surface's normal is taken at the moved point (the curvature's share of the change) and the
+  sag's slope is added to it, ``n ∝ (−f_x − δS_x, −f_y − δS_y, 1)``. Values stay exactly the
+  mesh trace's: only the derivatives are attached (``x + (y − detach(y))``);
 * **expected transmission.** No random reflect/refract choice: a ray refracts carrying the
   weight ``1 − R`` (Fresnel, or the coating's T) and reflects only under TIR. Deterministic and
   smooth, it drops the Fresnel-reflected light the tracer would still follow (a surrogate:
@@ -21,9 +23,11 @@ the mesh of the current coefficients, with three changes that make the objective
 
 Not differentiated: changes of visibility (a ray moving across an edge — the housing's aperture,
 the filter's edge — or between TIR and refraction), whose boundary terms would need edge
-sampling or a reparameterisation. Against finite differences of this same objective (2 × 10⁴ rays, h = 0.5 µm) the gradient is
-not yet verified: it agreed for Noll 6 and 7 in one setting and not in another, nor for the
-symmetric terms 4 and 11 (BENCHMARKS.md, the slow test).
+sampling or a reparameterisation. Against finite differences of this same objective (BENCHMARKS.md:
+2·10⁴ rays, h = 0.5 µm, the same rays): dD/dc₄, dCV′/dc₄ and dD/dc₁₁ agree within 13 %, dCV′/dc₆
+within 15–30 % (its sign was wrong before the two fixes above); dD/dc₇, dCV′/dc₇ and dCV′/dc₁₁
+do not (about 2×, 2× and 16×), and for coma the rays changing path carry about half of the finite difference. Ray by ray (defocus, three surfaces), the derivatives of the
+hit points and directions agree with finite differences of the rebuilt mesh within ≈ 5 %.
 
 Objective (maximised), the sweep's ranking (:mod:`.optimize`) on these smooth figures:
 ``J = D − 2 max(0, CV′ − max_cv)``, ``D`` the weight in the bins centred inside the field
@@ -52,7 +56,7 @@ __all__ = ["CV_PENALTY", "SmoothFigures", "smooth_objective"]
 
 #: Weight of the CV excess in the objective (the sweep's ranking).
 CV_PENALTY = 2.0
-#: |n_z| of a facet (LED frame) above which a hit inside the cavity is on the lens, not its wall.
+#: −n_z of a facet's outward normal (LED frame) above which a hit inside the cavity is on the lens, not its wall.
 _LENS_FACET_NZ = 0.3
 
 
@@ -125,41 +129,51 @@ class _LensAttachment:
         def to_device(v: Any) -> Any:  # R v
             return mi.Vector3f(*(rot[k][0] * v.x + rot[k][1] * v.y + rot[k][2] * v.z for k in range(3)))
 
+        # The lens: inside the cavity, a facet whose outward normal faces the LED (−z). The exit
+        # face above it (its outward normal +z, at z = exit_z) is not the lens.
         p_local = to_local(si.p - t)
-        base = si.prim_index * 9
-        v0, v1, v2 = (self._vector(self.corners, base + 3 * i) for i in range(3))
-        n0, n1, n2 = (self._vector(self.normals, base + 3 * i) for i in range(3))
-        e1, e2, w = v1 - v0, v2 - v0, p_local - v0
-        d00, d01, d11 = dr.dot(e1, e1), dr.dot(e1, e2), dr.dot(e2, e2)
-        d20, d21 = dr.dot(w, e1), dr.dot(w, e2)
-        det = d00 * d11 - d01 * d01
-        b1 = (d11 * d20 - d01 * d21) / det
-        b2 = (d00 * d21 - d01 * d20) / det
-        normal = dr.normalize((1.0 - b1 - b2) * n0 + b1 * n1 + b2 * n2)
-
-        # The lens: inside the cavity, a facet facing ±z.
         x, y, z = dr.detach(p_local.x), dr.detach(p_local.y), dr.detach(p_local.z)
-        facet_nz = dr.abs(to_local(dr.detach(si.n)).z)
+        facet_nz = to_local(dr.detach(si.n)).z
         lens = (
             on_collimator
-            & (facet_nz > _LENS_FACET_NZ)
+            & (facet_nz < -_LENS_FACET_NZ)
             & (x * x + y * y < self.radius * self.radius)
             & (z > self.entry_z)
             & (z < self.exit_z)
         )
+        base = si.prim_index * 9
+        v0, v1, v2 = (self._vector(self.corners, base + 3 * i) for i in range(3))
+        n0, n1, n2 = (self._vector(self.normals, base + 3 * i) for i in range(3))
+
+        def shading_normal(point: Any) -> Any:
+            """The facet's smooth normal at ``point`` (LED frame; its projection on the facet)."""
+            e1, e2, w = v1 - v0, v2 - v0, point - v0
+            d00, d01, d11 = dr.dot(e1, e1), dr.dot(e1, e2), dr.dot(e2, e2)
+            d20, d21 = dr.dot(w, e1), dr.dot(w, e2)
+            det = d00 * d11 - d01 * d01
+            b1 = (d11 * d20 - d01 * d21) / det
+            b2 = (d00 * d21 - d01 * d20) / det
+            return dr.normalize((1.0 - b1 - b2) * n0 + b1 * n1 + b2 * n2)
+
         sag, sag_x, sag_y = mi.Float(0.0), mi.Float(0.0), mi.Float(0.0)
         for j, delta in zip(self.terms, self.delta, strict=True):
             zj, zx, zy = zernike_with_gradient(j, x, y, self.radius, dr)
             sag, sag_x, sag_y = sag + 1e-3 * delta * zj, sag_x + 1e-3 * delta * zx, sag_y + 1e-3 * delta * zy
-        slope = normal / normal.z  # (−f_x, −f_y, 1)
-        lens_normal = dr.normalize(mi.Vector3f(slope.x - sag_x, slope.y - sag_y, 1.0)) * dr.sign(normal.z)
+        slope = dr.detach(shading_normal(p_local))
+        slope = slope / slope.z  # (−f_x, −f_y, 1)
         d_local = to_local(dr.detach(d))
-        shift = sag / (d_local.z + slope.x * d_local.x + slope.y * d_local.y)
+        shift = d_local * (sag / (d_local.z + slope.x * d_local.x + slope.y * d_local.y))
+        # On the lens the hit point moves along the ray onto the displaced surface, and the base
+        # surface's normal is taken there (its curvature's share of the change) before the sag's slope.
+        p_local = dr.select(lens, p_local + shift, p_local)
+        normal = shading_normal(p_local)
+        moved = normal / normal.z
+        lens_normal = dr.normalize(mi.Vector3f(moved.x - sag_x, moved.y - sag_y, 1.0)) * dr.sign(normal.z)
         normal = dr.select(lens, lens_normal, normal)
 
         attached = to_device(normal)
         ns = dr.select(on_collimator, dr.detach(si.sh_frame.n) + (attached - dr.detach(attached)), si.sh_frame.n)
-        p = dr.select(lens, si.p + to_device(d_local * shift), si.p)
+        p = dr.select(lens, si.p + to_device(shift), si.p)
         return mi.Point3f(p), mi.Normal3f(ns)
 
 

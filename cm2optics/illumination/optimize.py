@@ -37,6 +37,7 @@ and with ``free_aim`` the bound of re-aimed units with the finite LED (:func:`.b
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 import time
@@ -47,10 +48,12 @@ import numpy as np
 
 from cm2optics.design import DesignError, SystemDesign, design_from_dict
 from cm2optics.illumination.bounds import etendue_bound, free_aim_bound, uniform_beam_bound
+from cm2optics.illumination.robustness import Tolerances, expected_figures, perturbed_figures
 
 __all__ = [
     "AIM_PARAMETERS",
     "PARAMETERS",
+    "RobustScoring",
     "design_bounds",
     "evaluate_candidate",
     "export_collimator",
@@ -188,11 +191,13 @@ def evaluate_candidate(
     max_cv: float,
     threads: int | None = None,
     inputs: tuple[str | None, str | None, str | None] = (None, None, None),
+    robust: RobustScoring | None = None,
 ) -> dict[str, Any]:
     """Trace one candidate (runs on a Dask worker). Returns its parameters and figures, or
     ``feasible: False`` and the reason. ``design_data``: the base design as plain data.
     inputs: paths of the LED's angular profile, its spectrum and the excitation filter's
-    coating table (each None: the design's model)."""
+    coating table (each None: the design's model). robust: also trace the candidate under
+    ``robust.samples`` drawn builds and score it on their expected figures (:class:`RobustScoring`)."""
     from cm2optics.optics.backend import mitsuba
 
     mi = mitsuba()
@@ -223,9 +228,8 @@ def evaluate_candidate(
         return entry
     profile, spectrum, table = read_inputs(*inputs)
     transmission = table if table is not None else design_filter_transmission(design)
-    figures = figures_of_merit(
-        trace(scene, led_source(design, profile, spectrum), rays, transmission=transmission, seed=seed), scene
-    )
+    source = led_source(design, profile, spectrum)
+    figures = figures_of_merit(trace(scene, source, rays, transmission=transmission, seed=seed), scene)
     delivered, cv = figures.delivered_fraction.value, figures.uniformity_cv.value
     # Monte Carlo noise adds in quadrature to the true spread: rank on the noise-free estimate.
     cv_corrected = math.sqrt(max(cv**2 - figures.uniformity_cv_noise**2, 0.0))
@@ -240,9 +244,45 @@ def evaluate_candidate(
         throughput=figures.throughput.value,
         meets_uniformity=bool(cv_corrected <= max_cv),
         score=delivered - 2.0 * max(0.0, cv_corrected - max_cv),
-        seconds=round(time.perf_counter() - start, 2),
     )
+    if robust is not None:
+        entry.update(nominal_score=entry["score"], nominal_meets_uniformity=entry["meets_uniformity"])
+        entry.update(robust.score(scene, source, transmission, rays, seed, max_cv))
+    entry["seconds"] = round(time.perf_counter() - start, 2)
     return entry
+
+
+@dataclasses.dataclass(frozen=True)
+class RobustScoring:
+    """Score candidates on their expected figures over drawn builds (:mod:`.robustness`).
+
+    samples: builds drawn per candidate. tolerances: the error ranges. seed: the error draws'
+    seed — the same builds (LED offsets, tilts, surface fields) for every candidate and the
+    same LED rays as the candidate's own trace: common random numbers, so candidates differ by
+    their design, not by their draws. A scored candidate's ``score`` becomes
+    ``E[D] − 2 max(0, E[CV′] − max_cv)`` and ``meets_uniformity`` E[CV′] ≤ max_cv; its nominal
+    figures stay beside them.
+    """
+
+    samples: int
+    tolerances: Tolerances
+    seed: int
+
+    def score(
+        self, scene: Any, source: Any, transmission: Any, rays: int, trace_seed: int, max_cv: float
+    ) -> dict[str, Any]:
+        """The expected figures of ``scene`` (:func:`.robustness.expected_figures`), with the
+        nominal ``score`` and ``meets_uniformity`` replaced by their expected counterparts."""
+        from cm2optics.illumination.compare import Setup
+
+        setup = Setup(source=source, transmission=transmission, rays=rays, seed=trace_seed)
+        rows = perturbed_figures(scene, setup, self.tolerances, self.samples, self.seed)
+        expected = expected_figures(rows, max_cv)
+        return {
+            **expected,
+            "score": expected["expected_score"],
+            "meets_uniformity": bool(expected["expected_uniformity_cv_corrected"] <= max_cv),
+        }
 
 
 def _sobol(box: dict[str, tuple[float, float]], count: int, seed: int) -> list[dict[str, float]]:
@@ -285,6 +325,7 @@ def optimize_collimator(
     freeform: bool = False,
     fixed_profile: bool = False,
     cone_wall: bool = False,
+    robust: RobustScoring | None = None,
 ) -> dict[str, Any]:
     """Run the sweep (see the module docstring) and write ``design.yaml``, ``collimator.stl``,
     ``collimator.step``, ``irradiance.png`` and ``sweep.json`` into ``out_dir``; returns the
@@ -301,6 +342,8 @@ def optimize_collimator(
     cone_wall: sweep the profile with the prescribed TIR wall (:data:`CONE_PARAMETERS`).
     inputs: paths of the LED's angular profile, spectrum and the excitation filter's coating
     table (each None: the design's model), used by every trace and by the bounds.
+    robust: rank every candidate (and choose among the confirmed ones) on its expected figures
+        over drawn builds instead of its nominal ones (:class:`RobustScoring`).
     """
     from cm2optics.formats.atomic import write_json_atomic
 
@@ -315,11 +358,13 @@ def optimize_collimator(
         box = search_box(free_aim, freeform, fixed_profile, cone_wall)
         if not box:
             raise ValueError("nothing to sweep: a fixed profile needs free aim and/or freeform terms")
-        _sweep(client, base, box, candidates, rays, max_cv, samples, rounds, seed, threads, show_progress, inputs)
+        _sweep(
+            client, base, box, candidates, rays, max_cv, samples, rounds, seed, threads, show_progress, inputs, robust
+        )
         feasible = [c for c in candidates if c["feasible"]]
         meeting = [c for c in feasible if c["meets_uniformity"]]
         best, confirm, assembly = _confirm_finalists(
-            client, base, feasible, meeting, rays, max_cv, seed, threads, inputs, check_assembly=free_aim
+            client, base, feasible, meeting, rays, max_cv, seed, threads, inputs, free_aim, robust
         )
     finally:
         client.close()
@@ -338,9 +383,17 @@ def optimize_collimator(
         "step": str(out_dir / "collimator.step"),
         "built_part": built,
         "parameters": best["parameters"],
-        "meets_uniformity": bool(confirm.get("feasible") and confirm["uniformity_cv"] <= max_cv),
+        "meets_uniformity": bool(confirm.get("feasible") and _confirmed_uniform(confirm, max_cv)),
         "max_cv": max_cv,
         **{key: confirm.get(key) for key in _CONFIRMED_FIGURES},
+        "robust": None
+        if robust is None
+        else {
+            "samples": robust.samples,
+            "seed": robust.seed,
+            "tolerances": dataclasses.asdict(robust.tolerances),
+            **{key: confirm.get(key) for key in _EXPECTED_FIGURES},
+        },
         "rays": 4 * rays,
         "printability": checks,
         "free_aim": free_aim,
@@ -372,6 +425,13 @@ _CONFIRMED_FIGURES = (
     "uniformity_cv_noise",
     "throughput",
 )
+#: With robust scoring, the chosen candidate's expected figures (its confirmation run).
+_EXPECTED_FIGURES = (
+    "expected_delivered_fraction",
+    "expected_uniformity_cv_corrected",
+    "share_within_max_cv",
+    "expected_score",
+)
 
 
 def design_bounds(
@@ -402,6 +462,7 @@ def _sweep(
     threads: int | None,
     show_progress: bool,
     inputs: tuple[str | None, str | None, str | None],
+    robust: RobustScoring | None = None,
 ) -> None:
     """A Sobol sweep of the box ``parameters`` (name → range), then ``rounds`` sweeps of a box
     halved each round around the best feasible candidate so far; every evaluated candidate is
@@ -415,7 +476,7 @@ def _sweep(
         for round_index in range(rounds + 1):
             points = batches[-1]
             futures = [
-                client.submit(evaluate_candidate, base, p, rays, seed + 1, max_cv, threads, inputs, pure=False)
+                client.submit(evaluate_candidate, base, p, rays, seed + 1, max_cv, threads, inputs, robust, pure=False)
                 for p in points
             ]
             for future in futures:
@@ -446,19 +507,21 @@ def _confirm_finalists(
     threads: int | None,
     inputs: tuple[str | None, str | None, str | None],
     check_assembly: bool = False,
+    robust: RobustScoring | None = None,
 ) -> tuple[dict[str, Any], dict[str, Any], list[dict[str, Any]] | None]:
     """Re-trace the best ``CONFIRMED`` candidates with 4 × ``rays``; returns the chosen candidate
     (the most light among those confirmed uniform, else the first), its confirmation and, with
     ``check_assembly``, the CAD assembly's interferences of the chosen design (the first of the
     confirmed ones, in order of light, that has none; else the last one checked) — None without.
     With ``check_assembly`` the finalists are the best candidates whose base plate can be printed
-    (:func:`base_plate_wall_mm` ≥ ``mechanics.min_wall_mm``; the best one if none can)."""
+    (:func:`base_plate_wall_mm` ≥ ``mechanics.min_wall_mm``; the best one if none can). With
+    ``robust`` the candidates are ranked, confirmed and chosen on their expected figures."""
     from cm2optics.cad.assembly import aim_interferences
 
     pool = meeting or feasible
     if not pool:
         raise ValueError("no candidate could be built: every parameter set was rejected by the profile construction")
-    ranked = sorted(pool, key=lambda c: c["delivered_fraction"] if meeting else c["score"], reverse=True)
+    ranked = sorted(pool, key=lambda c: _light(c) if meeting else c["score"], reverse=True)
     finalists = ranked[:CONFIRMED]
     if check_assembly:  # placements whose base plate can be printed, best first (else the best, to report)
         base_design = design_from_dict(base)
@@ -475,13 +538,22 @@ def _confirm_finalists(
         f.result()
         for f in [
             client.submit(
-                evaluate_candidate, base, c["parameters"], 4 * rays, seed + 2, max_cv, threads, inputs, pure=False
+                evaluate_candidate,
+                base,
+                c["parameters"],
+                4 * rays,
+                seed + 2,
+                max_cv,
+                threads,
+                inputs,
+                robust,
+                pure=False,
             )
             for c in finalists
         ]
     ]
-    passing = [i for i, c in enumerate(confirmations) if c.get("feasible") and c["uniformity_cv"] <= max_cv]
-    order = sorted(passing, key=lambda i: confirmations[i]["delivered_fraction"], reverse=True) or [0]
+    passing = [i for i, c in enumerate(confirmations) if c.get("feasible") and _confirmed_uniform(c, max_cv)]
+    order = sorted(passing, key=lambda i: _light(confirmations[i]), reverse=True) or [0]
     if not check_assembly:
         return finalists[order[0]], confirmations[order[0]], None
     for i in order:
@@ -489,6 +561,19 @@ def _confirm_finalists(
         if not clashes:
             break
     return finalists[i], confirmations[i], clashes
+
+
+def _light(candidate: dict[str, Any]) -> float:
+    """A candidate's delivered fraction to rank by: the expected one when it was scored robustly."""
+    return candidate.get("expected_delivered_fraction", candidate["delivered_fraction"])
+
+
+def _confirmed_uniform(confirmation: dict[str, Any], max_cv: float) -> bool:
+    """Whether a confirmation run meets the CV limit: its measured CV (noise included), or when
+    scored robustly its expected CV′ (``meets_uniformity``)."""
+    if "expected_uniformity_cv_corrected" in confirmation:
+        return bool(confirmation["meets_uniformity"])
+    return confirmation["uniformity_cv"] <= max_cv
 
 
 def base_plate_wall_mm(design: SystemDesign) -> float:

@@ -500,6 +500,24 @@ def _input_cases() -> list[Case]:
             ("--iterations",),
         ),
         Case(
+            "illum optimize",
+            "option",
+            ["illum", "optimize", "--robust-samples", "-1", "--out", "{case}/o"],
+            ("--robust-samples",),
+        ),
+        Case(
+            "illum optimize",
+            "option",
+            ["illum", "optimize", "--method", "gradient", "--robust-samples", "4", "--out", "{case}/o"],
+            ("--robust-samples",),
+        ),
+        Case(
+            "illum optimize",
+            "option",
+            ["illum", "optimize", "--robust-samples", "4", "--unit-tilt-deg", "-1", "--out", "{case}/o"],
+            ("unit_tilt_deg",),
+        ),
+        Case(
             "illum robustness", "option", ["illum", "robustness", "--samples", "1", "--out", "{case}/o"], ("--samples",)
         ),
         Case(

@@ -63,26 +63,50 @@ def _objective(base, c, start, rays):
     )
 
 
-@pytest.mark.slow
-@pytest.mark.xfail(
-    strict=True,
-    reason="open: with the model LED and filter (seed 3) dCV′/dc₆ is −7.1e-4 here and +1.09e-3 by finite "
-    "differences (with the authors' inputs, seed 1, dJ/dc₆ and dJ/dc₇ agreed within 11 %); BENCHMARKS.md",
-)
-def test_gradient_matches_finite_differences_of_the_same_objective(jit):
-    """dD/dc and dCV′/dc from Dr.Jit against central differences (h = 0.5 µm, the mesh rebuilt,
-    the same rays) for astigmatism and coma (Noll 6, 7). Not for the symmetric terms (4, 11):
-    they move the central beam's edge across the housing's aperture, a change of visibility whose
-    boundary term the trace does not differentiate (measured: dCV′/dc₁₁ 4.3e-3 against 1.4e-3)."""
+@pytest.fixture(scope="module")
+def at_start(jit):
+    """(base design, start terms, the objective and its gradient there): cm2-v2, the model LED and filter, seed 3."""
     base = load_preset("cm2-v2")
     start = np.array([base.collimator.lens_freeform_um[j - 1] for j in TERMS])
-    rays, h = 20_000, 0.5
-    f0 = _objective(base, start, start, rays)
-    for k in (2, 3):
-        e = np.zeros(len(TERMS))
-        e[k] = h
-        up, down = _objective(base, start + e, start, rays), _objective(base, start - e, start, rays)
-        fd_cv = (up.cv_corrected - down.cv_corrected) / (2 * h)
-        assert f0.gradient_cv[k] == pytest.approx(fd_cv, rel=0.25, abs=2e-4), TERMS[k]
-        fd_d = (up.delivered - down.delivered) / (2 * h)
-        assert f0.gradient_delivered[k] == pytest.approx(fd_d, rel=0.5, abs=5e-5), TERMS[k]
+    return base, start, _objective(base, start, start, 20_000)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(
+    "term",
+    [
+        4,
+        6,
+        pytest.param(
+            7,
+            marks=pytest.mark.xfail(
+                strict=True,
+                reason="open: dD/dc₇ 2.3e-4 and dCV′/dc₇ −2.66e-3 here against ≈ 1.0e-4 and −1.1e-3 by finite "
+                "differences; about half of the difference is rays changing path (no boundary term); BENCHMARKS.md",
+            ),
+        ),
+        pytest.param(
+            11,
+            marks=pytest.mark.xfail(
+                strict=True,
+                reason="open: dCV′/dc₁₁ 1.45e-3 here against ≈ 0.9e-4 by finite differences (dD/dc₁₁ agrees within "
+                "12 %); BENCHMARKS.md",
+            ),
+        ),
+    ],
+)
+def test_gradient_matches_finite_differences_of_the_same_objective(at_start, term):
+    """dD/dc and dCV′/dc from Dr.Jit against central differences (h = 0.5 µm, the mesh rebuilt,
+    the same rays, 2·10⁴ of them) for defocus, astigmatism, coma and spherical (Noll 4, 6, 7, 11;
+    the piston holding the rim for 4 and 11). Before the lens's hit point was told apart from the
+    exit face above it (both inside the cavity's radius) and the base surface's curvature entered
+    the normal's change, dD/dc₄ was −4.2e-5 against +2.2e-4 and dCV′/dc₆ −7.1e-4 against +1.1e-3."""
+    base, start, f0 = at_start
+    rays, h, k = 20_000, 0.5, TERMS.index(term)
+    e = np.zeros(len(TERMS))
+    e[k] = h
+    up, down = _objective(base, start + e, start, rays), _objective(base, start - e, start, rays)
+    fd_cv = (up.cv_corrected - down.cv_corrected) / (2 * h)
+    fd_d = (up.delivered - down.delivered) / (2 * h)
+    assert f0.gradient_delivered[k] == pytest.approx(fd_d, rel=0.5, abs=5e-5), (f0.gradient_delivered[k], fd_d)
+    assert f0.gradient_cv[k] == pytest.approx(fd_cv, rel=0.25, abs=2e-4), (f0.gradient_cv[k], fd_cv)

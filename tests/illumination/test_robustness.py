@@ -11,6 +11,7 @@ from cm2optics.illumination.robustness import (
     Tolerances,
     UnitError,
     draw_errors,
+    expected_figures,
     perturbed_scene,
     robustness_study,
     surface_error,
@@ -70,3 +71,43 @@ def test_zero_tolerances_give_the_nominal_figures_and_a_seed_repeats(v2, v2_scen
     assert first["per_sample"][0]["delivered_fraction"] != first["nominal"]["delivered_fraction"]
     other = draw_errors(v2_scene.collimator, v2_scene.units, errors, np.random.default_rng(5))
     assert not np.allclose(other[0].led_offset_mm, first["per_sample"][0]["led_offset_mm"][0])
+
+
+def test_expected_figures_are_the_means_of_the_builds_and_score_the_mean_cv():
+    rows = [
+        {"delivered_fraction": 0.30, "uniformity_cv_corrected": 0.08},
+        {"delivered_fraction": 0.26, "uniformity_cv_corrected": 0.11},
+        {"delivered_fraction": 0.28, "uniformity_cv_corrected": 0.14},
+    ]
+    expected = expected_figures(rows, max_cv=0.10)
+    assert expected["expected_delivered_fraction"] == pytest.approx(0.28)
+    assert expected["expected_uniformity_cv_corrected"] == pytest.approx(0.11)
+    assert expected["share_within_max_cv"] == pytest.approx(1 / 3)
+    assert expected["expected_score"] == pytest.approx(0.28 - 2 * 0.01)
+    assert expected_figures(rows[:1], max_cv=0.10)["expected_score"] == pytest.approx(0.30)  # no penalty
+
+
+@pytest.mark.slow
+def test_robust_scoring_of_a_sweep_candidate(v2):
+    """``cm2 illum optimize --robust-samples``: with no errors the expected figures are the
+    nominal ones (the builds trace the candidate's own rays); with errors the same seed draws the
+    same builds (the same score) and another seed others."""
+    from cm2optics.illumination.optimize import RobustScoring, evaluate_candidate
+
+    def entry(tolerances, seed):
+        return evaluate_candidate(v2.to_dict(), {}, 4000, 1, 0.10, threads=1, robust=RobustScoring(2, tolerances, seed))
+
+    exact = entry(Tolerances(0.0, 0.0, 0.0), 4)
+    assert exact["expected_delivered_fraction"] == pytest.approx(exact["delivered_fraction"], abs=1e-3)
+    assert exact["expected_uniformity_cv_corrected"] == pytest.approx(exact["uniformity_cv_corrected"], abs=2e-3)
+    penalty = 2 * max(0.0, exact["expected_uniformity_cv_corrected"] - 0.10)
+    assert exact["score"] == exact["expected_score"] == pytest.approx(exact["expected_delivered_fraction"] - penalty)
+    assert exact["nominal_score"] == pytest.approx(
+        exact["delivered_fraction"] - 2 * max(0.0, exact["uniformity_cv_corrected"] - 0.10)
+    )
+    errors = Tolerances(0.05, 1.0, 2.0)
+    first, again, other = entry(errors, 4), entry(errors, 4), entry(errors, 5)
+    figures = ("expected_delivered_fraction", "expected_uniformity_cv_corrected", "score")
+    assert [first[k] for k in figures] == [again[k] for k in figures]
+    assert first["expected_delivered_fraction"] != other["expected_delivered_fraction"]
+    assert first["delivered_fraction"] == other["delivered_fraction"]  # the nominal trace is the same
