@@ -18,7 +18,7 @@ Error against K, two ways, both on the calibration set:
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -132,33 +132,21 @@ def streamed_decompose(
     N, shape = len(crops), crops.shape[1:]
     D = int(np.prod(shape))
     L = int(min(N, rank + max(rank, 16)))
-    passes, done = 2 + 2 * power_iterations, 0
-
-    def step() -> None:
-        nonlocal done
-        done += 1
-        if progress:
-            progress("streamed SVD (passes over the crops)", done, passes)
-
+    passes = _Passes(crops, 2 + 2 * power_iterations, progress)
     norms = np.zeros(N)
     Y = np.zeros((N, L))
     omega = np.random.default_rng(seed).standard_normal((D, L)).astype(np.float32)
-    for start, block in position_chunks(crops):
-        X = block.reshape(len(block), -1)
+    for rows, X in passes.chunks():
         if not np.all(np.isfinite(X)):
             raise ValueError("the focus crops contain NaN or infinite values")
-        norms[start : start + len(X)] = np.einsum("np,np->n", X, X, dtype=np.float64)
-        Y[start : start + len(X)] = X @ omega
+        norms[rows] = np.einsum("np,np->n", X, X, dtype=np.float64)
+        Y[rows] = X @ omega
     del omega
-    step()
     Q = np.linalg.qr(Y)[0]
     for _ in range(power_iterations):
-        Z = np.linalg.qr(_transposed_product(crops, Q))[0]  # (D, L): the row space
-        step()
-        Q = np.linalg.qr(_product(crops, Z))[0]
-        step()
-    Bt = _transposed_product(crops, Q)  # (D, L) = Xᵀ Q, B = Qᵀ X
-    step()
+        Z = np.linalg.qr(passes.transposed_product(Q))[0]  # (D, L): the row space
+        Q = np.linalg.qr(passes.product(Z))[0]
+    Bt = passes.transposed_product(Q)  # (D, L) = Xᵀ Q, B = Qᵀ X
     eigenvalues, U = np.linalg.eigh(Bt.T @ Bt)
     order = np.argsort(eigenvalues)[::-1]
     singular = np.sqrt(np.clip(eigenvalues[order], 0, None))
@@ -168,21 +156,36 @@ def streamed_decompose(
     return _decomposition(basis.T.reshape((K,) + shape), Q @ (U * singular), singular, norms)
 
 
-def _product(crops: CropStore, M: np.ndarray) -> np.ndarray:
-    """X·M (N, L) of the crops X (N, D) and M (D, L), float64, one pass over the crops."""
-    out = np.zeros((len(crops), M.shape[1]))
-    M32 = M.astype(np.float32)
-    for start, block in position_chunks(crops):
-        out[start : start + len(block)] = block.reshape(len(block), -1) @ M32
-    return out
+class _Passes:
+    """Passes over crops on disk as (positions, D) float32 chunks, ``total`` of them reported to ``progress``."""
 
+    def __init__(self, crops: CropStore, total: int, progress: Progress | None) -> None:
+        self.crops, self.progress = crops, progress
+        self.total = total * -(-len(crops) // crops.chunk)
+        self.done = 0
 
-def _transposed_product(crops: CropStore, M: np.ndarray) -> np.ndarray:
-    """Xᵀ·M (D, L) of the crops X (N, D) and M (N, L), float64 sums over chunks, one pass."""
-    out = np.zeros((int(np.prod(crops.shape[1:])), M.shape[1]))
-    for start, block in position_chunks(crops):
-        out += block.reshape(len(block), -1).T @ M[start : start + len(block)].astype(np.float32)
-    return out
+    def chunks(self) -> Iterator[tuple[slice, np.ndarray]]:
+        """(rows of the chunk's positions, their crops flattened) for one pass."""
+        for start, block in position_chunks(self.crops):
+            yield slice(start, start + len(block)), block.reshape(len(block), -1)
+            self.done += 1
+            if self.progress:
+                self.progress("streamed SVD (chunks read)", self.done, self.total)
+
+    def product(self, M: np.ndarray) -> np.ndarray:
+        """X·M (N, L) of the crops X (N, D) and M (D, L), float64, one pass."""
+        out = np.zeros((len(self.crops), M.shape[1]))
+        M32 = M.astype(np.float32)
+        for rows, X in self.chunks():
+            out[rows] = X @ M32
+        return out
+
+    def transposed_product(self, M: np.ndarray) -> np.ndarray:
+        """Xᵀ·M (D, L) of the crops X (N, D) and M (N, L), float64 sums over the chunks, one pass."""
+        out = np.zeros((int(np.prod(self.crops.shape[1:])), M.shape[1]))
+        for rows, X in self.chunks():
+            out += X.T @ M[rows].astype(np.float32)
+        return out
 
 
 def numerical_rank(singular_values: np.ndarray, tolerance: float = 1e-4) -> int:

@@ -42,7 +42,9 @@ def test_streamed_svd_matches_the_exact_one_on_a_slowly_decaying_spectrum():
     right = np.linalg.qr(rng.standard_normal((D, N)))[0]
     X = ((left / np.arange(1, N + 1)) @ right.T).astype(np.float32).reshape(N, 3, 20, 20)
     exact = decompose(X, K)
-    streamed = streamed_decompose(_store(X, chunk=37), K)
+    calls = []
+    streamed = streamed_decompose(_store(X, chunk=37), K, progress=lambda *call: calls.append(call))
+    assert calls[-1] == ("streamed SVD (chunks read)", 36, 36)  # 6 passes (2 power iterations) × 6 chunks
     np.testing.assert_allclose(streamed.singular_values[:K], exact.singular_values[:K], rtol=2e-3)
     assert streamed.nmse[K] == pytest.approx(exact.nmse[K], rel=1e-3)  # 3.5e-3 with one power iteration
     assert streamed.nmse_per_psf[K] == pytest.approx(exact.nmse_per_psf[K], rel=1e-3)
