@@ -163,6 +163,15 @@ def build(
             "better so; on; off (linear blend). Needs --refine ≥ 2.",
         ),
     ] = "auto",
+    memory_gb: Annotated[
+        float,
+        typer.Option(
+            "--memory-gb",
+            help="Crops larger than this (GiB) are kept in a temporary file and read a quarter of it at a time, "
+            "with a randomized SVD streamed over them (a dense full-field scan); smaller ones are held in memory "
+            "and decomposed exactly.",
+        ),
+    ] = 4.0,
     preset: PresetOption = "cm2-v2",
     overwrite: OverwriteOption = False,
     as_json: JsonOption = False,
@@ -188,6 +197,8 @@ def build(
         raise UserError(f"--trim = {trim}: must lie within 0 ≤ trim < 1")
     if not 1 <= refine <= 64:
         raise UserError(f"--refine = {refine}: must lie within 1–64")
+    if not memory_gb > 0:
+        raise UserError(f"--memory-gb = {memory_gb}: must be > 0")
     turn = {"auto": None, "on": True, "off": False}.get(rotate, "bad")
     if turn == "bad":
         raise UserError(f"--rotate = {rotate!r}: must be auto, on or off")
@@ -216,6 +227,7 @@ def build(
             refine=refine,
             rotate=turn,
             warp=warping,
+            memory_bytes=int(memory_gb * 1024**3),
         )
     summary = _save_build(result, model_path, None if no_report else folder, oversample)
     if as_json:

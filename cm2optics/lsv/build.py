@@ -28,6 +28,7 @@ import cm2optics
 from cm2optics.design import SystemDesign, default_design
 from cm2optics.formats.scan import ScanError, ScanIndex, open_scan
 from cm2optics.formats.volume import VolumeGrid
+from cm2optics.lsv.crop_store import DEFAULT_MEMORY_BYTES, CropStore, position_chunks
 from cm2optics.lsv.decompose import Decomposition, decompose, numerical_rank, trim_window
 from cm2optics.lsv.epsf_validate import turn_check
 from cm2optics.lsv.focal_surface import FocalSurface, estimate_focal_surface
@@ -54,13 +55,14 @@ ALIGNMENT_SNAP_PX = 0.1
 
 @dataclass(frozen=True)
 class BuildResult:
-    """model; decomposition (all singular values, NMSE against K); geometry fit; crops (N, J,
-    h, w) as fitted; grid_index (N, 3) of every crop as (ix, iy, iz); seconds per step."""
+    """model; decomposition (all singular values, NMSE against K; a streamed SVD's: those of the
+    terms it computed); geometry fit; crops (N, J, h, w) as fitted (in memory, or on disk: a
+    :class:`~cm2optics.lsv.crop_store.CropStore`); grid_index (N, 3) of every crop as (ix, iy, iz); seconds per step."""
 
     model: LSVModel
     decomposition: Decomposition
     fit: GeometryFit
-    crops: np.ndarray
+    crops: np.ndarray | CropStore
     grid_index: np.ndarray
     seconds: dict[str, float]
 
@@ -203,16 +205,18 @@ def _scan_crops(
     epsf_info: dict[str, Any],
     estimate_options: dict[str, Any] | None,
     progress: Progress | None,
-) -> np.ndarray:
+    memory_bytes: int,
+) -> np.ndarray | CropStore:
     """The registered crops (N, J, patch·S, patch·S; image px / S): from epsf.h5 if S > 1 and
     present, estimated per node from the frames of each node and its sub-pixel dithers if S > 1
     and the scan has dithers, else the frames (N, J, patch, patch; whole pixels: an ePSF basis is
-    then estimated jointly with the coefficients, in :func:`model_from_crops`)."""
+    then estimated jointly with the coefficients, in :func:`model_from_crops`); the epsf.h5 crops
+    and the frames on disk if they take more than ``memory_bytes``."""
     if oversample > 1 and (index.folder / "epsf.h5").is_file():
         from cm2optics.lsv.epsf import epsf_crops
 
         epsf_info["source"] = "synthetic ePSFs (epsf.h5)"
-        return epsf_crops(index, geometry, (patch, patch), oversample, progress=progress)
+        return epsf_crops(index, geometry, (patch, patch), oversample, progress=progress, memory_bytes=memory_bytes)
     if oversample > 1:
         from cm2optics.lsv.epsf_estimate import has_dithers, local_epsf_crops, pixel_windows
 
@@ -226,7 +230,7 @@ def _scan_crops(
             epsf_info["source"] = "estimated from the whole-pixel frames of each node and its sub-pixel dithers"
             return crops
         epsf_info["source"] = "estimated from the whole-pixel frames"
-    return extract_crops(index, geometry, (patch, patch), progress=progress)
+    return extract_crops(index, geometry, (patch, patch), progress=progress, memory_bytes=memory_bytes)
 
 
 def _build_provenance(
@@ -390,6 +394,7 @@ def build_model(
     refine: int = 2,
     rotate: bool | None = None,
     warp: bool | None = None,
+    memory_bytes: int = DEFAULT_MEMORY_BYTES,
 ) -> BuildResult:
     """Build an LSV model from the scan folder ``scan_dir`` (see the module docstring).
 
@@ -420,7 +425,11 @@ def build_model(
         None: if held-out nodes of the scan say so (:func:`_choose_interpolation`); False: never.
     warp: blend neighbouring PSFs by displacement interpolation, each warped to the interpolated
         focus shape (:mod:`cm2optics.lsv.warp`; on the refined grid); None: if held-out nodes of
-        the scan say so; False: never."""
+        the scan say so; False: never.
+    memory_bytes: crops larger than this are kept in a temporary file and read in chunks of
+        positions (:mod:`cm2optics.lsv.crop_store`), their SVD randomized and streamed
+        (:func:`~cm2optics.lsv.decompose.streamed_decompose`); smaller ones are held in memory
+        and decomposed exactly."""
     axial_um = _check_build_options(oversample, rank, lateral_um, axial_um, design, refine)
     seconds: dict[str, float] = {}
     start = time.perf_counter()
@@ -433,7 +442,7 @@ def build_model(
 
     start = time.perf_counter()
     oversample, epsf_info = _phase_check(index, geometry, oversample)
-    crops = _scan_crops(index, geometry, patch, oversample, epsf_info, estimate_options, progress)
+    crops = _scan_crops(index, geometry, patch, oversample, epsf_info, estimate_options, progress, memory_bytes)
     seconds["crops"] = time.perf_counter() - start
 
     start = time.perf_counter()
@@ -444,6 +453,7 @@ def build_model(
     options |= {"focal_surface": surface is not None, "refine": refine if surface is not None else 1}
     options |= {"rotate": {None: "data decides", True: "on", False: "off"}[rotate]}
     options |= {"warp": {None: "data decides", True: "on", False: "off"}[warp]}
+    options |= {"svd": "exact (crops in memory)" if isinstance(crops, np.ndarray) else "streamed (crops on disk)"}
     provenance = _build_provenance(index, fit, alignment, options, epsf_info) | {"focal_surface": surface_info}
     fine = crops.shape[-1] != patch  # fine crops (synthetic or dithered), else an ePSF basis fitted to the frames
     model, decomposition = model_from_crops(
@@ -462,6 +472,7 @@ def build_model(
         frames=None if oversample == 1 or fine else (index, estimate_options),
         focal_surface=surface,
         refine=refine,
+        progress=progress,
     )
     seconds["svd"] = time.perf_counter() - start
     start = time.perf_counter()
@@ -500,24 +511,27 @@ def _calibration_error(model: LSVModel, dec: Decomposition) -> dict[str, Any]:
     } | before
 
 
-def node_nmse(decomposition: Decomposition, crops: np.ndarray) -> tuple[float, float] | None:
+#: Positions converted to float64 at a time where crops are summed exactly.
+FLOAT64_ROWS = 32
+
+
+def node_nmse(decomposition: Decomposition, crops: np.ndarray | CropStore) -> tuple[float, float] | None:
     """The error of ``coefficients · basis`` at the nodes against ``crops`` (N, J, h, w) on the
     basis's grid: ``‖X − X̂‖²_F / ‖X‖²_F`` and the mean over non-dark nodes of ``‖x_n − x̂_n‖² /
     ‖x_n‖²`` (as :mod:`cm2optics.lsv.decompose` defines them); None if the grids differ (an
-    estimated ePSF basis). Float64 sums over column chunks: ``‖x‖² − 2 c·(B x) + cᵀ G c``."""
-    basis = decomposition.basis.reshape(decomposition.rank, -1)
+    estimated ePSF basis). Float64 sums over a few positions at a time: ``‖x‖² − 2 c·(B x) + cᵀ G c``."""
     if decomposition.basis.shape[1:] != crops.shape[1:]:
         return None
-    X = crops.reshape(len(crops), -1)
-    norms = np.zeros(len(X))
-    projections = np.zeros((len(X), len(basis)))
-    gram = np.zeros((len(basis), len(basis)))
-    for start in range(0, X.shape[1], 16384):
-        x = X[:, start : start + 16384].astype(np.float64)
-        b = basis[:, start : start + 16384].astype(np.float64)
-        norms += np.einsum("np,np->n", x, x)
-        projections += x @ b.T
-        gram += b @ b.T
+    basis = decomposition.basis.reshape(decomposition.rank, -1).astype(np.float64)
+    norms = np.zeros(len(crops))
+    projections = np.zeros((len(crops), len(basis)))
+    gram = basis @ basis.T
+    for first, block in position_chunks(crops):
+        for start in range(0, len(block), FLOAT64_ROWS):
+            x = block[start : start + FLOAT64_ROWS].reshape(-1, basis.shape[1]).astype(np.float64)
+            rows = slice(first + start, first + start + len(x))
+            norms[rows] = np.einsum("np,np->n", x, x)
+            projections[rows] = x @ basis.T
     c = decomposition.coefficients.astype(np.float64)
     errors = np.clip(
         norms - 2.0 * np.einsum("nk,nk->n", c, projections) + np.einsum("nk,kl,nl->n", c, gram, c), 0, None
@@ -537,7 +551,7 @@ def _whole_pixels(window: slice, n: int, S: int) -> slice:
     return slice(centre - half, centre + half)
 
 
-def keep_node_flux(decomposition: Decomposition, crops: np.ndarray) -> tuple[Decomposition, np.ndarray]:
+def keep_node_flux(decomposition: Decomposition, crops: np.ndarray | CropStore) -> tuple[Decomposition, np.ndarray]:
     """Each node's coefficients moved so that its modelled flux equals its crop's, changing its
     shape least: the least-squares fit under the flux constraint, ``c + λ G⁻¹b`` (G the basis's
     Gram matrix, b each basis PSF's flux, λ from the constraint). A rank-K truncation is optimal in
@@ -548,7 +562,7 @@ def keep_node_flux(decomposition: Decomposition, crops: np.ndarray) -> tuple[Dec
     basis = decomposition.basis.reshape(decomposition.rank, -1).astype(np.float64)
     area = (crops.shape[-2] * crops.shape[-1]) / (decomposition.basis.shape[-2] * decomposition.basis.shape[-1])
     b = basis.sum(axis=1) * area  # (K,) flux of each basis PSF in the crops' samples
-    target = crops.reshape(len(crops), -1).sum(axis=1, dtype=np.float64)
+    target = np.concatenate([block.sum(axis=(1, 2, 3), dtype=np.float64) for _, block in position_chunks(crops)])
     c = decomposition.coefficients.astype(np.float64)
     modelled = c @ b
     direction = np.linalg.lstsq(basis @ basis.T, b, rcond=None)[0]  # G⁻¹ b
@@ -560,13 +574,15 @@ def keep_node_flux(decomposition: Decomposition, crops: np.ndarray) -> tuple[Dec
     return replace(decomposition, coefficients=c.astype(np.float32)), before
 
 
-def _trim(decomposition: Decomposition, crops: np.ndarray, trim: float, S: int) -> tuple[Decomposition, np.ndarray]:
+def _trim(
+    decomposition: Decomposition, crops: np.ndarray | CropStore, trim: float, S: int
+) -> tuple[Decomposition, np.ndarray | CropStore]:
     """Cut the basis's and crops' dark margins holding less than ``trim`` of the energy (whole pixels if S > 1)."""
     rows, cols = trim_window(decomposition.basis, decomposition.singular_values, trim)
     if S > 1 and crops.shape[-1] % S == 0:  # keep whole pixels, the chief ray on S·(h//2)
         rows, cols = (_whole_pixels(sl, n, S) for sl, n in zip((rows, cols), crops.shape[2:], strict=True))
     decomposition = replace(decomposition, basis=np.ascontiguousarray(decomposition.basis[:, :, rows, cols]))
-    return decomposition, crops[:, :, rows, cols]
+    return decomposition, crops[:, :, rows, cols] if isinstance(crops, np.ndarray) else crops.windowed(rows, cols)
 
 
 def _default_grid(
@@ -608,7 +624,7 @@ def _model_provenance(
 
 
 def model_from_crops(
-    crops: np.ndarray,
+    crops: np.ndarray | CropStore,
     grid_index: np.ndarray,
     axes: tuple[np.ndarray, np.ndarray, np.ndarray],
     geometry: Geometry,
@@ -624,6 +640,7 @@ def model_from_crops(
     frames: tuple[Any, dict[str, Any] | None] | None = None,
     focal_surface: FocalSurface | None = None,
     refine: int = 1,
+    progress: Progress | None = None,
 ) -> tuple[LSVModel, Decomposition]:
     """Truncated SVD of registered ``crops`` (N, J, h, w) at grid positions ``grid_index`` (N, 3) as
     (ix, iy, iz) of ``axes`` (x, y, z mm), scaled so that the in-focus on-axis image of a unit source
@@ -631,7 +648,7 @@ def model_from_crops(
     drop dark margins holding less than this share of the energy (None: keep the full crops)."""
     xs, ys, zs = axes
     S = int(oversample)
-    decomposition = decompose(crops, rank)
+    decomposition = decompose(crops, rank, progress=progress)
     K = decomposition.rank
     crop_shape = crops.shape[2:]
     if trim:
@@ -641,7 +658,8 @@ def model_from_crops(
         from cm2optics.lsv.epsf_estimate import estimate_epsf_basis
 
         index, options = frames
-        decomposition, estimate = estimate_epsf_basis(index, geometry, decomposition, crops, S, **(options or {}))
+        whole = crops if isinstance(crops, np.ndarray) else crops[:]  # the estimate holds the whole-pixel crops
+        decomposition, estimate = estimate_epsf_basis(index, geometry, decomposition, whole, S, **(options or {}))
     decomposition, flux_before = keep_node_flux(decomposition, crops)
     model_error = node_nmse(decomposition, crops)
     gi = np.asarray(grid_index)

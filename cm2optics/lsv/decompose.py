@@ -4,7 +4,9 @@ The N crops of a scan, each a stack of J registered foci (h × w), are the rows 
 ``X`` (N × J·h·w). With ``X = U·S·Vᵀ``, the first K rows of ``Vᵀ`` are the basis PSFs (each a
 3×3 focus array) and ``U_K·S_K`` the coefficients of every calibration position. The SVD goes
 through the N × N Gram matrix ``X·Xᵀ`` in float64 (N is at most a few thousand; the pixels are
-hundreds of thousands), so memory stays at a few copies of ``X`` in float32.
+hundreds of thousands), so memory stays at a few copies of ``X`` in float32. Crops too large
+for memory (a dense full-field scan) stay on disk (:mod:`cm2optics.lsv.crop_store`) and are
+decomposed by a randomized SVD in a few passes over them, a chunk of positions at a time.
 
 Error against K, two ways, both on the calibration set:
 
@@ -16,11 +18,16 @@ Error against K, two ways, both on the calibration set:
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["Decomposition", "decompose", "numerical_rank", "trim_window"]
+from cm2optics.lsv.crop_store import CropStore, position_chunks
+
+Progress = Callable[[str, int, int], None]
+
+__all__ = ["Decomposition", "decompose", "numerical_rank", "streamed_decompose", "trim_window"]
 
 
 @dataclass(frozen=True)
@@ -50,8 +57,12 @@ def gram(X: np.ndarray, chunk: int = 16384) -> np.ndarray:
     return G
 
 
-def decompose(crops: np.ndarray, rank: int) -> Decomposition:
-    """Truncated SVD of ``crops`` (N, J, h, w) keeping ``rank`` terms (capped at N)."""
+def decompose(crops: np.ndarray | CropStore, rank: int, progress: Progress | None = None) -> Decomposition:
+    """Truncated SVD of ``crops`` (N, J, h, w) keeping ``rank`` terms (capped at N): exact through
+    the Gram matrix for crops in memory, randomized (:func:`streamed_decompose`) for a
+    :class:`~cm2optics.lsv.crop_store.CropStore` on disk."""
+    if not isinstance(crops, np.ndarray):
+        return streamed_decompose(crops, rank, progress=progress)
     N = crops.shape[0]
     shape = crops.shape[1:]
     X = crops.reshape(N, -1)
@@ -60,33 +71,121 @@ def decompose(crops: np.ndarray, rank: int) -> Decomposition:
     G = gram(X)
     eigenvalues, vectors = np.linalg.eigh(G)
     order = np.argsort(eigenvalues)[::-1]
-    eigenvalues = np.clip(eigenvalues[order], 0, None)
+    singular = np.sqrt(np.clip(eigenvalues[order], 0, None))
     vectors = vectors[:, order]
-    singular = np.sqrt(eigenvalues)
-    K = int(min(rank, N, int(np.sum(singular > singular[0] * 1e-7)) if singular[0] > 0 else 1))
-    K = max(K, 1)
+    K = _kept_rank(singular, rank, N)
     scale = np.where(singular[:K] > 0, 1.0 / np.maximum(singular[:K], 1e-300), 0.0)
     projector = (vectors[:, :K] * scale).T  # (K, N)
     basis = np.zeros((K, X.shape[1]), np.float64)
     for start in range(0, X.shape[1], 16384):
         basis[:, start : start + 16384] = projector @ X[:, start : start + 16384].astype(np.float64)
-    coefficients = vectors[:, :K] * singular[:K]  # (N, K)
-    total = float(eigenvalues.sum())
-    captured = np.concatenate([[0.0], np.cumsum(eigenvalues)])
+    return _decomposition(basis.reshape((K,) + shape), vectors * singular, singular, np.diag(G))
+
+
+def _kept_rank(singular: np.ndarray, rank: int, N: int) -> int:
+    """K: ``rank`` capped at N and at the singular values above 10⁻⁷ of the largest (at least 1)."""
+    K = int(min(rank, N, int(np.sum(singular > singular[0] * 1e-7)) if singular[0] > 0 else 1))
+    return max(K, 1)
+
+
+def _decomposition(
+    basis: np.ndarray, coefficients: np.ndarray, singular: np.ndarray, norms: np.ndarray
+) -> Decomposition:
+    """The decomposition from the kept ``basis`` (K, J, h, w), the coefficients of every computed
+    term (N, L), their singular values (L,) and each crop's squared norm (N,), with the errors
+    against the number of terms kept (0 … L) of the whole set and per PSF."""
+    K, N = len(basis), len(norms)
+    total = float(norms.sum())
+    captured = np.concatenate([[0.0], np.cumsum(singular**2)])
     nmse = 1.0 - captured / total if total > 0 else np.zeros_like(captured)
-    norms = np.diag(G)
-    full_coefficients = vectors * singular  # (N, N)
-    cumulative = np.concatenate([np.zeros((N, 1)), np.cumsum(full_coefficients**2, axis=1)], axis=1)
+    cumulative = np.concatenate([np.zeros((N, 1)), np.cumsum(coefficients**2, axis=1)], axis=1)
     valid = norms > 1e-12 * max(norms.max(), 1e-300)
     per_psf = 1.0 - cumulative[valid] / norms[valid, None]
-    nmse_per_psf = np.clip(per_psf, 0, None).mean(axis=0) if valid.any() else np.zeros(N + 1)
+    nmse_per_psf = np.clip(per_psf, 0, None).mean(axis=0) if valid.any() else np.zeros(len(captured))
     return Decomposition(
-        basis=basis.reshape((K,) + shape).astype(np.float32),
-        coefficients=coefficients.astype(np.float32),
+        basis=basis.astype(np.float32),
+        coefficients=coefficients[:, :K].astype(np.float32),
         singular_values=singular,
         nmse=np.clip(nmse, 0, None),
         nmse_per_psf=nmse_per_psf,
     )
+
+
+#: The streamed SVD samples the crops' range with K + max(K, 16) random vectors and refines it
+#: with this many power iterations (Halko, Martinsson & Tropp 2011, algorithm 4.4): the leading K
+#: terms then match the exact SVD's closely even where the spectrum decays slowly.
+POWER_ITERATIONS = 2
+
+
+def streamed_decompose(
+    crops: CropStore,
+    rank: int,
+    *,
+    power_iterations: int = POWER_ITERATIONS,
+    seed: int = 0,
+    progress: Progress | None = None,
+) -> Decomposition:
+    """Randomized truncated SVD of crops read a chunk of positions at a time: ``2 + 2·q`` passes
+    over them (q power iterations), memory O((N + D)·L) for L = K + max(K, 16) sampled terms
+    instead of the N × D crops. Singular values and errors are those of the L terms (the exact
+    SVD's tail beyond them is not computed)."""
+    N, shape = len(crops), crops.shape[1:]
+    D = int(np.prod(shape))
+    L = int(min(N, rank + max(rank, 16)))
+    passes = _Passes(crops, 2 + 2 * power_iterations, progress)
+    norms = np.zeros(N)
+    Y = np.zeros((N, L))
+    omega = np.random.default_rng(seed).standard_normal((D, L)).astype(np.float32)
+    for rows, X in passes.chunks():
+        if not np.all(np.isfinite(X)):
+            raise ValueError("the focus crops contain NaN or infinite values")
+        norms[rows] = np.einsum("np,np->n", X, X, dtype=np.float64)
+        Y[rows] = X @ omega
+    del omega
+    Q = np.linalg.qr(Y)[0]
+    for _ in range(power_iterations):
+        Z = np.linalg.qr(passes.transposed_product(Q))[0]  # (D, L): the row space
+        Q = np.linalg.qr(passes.product(Z))[0]
+    Bt = passes.transposed_product(Q)  # (D, L) = Xᵀ Q, B = Qᵀ X
+    eigenvalues, U = np.linalg.eigh(Bt.T @ Bt)
+    order = np.argsort(eigenvalues)[::-1]
+    singular = np.sqrt(np.clip(eigenvalues[order], 0, None))
+    U = U[:, order]
+    K = _kept_rank(singular, rank, N)
+    basis = (Bt @ U[:, :K]) / np.maximum(singular[:K], 1e-300)  # (D, K): right singular vectors
+    return _decomposition(basis.T.reshape((K,) + shape), Q @ (U * singular), singular, norms)
+
+
+class _Passes:
+    """Passes over crops on disk as (positions, D) float32 chunks, ``total`` of them reported to ``progress``."""
+
+    def __init__(self, crops: CropStore, total: int, progress: Progress | None) -> None:
+        self.crops, self.progress = crops, progress
+        self.total = total * -(-len(crops) // crops.chunk)
+        self.done = 0
+
+    def chunks(self) -> Iterator[tuple[slice, np.ndarray]]:
+        """(rows of the chunk's positions, their crops flattened) for one pass."""
+        for start, block in position_chunks(self.crops):
+            yield slice(start, start + len(block)), block.reshape(len(block), -1)
+            self.done += 1
+            if self.progress:
+                self.progress("streamed SVD (chunks read)", self.done, self.total)
+
+    def product(self, M: np.ndarray) -> np.ndarray:
+        """X·M (N, L) of the crops X (N, D) and M (D, L), float64, one pass."""
+        out = np.zeros((len(self.crops), M.shape[1]))
+        M32 = M.astype(np.float32)
+        for rows, X in self.chunks():
+            out[rows] = X @ M32
+        return out
+
+    def transposed_product(self, M: np.ndarray) -> np.ndarray:
+        """Xᵀ·M (D, L) of the crops X (N, D) and M (N, L), float64 sums over the chunks, one pass."""
+        out = np.zeros((int(np.prod(self.crops.shape[1:])), M.shape[1]))
+        for rows, X in self.chunks():
+            out += X.T @ M[rows].astype(np.float32)
+        return out
 
 
 def numerical_rank(singular_values: np.ndarray, tolerance: float = 1e-4) -> int:

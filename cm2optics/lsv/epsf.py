@@ -29,6 +29,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
+from cm2optics.lsv.crop_store import DEFAULT_MEMORY_BYTES, CropStore, crop_array
 from cm2optics.lsv.kernels import TAPS, sample_window, shift_weights, split_shift
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -75,11 +76,17 @@ def place_epsf(fine: np.ndarray, eps: tuple[float, float], oversample: int) -> n
 
 
 def epsf_crops(
-    index: ScanIndex, geometry: Geometry, patch: tuple[int, int], oversample: int, progress=None
-) -> np.ndarray:
+    index: ScanIndex,
+    geometry: Geometry,
+    patch: tuple[int, int],
+    oversample: int,
+    progress=None,
+    memory_bytes: int = DEFAULT_MEMORY_BYTES,
+) -> np.ndarray | CropStore:
     """(N, J, h·S, w·S) float32 fine crops of a synthetic scan's ePSFs (``epsf.h5``) registered on
     every focus's chief ray (fine sample ``S·(h//2)`` on it), in the scan's normalised units less
-    each image's background (as :func:`~cm2optics.lsv.preprocess.prepared_image`)."""
+    each image's background (as :func:`~cm2optics.lsv.preprocess.prepared_image`); on disk
+    (:func:`~cm2optics.lsv.crop_store.crop_array`) if they take more than ``memory_bytes``."""
     import h5py
 
     from cm2optics.formats.scan import ScanError
@@ -91,7 +98,8 @@ def epsf_crops(
     S = int(oversample)
     h, w = patch
     J = geometry.n_lenslets
-    out = np.zeros((len(index), J, h * S, w * S), np.float32)
+    out = crop_array((len(index), J, h * S, w * S), memory_bytes)
+    crop = np.zeros((J, h * S, w * S), np.float32)
     centres = geometry.focus(index.positions_mm[:, 0], index.positions_mm[:, 1], index.positions_mm[:, 2])
     with h5py.File(path, "r") as f:
         have = int(f.attrs["oversample"])
@@ -112,7 +120,8 @@ def epsf_crops(
             canvas -= background  # the frames' median background (0 for a noiseless synthetic scan)
             for j in range(J):
                 centre = (centres[n, j, 0] * S - r0, centres[n, j, 1] * S - c0)
-                out[n, j] = sample_window(canvas, centre, (h * S, w * S))
+                crop[j] = sample_window(canvas, centre, (h * S, w * S))
+            out[n] = crop
             if progress:
                 progress("cropping ePSFs", n + 1, len(index))
     return out

@@ -27,6 +27,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from cm2optics.lsv.crop_store import CropStore, position_chunks
+
 __all__ = ["FocalSurface", "effective_area", "estimate_focal_surface", "stack_best_focus"]
 
 #: A stack whose focus grows by less than this share (both neighbours of its smallest node
@@ -168,19 +170,21 @@ def _robust_fit(
 
 
 def estimate_focal_surface(
-    crops: np.ndarray, grid_index: np.ndarray, axes: tuple[np.ndarray, np.ndarray, np.ndarray]
+    crops: np.ndarray | CropStore, grid_index: np.ndarray, axes: tuple[np.ndarray, np.ndarray, np.ndarray]
 ) -> FocalSurface:
     """Fit every lenslet's best-focus surface (module docstring) to registered ``crops`` (N, J,
-    h, w) at grid nodes ``grid_index`` (N, 3) as (ix, iy, iz) of ``axes`` (x, y, z mm)."""
+    h, w; in memory or on disk) at grid nodes ``grid_index`` (N, 3) as (ix, iy, iz) of ``axes`` (x, y, z mm)."""
     xs, ys, zs = (np.asarray(a, float) for a in axes)
     gi = np.asarray(grid_index)
     if len(zs) < 3:
         raise ValueError(f"a focal surface needs ≥ 3 scanned depths, the scan has {len(zs)}")
     J = crops.shape[1]
     area = np.full((len(ys), len(xs), J, len(zs)), np.inf)
-    area[gi[:, 1], gi[:, 0], :, gi[:, 2]] = effective_area(crops)
     flux = np.zeros((len(ys), len(xs), J, len(zs)))
-    flux[gi[:, 1], gi[:, 0], :, gi[:, 2]] = np.clip(crops, 0.0, None).sum(axis=(-2, -1), dtype=np.float64)
+    for start, block in position_chunks(crops):
+        g = gi[start : start + len(block)]
+        area[g[:, 1], g[:, 0], :, g[:, 2]] = effective_area(block)
+        flux[g[:, 1], g[:, 0], :, g[:, 2]] = np.clip(block, 0.0, None).sum(axis=(-2, -1), dtype=np.float64)
     brightest = flux.max(axis=-1) / np.maximum(flux.max(axis=(0, 1, 3)), 1e-300)  # (ny, nx, J), of the lenslet's
     z_best = stack_best_focus(area, zs, MIN_CONTRAST)  # (ny, nx, J)
     z_best[brightest < VIGNETTED_BELOW] = np.nan

@@ -39,6 +39,7 @@ import numpy as np
 from scipy import ndimage
 
 from cm2optics.formats.scan import ScanError, ScanIndex
+from cm2optics.lsv.crop_store import DEFAULT_MEMORY_BYTES, CropStore, crop_array
 from cm2optics.lsv.kernels import sample_window
 
 __all__ = ["Geometry", "GeometryFit", "estimate_geometry", "extract_crops", "image_background", "prepared_image"]
@@ -610,16 +611,20 @@ def extract_crops(
     patch: tuple[int, int],
     *,
     progress: Progress | None = None,
-) -> np.ndarray:
-    """(N, J, h, w) float32 crops of every image around every focus's predicted position."""
+    memory_bytes: int = DEFAULT_MEMORY_BYTES,
+) -> np.ndarray | CropStore:
+    """(N, J, h, w) float32 crops of every image around every focus's predicted position; on
+    disk (:func:`~cm2optics.lsv.crop_store.crop_array`) if they take more than ``memory_bytes``."""
     h, w = patch
     J = geometry.n_lenslets
-    out = np.zeros((len(index), J, h, w), np.float32)
+    out = crop_array((len(index), J, h, w), memory_bytes)
+    crop = np.zeros((J, h, w), np.float32)
     centres = geometry.focus(index.positions_mm[:, 0], index.positions_mm[:, 1], index.positions_mm[:, 2])
     for n in range(len(index)):
         image = prepared_image(index, n)
         for j in range(J):
-            out[n, j] = sample_window(image, tuple(centres[n, j]), (h, w))
+            crop[j] = sample_window(image, tuple(centres[n, j]), (h, w))
+        out[n] = crop
         if progress:
             progress("cropping foci", n + 1, len(index))
     return out
