@@ -22,9 +22,9 @@ relative to the units left at nominal (the global scale absorbs the rest: a map 
 LED at 70 % from three at 143 %).
 
 Attribution as for scans (:mod:`.attribute`): every candidate is fitted, linearised, beside the
-nuisance and the effects already kept; the one that lowers the BIC (χ² + k ln n) most is kept
-if it lowers it by more than ``BIC_THRESHOLD`` once refitted by Gauss–Newton with the tracer in
-the loop; the search stops when no candidate is significant (the BIC alone: a map has few
+nuisance and the effects already kept; the ``REFITTED_CANDIDATES`` that lower the BIC (χ² + k ln n)
+most are refitted by Gauss–Newton with the tracer in the loop, and the best of them is kept if it
+lowers the BIC by more than ``BIC_THRESHOLD``; the search stops when no candidate is significant (the BIC alone: a map has few
 bins, so χ²_red may sit a little above ``CHI2_FLOOR`` with a significant effect left; above it
 after the effects, the residual is described as unexplained).
 Uncertainties: the covariance's diagonal, scaled by χ²_red where it exceeds 1.
@@ -62,6 +62,10 @@ Progress = Callable[[str], None]
 NUISANCE = ("scale", "offset_x_mm", "offset_y_mm")
 #: Gauss–Newton iterations of a refit.
 ITERATIONS = 6
+#: Candidates refitted (Gauss–Newton, the tracer in the loop) each round, the best by the
+#: linearised BIC: a large tilt is far from linear, so the linearised ranking alone can prefer a
+#: flux change that mimics part of it.
+REFITTED_CANDIDATES = 3
 #: Least number of bins a map must cover.
 MIN_BINS = 30
 #: Largest lateral offset of the measured map fitted, mm (used bins keep this much inside the image).
@@ -365,24 +369,31 @@ class _Fit:
         residual, var = self.residual(slots, theta)
         return float(np.sum(residual**2 / var))
 
-    def jacobian(self, slots: list[_Slot], theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(B, k) forward differences of the model less the data, the residual and the weights 1/σ."""
+    def jacobian(
+        self, slots: list[_Slot], theta: np.ndarray, central: bool = False
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(B, k) forward (or central) differences of the model less the data, the residual and
+        the weights 1/σ."""
         residual, var = self.residual(slots, theta)
         jac = np.empty((residual.size, len(slots)))
         for i, slot in enumerate(slots):
             step = np.zeros(len(theta))
             h = slot.parameter.step * (max(abs(theta[i]), 1.0) if slot.column == 0 and slot.effect is None else 1.0)
             step[i] = h
-            jac[:, i] = (residual - self.residual(slots, theta + step)[0]) / h
+            below = self.residual(slots, theta - step)[0] if central else residual
+            jac[:, i] = (below - self.residual(slots, theta + step)[0]) / (2 * h if central else h)
         return jac, residual, 1.0 / np.sqrt(var)
 
-    def refine(self, slots: list[_Slot], theta: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
-        """Gauss–Newton from ``theta`` (step halving, bounds): the values, χ² and covariance."""
+    def refine(
+        self, slots: list[_Slot], theta: np.ndarray, central: bool = False
+    ) -> tuple[np.ndarray, float, np.ndarray]:
+        """Gauss–Newton from ``theta`` (step halving, bounds; ``central`` differences: no bias
+        from the curvature of a traced tilt in where it stops): the values, χ² and covariance."""
         low = np.array([s.parameter.low for s in slots])
         high = np.array([s.parameter.high for s in slots])
         chi2 = self.chi2(slots, theta)
         for _ in range(ITERATIONS):
-            jac, residual, w = self.jacobian(slots, theta)
+            jac, residual, w = self.jacobian(slots, theta, central)
             delta = np.linalg.lstsq(jac * w[:, None], residual * w, rcond=None)[0]
             for shrink in (1.0, 0.5, 0.25, 0.125):
                 trial = np.clip(theta + shrink * delta, low, high)
@@ -395,7 +406,7 @@ class _Fit:
             theta, chi2 = trial, trial_chi2
             if improved < 1e-4 * chi2 + 1e-6:
                 break
-        jac, _, w = self.jacobian(slots, theta)
+        jac, _, w = self.jacobian(slots, theta, central)
         cov = np.linalg.pinv((jac * w[:, None]).T @ (jac * w[:, None]))
         return theta, chi2, cov
 
@@ -444,6 +455,25 @@ def _candidate_scores(
         chi2 = float(np.sum((b - a[:, cols] @ delta) ** 2))
         scores.append((chi2 + penalty * len(cols), c))
     return scores
+
+
+def _refitted(
+    fit: _Fit, slots: list[_Slot], theta: np.ndarray, candidate: UnitEffect, penalty: float
+) -> tuple[float, UnitEffect, list[_Slot], tuple[np.ndarray, float, np.ndarray]]:
+    """``candidate`` refitted by Gauss–Newton beside the slots already free (all of them free
+    again): its BIC, the candidate, the slots and the fit (values, χ², covariance). A traced
+    candidate starts from the best (by χ²) of its current values and the points half its range
+    away on a 3 × 3 grid: a tilt of a few degrees moves a unit's spot too far for one linearisation."""
+    trial_slots = slots + _effect_slots(candidate)
+    current = _current(fit, slots, theta, candidate)
+    starts = [current]
+    if candidate.traced:
+        half = np.array([p.high for p in candidate.parameters]) / 2
+        grid = np.stack(np.meshgrid(*[(-1, 0, 1)] * len(current), indexing="ij"), -1).reshape(-1, len(current))
+        starts = [np.clip(current + g * half, -2 * half, 2 * half) for g in grid]
+    start = min(starts, key=lambda values: fit.chi2(trial_slots, np.concatenate([theta, values])))
+    refit = fit.refine(trial_slots, np.concatenate([theta, start]))
+    return refit[1] + penalty * len(trial_slots), candidate, trial_slots, refit
 
 
 def _current(fit: _Fit, slots: list[_Slot], theta: np.ndarray, effect: UnitEffect) -> np.ndarray:
@@ -600,21 +630,22 @@ def calibrate_illumination(
         if not remaining:
             break
         say(f"reduced χ² {chi2 / (n - len(slots)):.3g}: fitting {len(remaining)} candidates")
-        best_bic, best = min(_candidate_scores(fit, slots, theta, remaining, penalty), key=lambda t: t[0])
         bic_now = chi2 + penalty * len(slots)
-        if bic_now - best_bic < BIC_THRESHOLD:
+        scores = sorted(_candidate_scores(fit, slots, theta, remaining, penalty), key=lambda t: t[0])
+        finalists = [c for bic, c in scores[:REFITTED_CANDIDATES] if bic_now - bic >= BIC_THRESHOLD]
+        if not finalists:
             break
-        trial_slots = slots + _effect_slots(best)
-        trial, trial_chi2, trial_cov = fit.refine(
-            trial_slots, np.concatenate([theta, _current(fit, slots, theta, best)])
+        bic, best, trial_slots, (trial, trial_chi2, trial_cov) = min(
+            (_refitted(fit, slots, theta, c, penalty) for c in finalists), key=lambda t: t[0]
         )
-        bic = trial_chi2 + penalty * len(trial_slots)
         if bic_now - bic < BIC_THRESHOLD:
             break
         slots, theta, chi2, cov = trial_slots, trial, trial_chi2, trial_cov
         kept.append(best)
         steps.append({"effect": best.key, "chi2": round(chi2 / (n - len(slots)), 5), "bic": round(bic, 3)})
         say(f"kept {best.key}: reduced χ² {chi2 / (n - len(slots)):.3g}")
+    if any(e.traced for e in kept):  # polish the kept values: the search's forward differences are biased
+        theta, chi2, cov = fit.refine(slots, theta, central=True)
     after, var_after = fit.predict(slots, theta)
     chi2_after = chi2 / (n - len(slots))
     inflate = max(chi2_after, 1.0)
