@@ -228,6 +228,15 @@ def _scan_crops(
                 windows, foci, depth, oversample, progress=progress, **(estimate_options or {})
             )
             epsf_info["source"] = "estimated from the whole-pixel frames of each node and its sub-pixel dithers"
+            alone = epsf_info["estimate"]["nodes_of_one_phase"]
+            if alone:
+                message = (
+                    f"oversample = {oversample}: {alone} of {len(index)} nodes have no sub-pixel dither (no frame "
+                    f"at another phase within {epsf_info['estimate']['dither_px']:g} px at their depth), so their "
+                    "ePSFs rest on one phase, filled in by the smoothness prior: dither every node (e.g. 2 × 2 by ½ px)"
+                )
+                warnings.warn(message, stacklevel=3)  # at build_model's caller
+                epsf_info["warning"] = message
             return crops
         epsf_info["source"] = "estimated from the whole-pixel frames"
     return extract_crops(index, geometry, (patch, patch), progress=progress, memory_bytes=memory_bytes)
