@@ -297,3 +297,22 @@ def test_a_coarser_operator_sampling_stays_adjoint_and_close():
     assert abs(lhs - rhs) <= 1e-5 * max(abs(lhs), abs(rhs))
     full = model.forward(x)
     assert np.linalg.norm(op.forward(x) - full) <= 0.05 * np.linalg.norm(full)
+
+
+def test_build_table_rows_say_where_the_epsf_came_from_and_how_it_was_pooled():
+    from cm2optics.cli.lsv import _epsf_rows
+
+    coverage = {"oversample": 4, "min_bins_visited": 1.0, "min_nodes_per_bin": 16, "single_phase": False}
+    estimate = {
+        "nodes_per_neighbourhood": {"min": 4, "median": 4.0},
+        "phase_bins_per_neighbourhood": {"min": 4, "median": 4.0, "of": 16},
+        "nodes_of_one_phase": 0,
+    }
+    source = "estimated from the whole-pixel frames of each node and its sub-pixel dithers"
+    rows = dict(_epsf_rows({"oversample": 4, "phase_coverage": coverage, "estimate": estimate, "source": source}))
+    assert rows["ePSF oversample"] == f"4 ({source})"
+    assert rows["sub-pixel phase bins visited (worst lenslet)"] == "100%"
+    assert rows["frames pooled per node (dithers)"] == "median 4, min 4; phase bins ≥ 4 of 16; 0 nodes of one phase"
+    fallback = dict(_epsf_rows({"oversample": 1, "requested_oversample": 4, "fallback": "one phase: whole pixels"}))
+    assert fallback == {"ePSF oversample": "1 (one phase: whole pixels)"}
+    assert _epsf_rows({}) == []
