@@ -316,3 +316,27 @@ def test_build_table_rows_say_where_the_epsf_came_from_and_how_it_was_pooled():
     fallback = dict(_epsf_rows({"oversample": 1, "requested_oversample": 4, "fallback": "one phase: whole pixels"}))
     assert fallback == {"ePSF oversample": "1 (one phase: whole pixels)"}
     assert _epsf_rows({}) == []
+
+
+def test_the_turn_check_predicts_a_dithered_node_from_the_nodes_beyond_its_dithers():
+    """Focus width σ = 1 + x² px (x mm) on a grid dithered by 10 µm (½ px at 50 px/mm): a node's
+    grid neighbour is its own dither, so the plain check predicts every node near exactly; on the
+    nodes alone (:func:`undithered_axis`) the one interior node, x = y = 0, is predicted from x = ±1
+    (σ = 2) and y = ±1 (σ = 1): NMSE ½ · ‖g₂ − g₁‖²/‖g₁‖²."""
+    from cm2optics.lsv.epsf_validate import turn_check, undithered_axis
+
+    values = np.array([-1.0, -0.99, 0.0, 0.01, 1.0, 1.01])
+    assert undithered_axis(values, 50.0, 1.0).tolist() == [0, 2, 4]
+    assert undithered_axis(values, 200.0, 1.0).tolist() == list(range(6))  # 2 px apart: all nodes
+    r = np.arange(16) - 7.5
+    blob = lambda sigma: np.exp(-(r[:, None] ** 2 + r[None, :] ** 2) / (2 * sigma**2))  # noqa: E731
+    zs = np.array([-0.1, 0.0, 0.1])
+    grid = np.array([(ix, iy, iz) for iz in range(3) for iy in range(6) for ix in range(6)])
+    crops = np.stack([blob(1 + values[ix] ** 2)[None] for ix, _, _ in grid])  # (N, 1 lenslet, 16, 16)
+    axes = (values, values, zs)
+    plain = turn_check(crops, grid, axes, None, None, n_heldout=24)
+    nodes = (undithered_axis(values, 50.0, 1.0),) * 2
+    check = turn_check(crops, grid, axes, None, None, n_heldout=24, lateral=nodes)
+    expected = 0.5 * ((blob(2.0) - blob(1.0)) ** 2).sum() / (blob(1.0) ** 2).sum()
+    assert check["n_heldout"] == 1 and check["nmse_fixed_orientation"] == pytest.approx(expected, rel=1e-9)
+    assert plain["nmse_fixed_orientation"] < 0.2 * expected  # fooled: the dithers predict each other
