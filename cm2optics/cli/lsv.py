@@ -296,7 +296,30 @@ def _build_table(model_path: Path, summary: dict[str, Any]) -> Table:
             f" (nodes left out: NMSE {check[f'nmse_{plain}']:.3g} linear, {check[f'nmse_{with_warp}']:.3g} warped)"
         )
     table.add_row("neighbours warped to the interpolated shape", warped)
+    for key, value in _epsf_rows(summary.get("epsf") or {}):
+        table.add_row(key, value)
     return table
+
+
+def _epsf_rows(epsf: dict[str, Any]) -> list[tuple[str, str]]:
+    """The build table's rows on the ePSF basis: its source, the phase coverage and the dithers pooled."""
+    if not epsf:
+        return []
+    rows = [("ePSF oversample", f"{epsf['oversample']} ({epsf.get('source') or epsf.get('fallback', 'whole pixels')})")]
+    coverage = epsf.get("phase_coverage")
+    if coverage:
+        rows.append(("sub-pixel phase bins visited (worst lenslet)", f"{coverage['min_bins_visited']:.0%}"))
+    estimate = epsf.get("estimate") or {}
+    if "nodes_per_neighbourhood" in estimate:
+        pooled, phases = estimate["nodes_per_neighbourhood"], estimate["phase_bins_per_neighbourhood"]
+        rows.append(
+            (
+                "frames pooled per node (dithers)",
+                f"median {pooled['median']:g}, min {pooled['min']}; phase bins ≥ {phases['min']} of {phases['of']}; "
+                f"{estimate['nodes_of_one_phase']} nodes of one phase",
+            )
+        )
+    return rows
 
 
 @lsv_app.command("validate")

@@ -228,6 +228,15 @@ def _scan_crops(
                 windows, foci, depth, oversample, progress=progress, **(estimate_options or {})
             )
             epsf_info["source"] = "estimated from the whole-pixel frames of each node and its sub-pixel dithers"
+            alone = epsf_info["estimate"]["nodes_of_one_phase"]
+            if alone:
+                message = (
+                    f"oversample = {oversample}: {alone} of {len(index)} nodes have no sub-pixel dither (no frame "
+                    f"at another phase within {epsf_info['estimate']['dither_px']:g} px at their depth), so their "
+                    "ePSFs rest on one phase, filled in by the smoothness prior: dither every node (e.g. 2 × 2 by ½ px)"
+                )
+                warnings.warn(message, stacklevel=3)  # at build_model's caller
+                epsf_info["warning"] = message
             return crops
         epsf_info["source"] = "estimated from the whole-pixel frames"
     return extract_crops(index, geometry, (patch, patch), progress=progress, memory_bytes=memory_bytes)
@@ -350,7 +359,12 @@ def _choose_interpolation(
         turn = replace(turn, pivots=pivots)
         record["lenslet_axes_mm"] = turn.lens_axes.round(4).tolist()
     if rotate is None or warp is None:
-        check = turn_check(crops, grid_index, model.axes, model.focal_surface, turn, warp=warp is not False)
+        lateral = _lateral_nodes(model)
+        check = turn_check(
+            crops, grid_index, model.axes, model.focal_surface, turn, warp=warp is not False, lateral=lateral
+        )
+        if lateral is not None:
+            check["dithers_skipped"] = "each node predicted from the next nodes beyond its sub-pixel dithers"
         record["leave_one_out"] = check
         if rotate is None:
             rotate = _better(check.get("nmse_turned"), check["nmse_fixed_orientation"])
@@ -361,6 +375,22 @@ def _choose_interpolation(
     if not (rotate or warp):
         return model, record
     return replace(model, refine=refine, rotate_aberrations=bool(rotate), warp_shapes=bool(warp)), record
+
+
+def _lateral_nodes(model: LSVModel) -> tuple[np.ndarray, np.ndarray] | None:
+    """The indices of the x and y grid values that are nodes, not sub-pixel dithers (values whose
+    foci lie within :data:`~cm2optics.lsv.epsf_estimate.DITHER_PX` of the previous node's); None
+    when every value is a node."""
+    from cm2optics.lsv.epsf_estimate import DITHER_PX
+    from cm2optics.lsv.epsf_validate import undithered_axis
+
+    xs, ys, zs = model.axes
+    step_mm = 1e-3
+    z = np.full(2, float(np.median(zs)))
+    focus = model.geometry.focus(np.array([0.0, step_mm]), np.zeros(2), z)  # (2, J, 2) px
+    px_per_mm = float(np.abs(focus[1] - focus[0]).max() / step_mm)
+    nodes = (undithered_axis(xs, px_per_mm, DITHER_PX), undithered_axis(ys, px_per_mm, DITHER_PX))
+    return None if len(nodes[0]) == len(xs) and len(nodes[1]) == len(ys) else nodes
 
 
 def _better(candidate: float | None, reference: float | None) -> bool:

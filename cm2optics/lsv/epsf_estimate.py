@@ -51,6 +51,7 @@ __all__ = [
     "has_dithers",
     "local_epsf_crops",
     "neighbourhoods",
+    "phase_spread_px",
     "phase_coverage",
     "pixel_windows",
 ]
@@ -329,6 +330,14 @@ def has_dithers(foci_px: np.ndarray, depth: np.ndarray, within_px: float = DITHE
     return any(len(group) > 1 for group in neighbourhoods(foci_px, depth, within_px))
 
 
+def phase_spread_px(eps: np.ndarray) -> float:
+    """How far (px, circular, the larger axis) the sub-pixel phases ``eps`` (M, J, 2) of a
+    neighbourhood's frames (its node first) reach from the node's, on its least dithered lenslet:
+    0 for a node alone or dithered by whole pixels (one phase: nothing finer to learn from it)."""
+    offset = np.abs((eps - eps[:1] + 0.5) % 1.0 - 0.5)  # (M, J, 2)
+    return float(offset.max(axis=(0, 2)).min())
+
+
 def local_epsf_crops(
     windows: np.ndarray,
     foci_px: np.ndarray,
@@ -350,7 +359,8 @@ def local_epsf_crops(
     :func:`pixel_windows`) by :class:`_Sampler`; conjugate gradients, each node's system
     separately. ``smoothness``: λ relative to the data term's curvature per fine sample
     (neighbourhood size / S²). Returns the crops, registered like
-    :func:`~cm2optics.lsv.epsf.epsf_crops`, and a report (phases per neighbourhood)."""
+    :func:`~cm2optics.lsv.epsf.epsf_crops`, and a report (phases per neighbourhood; the nodes whose
+    neighbourhood holds one phase, :func:`phase_spread_px`)."""
     start = time.perf_counter()
     S = int(oversample)
     N, J, h, w = windows.shape
@@ -381,6 +391,7 @@ def local_epsf_crops(
             "median": float(np.median(list(map(len, groups)))),
         },
         "phase_bins_per_neighbourhood": {"min": int(min(phases)), "median": float(np.median(phases)), "of": S * S},
+        "nodes_of_one_phase": int(sum(phase_spread_px(eps[g]) < SINGLE_PHASE_PX for g in groups)),
         "seconds": round(time.perf_counter() - start, 2),
     }
     return out, report
@@ -402,11 +413,9 @@ def _solve_neighbourhoods(
 
     def normal(P: torch.Tensor) -> torch.Tensor:
         back = sampler.adjoint(sampler.forward(P[owner], members), members)
-        spread = unity * _phase_spread(P, sampler.S)
         return (
             torch.zeros(shape).index_add_(0, owner, back)
             + lam * _laplacian(_laplacian(P))
-            + spread
             + unity * _phase_spread(P, sampler.S)
         )
 

@@ -33,7 +33,17 @@ from cm2optics.lsv.interpolate import axis_coordinate, tent_pairs
 from cm2optics.lsv.rotation import AzimuthTurn
 from cm2optics.lsv.warp import displacement_blend
 
-__all__ = ["heldout_nodes", "leave_one_out_pixels", "turn_check"]
+__all__ = ["heldout_nodes", "leave_one_out_pixels", "turn_check", "undithered_axis"]
+
+
+def undithered_axis(values_mm: np.ndarray, px_per_mm: float, within_px: float) -> np.ndarray:
+    """Indices of the sorted axis values ``values_mm`` that are nodes, not dithers: each value more
+    than ``within_px`` (at ``px_per_mm`` of focus travel) past the last node kept."""
+    kept = [0]
+    for i in range(1, len(values_mm)):
+        if (values_mm[i] - values_mm[kept[-1]]) * px_per_mm > within_px:
+            kept.append(i)
+    return np.asarray(kept)
 
 
 def heldout_nodes(grid_index: np.ndarray, n: int, seed: int) -> np.ndarray:
@@ -214,17 +224,29 @@ def turn_check(
     warp: bool = False,
     n_heldout: int = 24,
     seed: int = 0,
+    lateral: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> dict[str, Any]:
     """Does turning the lateral neighbours' PSFs with the azimuth (and, with ``warp``, blending
     them by displacement interpolation) predict nodes left out better? For ``n_heldout`` seeded
     interior nodes, each node's registered crops (N, J, h, w) predicted from its x and y
     neighbours (the node left out, full rank, along ``surface`` if given) at a fixed orientation,
     turned (with ``turn``), warped and turned and warped (with ``warp``); returns the mean NMSE of
-    each against the node's own crops (``nmse_<variant>``)."""
+    each against the node's own crops (``nmse_<variant>``). ``lateral``: the indices of the x and
+    y axis values to check on (default all; a scan with sub-pixel dithers passes one value per
+    node, :func:`undithered_axis`, or a node's neighbour would be its own dither)."""
     gi = np.asarray(grid_index)
-    held = heldout_nodes(gi, n_heldout, seed)
-    keep = np.ones(len(gi), bool)
-    stacks = _Stacks(crops, {tuple(k): n for n, k in enumerate(gi)}, keep, np.asarray(axes[2], float))
+    if lateral is not None:  # the sub-grid: its own grid indices, the crops' rows kept
+        position = [np.full(len(axes[k]), -1) for k in range(2)]
+        for k in range(2):
+            position[k][lateral[k]] = np.arange(len(lateral[k]))
+        rows = np.flatnonzero((position[0][gi[:, 0]] >= 0) & (position[1][gi[:, 1]] >= 0))
+        gi = np.stack([position[0][gi[rows, 0]], position[1][gi[rows, 1]], gi[rows, 2]], axis=1)
+        axes = (np.asarray(axes[0])[lateral[0]], np.asarray(axes[1])[lateral[1]], axes[2])
+    else:
+        rows = np.arange(len(gi))
+    held = rows[heldout_nodes(gi, n_heldout, seed)]
+    keep = np.ones(len(crops), bool)
+    stacks = _Stacks(crops, {tuple(k): n for k, n in zip(gi, rows, strict=True)}, keep, np.asarray(axes[2], float))
     variants = {"fixed_orientation": (None, False)}
     if turn is not None:
         variants["turned"] = (turn, False)
@@ -233,15 +255,16 @@ def turn_check(
         if turn is not None:
             variants["turned_warped"] = (turn, True)
     errors: dict[str, list[float]] = {name: [] for name in variants}
+    sub_index = {int(n): k for n, k in zip(rows, gi, strict=True)}
     for n in held:
         keep[:] = True
         keep[n] = False  # this node alone left out
         y = np.asarray(crops[n], np.float64)
         norm = max(float((y**2).sum()), 1e-300)
         for name, (how, warping) in variants.items():
-            lateral = list(_neighbour_predictions(stacks, gi[n], axes, surface, how, "xy", warping).values())
-            if lateral:
-                errors[name].append(float(np.mean([((p - y) ** 2).sum() / norm for p in lateral])))
+            predicted = _neighbour_predictions(stacks, sub_index[int(n)], axes, surface, how, "xy", warping)
+            if predicted:
+                errors[name].append(float(np.mean([((p - y) ** 2).sum() / norm for p in predicted.values()])))
     return {
         "n_heldout": len(errors["fixed_orientation"]),
         **{f"nmse_{name}": (float(np.mean(v)) if v else None) for name, v in errors.items()},

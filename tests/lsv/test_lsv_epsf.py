@@ -10,7 +10,14 @@ from test_lsv_operators import SENSOR, _inner, synthetic_model
 
 from cm2optics.emission.epsf import epsf_from_subsamples
 from cm2optics.lsv.epsf import place_epsf, sampling_matrix
-from cm2optics.lsv.epsf_estimate import _Sampler, has_dithers, local_epsf_crops, neighbourhoods, phase_coverage
+from cm2optics.lsv.epsf_estimate import (
+    _Sampler,
+    has_dithers,
+    local_epsf_crops,
+    neighbourhoods,
+    phase_coverage,
+    phase_spread_px,
+)
 from cm2optics.lsv.model import LSVModel, load_model
 
 S = 4
@@ -185,10 +192,24 @@ def test_local_epsf_of_dithered_frames_is_the_pixel_integrated_focus():
     truth = _fine_gaussian_epsf((h, h), sigma, (h // 2, h // 2))
     depth = np.zeros(9, int)
     pooled, report = local_epsf_crops(windows.astype(np.float32), foci, depth, S, within_px=1.5)
-    alone, _ = local_epsf_crops(windows.astype(np.float32), foci, depth, S, within_px=0.0)
+    alone, alone_report = local_epsf_crops(windows.astype(np.float32), foci, depth, S, within_px=0.0)
     assert np.linalg.norm(pooled[0, 0] - truth) < 0.03 * np.linalg.norm(truth)
     assert np.linalg.norm(alone[0, 0] - truth) > 0.1 * np.linalg.norm(truth)
     assert report["nodes_per_neighbourhood"]["min"] == 9 and report["phase_bins_per_neighbourhood"]["of"] == S * S
+    assert report["nodes_of_one_phase"] == 0 and alone_report["nodes_of_one_phase"] == 9
+
+
+def test_phase_spread_tells_a_sub_pixel_dither_from_none_and_from_a_whole_pixel_one():
+    node = np.array([[[0.3, 0.7], [0.9, 0.1]]])  # (1 frame, 2 lenslets, 2) phases, px
+    assert phase_spread_px(node) == 0.0  # alone
+    whole = np.concatenate([node, node])  # dithered by whole pixels: the same phases
+    assert phase_spread_px(whole) == pytest.approx(0.0, abs=1e-12)
+    half = np.concatenate([node, (node + [0.5, 0.0]) % 1.0])  # ½ px in x on both lenslets
+    assert phase_spread_px(half) == pytest.approx(0.5)
+    one_lenslet = np.concatenate([node, node + [[[0.0, 0.25], [0.0, 0.0]]]])  # only lenslet 0 moves
+    assert phase_spread_px(one_lenslet) == pytest.approx(0.0, abs=1e-12)  # the least dithered lenslet
+    near_wrap = np.concatenate([node, (node + [0.0, 0.45]) % 1.0])  # 0.7 + 0.45 wraps to 0.15
+    assert phase_spread_px(near_wrap) == pytest.approx(0.45)
 
 
 @pytest.fixture(scope="module")
@@ -235,6 +256,21 @@ def test_build_pools_each_nodes_sub_pixel_dithers(v2, tmp_path):
     assert model.point_image(0.0, 0.0, 0.0).sum() == pytest.approx(1.0, rel=0.05)
 
 
+def test_a_scan_dithered_at_some_nodes_only_warns_of_the_undithered_ones(v2, tmp_path):
+    from cm2optics.lsv.build import build_model
+    from cm2optics.lsv.toy import AnalyticCM2, write_analytic_scan
+
+    analytic = AnalyticCM2.from_design(v2, binning=8, sigma0_um=12.0)
+    axis = np.array([-1.0, -0.99, 0.0, 1.0])  # only the node at -1 mm is dithered (10 µm ≈ ⅓ px)
+    scan = write_analytic_scan(tmp_path / "scan", analytic, axis, axis, np.array([-0.1, 0.1]), binning=8, noise=False)
+    with pytest.warns(UserWarning, match="8 of 32 nodes have no sub-pixel dither"):
+        model = build_model(scan, rank=4, design=v2, oversample=2, estimate_options={"cg_steps": 4}).model
+    estimate = model.provenance["epsf"]["estimate"]
+    # per depth: (0, 0), (0, 1), (1, 0) and (1, 1) mm have no frame within 1 px at another phase
+    assert estimate["nodes_of_one_phase"] == 8
+    assert "dither every node" in model.provenance["epsf"]["warning"]
+
+
 def test_a_scan_of_one_sub_pixel_phase_falls_back_to_whole_pixels(small_analytic_scan, v2, monkeypatch):
     import cm2optics.lsv.epsf_estimate as estimate
     from cm2optics.lsv.build import build_model
@@ -261,3 +297,46 @@ def test_a_coarser_operator_sampling_stays_adjoint_and_close():
     assert abs(lhs - rhs) <= 1e-5 * max(abs(lhs), abs(rhs))
     full = model.forward(x)
     assert np.linalg.norm(op.forward(x) - full) <= 0.05 * np.linalg.norm(full)
+
+
+def test_build_table_rows_say_where_the_epsf_came_from_and_how_it_was_pooled():
+    from cm2optics.cli.lsv import _epsf_rows
+
+    coverage = {"oversample": 4, "min_bins_visited": 1.0, "min_nodes_per_bin": 16, "single_phase": False}
+    estimate = {
+        "nodes_per_neighbourhood": {"min": 4, "median": 4.0},
+        "phase_bins_per_neighbourhood": {"min": 4, "median": 4.0, "of": 16},
+        "nodes_of_one_phase": 0,
+    }
+    source = "estimated from the whole-pixel frames of each node and its sub-pixel dithers"
+    rows = dict(_epsf_rows({"oversample": 4, "phase_coverage": coverage, "estimate": estimate, "source": source}))
+    assert rows["ePSF oversample"] == f"4 ({source})"
+    assert rows["sub-pixel phase bins visited (worst lenslet)"] == "100%"
+    assert rows["frames pooled per node (dithers)"] == "median 4, min 4; phase bins ≥ 4 of 16; 0 nodes of one phase"
+    fallback = dict(_epsf_rows({"oversample": 1, "requested_oversample": 4, "fallback": "one phase: whole pixels"}))
+    assert fallback == {"ePSF oversample": "1 (one phase: whole pixels)"}
+    assert _epsf_rows({}) == []
+
+
+def test_the_turn_check_predicts_a_dithered_node_from_the_nodes_beyond_its_dithers():
+    """Focus width σ = 1 + x² px (x mm) on a grid dithered by 10 µm (½ px at 50 px/mm): a node's
+    grid neighbour is its own dither, so the plain check predicts every node near exactly; on the
+    nodes alone (:func:`undithered_axis`) the one interior node, x = y = 0, is predicted from x = ±1
+    (σ = 2) and y = ±1 (σ = 1): NMSE ½ · ‖g₂ − g₁‖²/‖g₁‖²."""
+    from cm2optics.lsv.epsf_validate import turn_check, undithered_axis
+
+    values = np.array([-1.0, -0.99, 0.0, 0.01, 1.0, 1.01])
+    assert undithered_axis(values, 50.0, 1.0).tolist() == [0, 2, 4]
+    assert undithered_axis(values, 200.0, 1.0).tolist() == list(range(6))  # 2 px apart: all nodes
+    r = np.arange(16) - 7.5
+    blob = lambda sigma: np.exp(-(r[:, None] ** 2 + r[None, :] ** 2) / (2 * sigma**2))  # noqa: E731
+    zs = np.array([-0.1, 0.0, 0.1])
+    grid = np.array([(ix, iy, iz) for iz in range(3) for iy in range(6) for ix in range(6)])
+    crops = np.stack([blob(1 + values[ix] ** 2)[None] for ix, _, _ in grid])  # (N, 1 lenslet, 16, 16)
+    axes = (values, values, zs)
+    plain = turn_check(crops, grid, axes, None, None, n_heldout=24)
+    nodes = (undithered_axis(values, 50.0, 1.0),) * 2
+    check = turn_check(crops, grid, axes, None, None, n_heldout=24, lateral=nodes)
+    expected = 0.5 * ((blob(2.0) - blob(1.0)) ** 2).sum() / (blob(1.0) ** 2).sum()
+    assert check["n_heldout"] == 1 and check["nmse_fixed_orientation"] == pytest.approx(expected, rel=1e-9)
+    assert plain["nmse_fixed_orientation"] < 0.2 * expected  # fooled: the dithers predict each other
