@@ -150,6 +150,11 @@ def _robust_fit(
         subsets = np.argsort(rng.random((LMEDS_SUBSETS, len(usable))), axis=1)[:, :p]
     A, b = T[subsets], v[subsets]  # (n, p, p), (n, p)
     solvable = np.abs(np.linalg.det(A)) > 1e-9 * np.abs(A).max() ** p
+    if not solvable.any():
+        raise ValueError(
+            f"the {len(usable)} axial stacks with a measurable best focus span too little of the "
+            f"field (a few nodes and their dithers, or one line) to fit a {p}-term focal surface"
+        )
     c_all = np.linalg.solve(A[solvable], b[solvable][..., None])[..., 0]  # (n, p)
     median = np.median((v[None, :] - c_all @ T.T) ** 2, axis=1)
     best = c_all[np.argmin(median)]

@@ -14,7 +14,13 @@ from test_lsv_operators import GRIDS, SENSOR, _inner, synthetic_model
 
 from cm2optics.design import load_preset
 from cm2optics.formats.emitters import Emitters
-from cm2optics.lsv.focal_surface import FocalSurface, effective_area, estimate_focal_surface, stack_best_focus
+from cm2optics.lsv.focal_surface import (
+    FocalSurface,
+    _robust_fit,
+    effective_area,
+    estimate_focal_surface,
+    stack_best_focus,
+)
 from cm2optics.lsv.interpolate import defocus_nodes, refine_axis
 from cm2optics.lsv.model import ModelError, load_model
 from cm2optics.lsv.reference import reference_forward
@@ -32,6 +38,15 @@ def test_stack_best_focus_is_the_vertex_of_a_parabola():
     assert np.isnan(found[3]) and np.isnan(found[4])  # smallest at the first / last depth
     flat = stack_best_focus(np.full((2, len(z)), np.inf), z)
     assert np.all(np.isnan(flat))
+
+
+def test_stacks_that_span_no_area_get_a_clear_error():
+    """Stacks at one lateral point (a node and its sub-pixel dithers) cannot fix a surface."""
+    x = np.array([3.0, 3.0 + 1e-6, 3.0, 3.0 + 1e-6, 3.0])
+    y = np.array([0.0, 0.0, 1e-6, 1e-6, 0.0])
+    terms = np.stack([np.ones_like(x), x, y, x * x + y * y], axis=-1)
+    with pytest.raises(ValueError, match="span too little of the field"):
+        _robust_fit(terms, np.full(5, 0.1), np.ones(5), resolution_mm=0.01)
 
 
 def test_effective_area_of_a_gaussian_is_four_pi_sigma_squared():
