@@ -92,7 +92,7 @@ class _LensAttachment:
         profile_mesh = scene.collimator.mesh
         vertices = np.asarray(profile_mesh.vertices, dtype=float)
         faces = np.asarray(profile_mesh.faces, dtype=np.int64)
-        normals = corner_normals(vertices, faces)  # the tracer's own smooth normals (LED frame)
+        normals = corner_normals(vertices, faces, scene.collimator.face_ids)  # the tracer's own (LED frame)
         self.corners = mi.Float(np.ascontiguousarray(vertices[faces], np.float32).ravel())  # (F, 3, 3)
         self.normals = mi.Float(np.ascontiguousarray(normals, np.float32).ravel())
         self.rotation = mi.Float(np.ascontiguousarray(scene.poses[:, :3, :3], np.float32).ravel())

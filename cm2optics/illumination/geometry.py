@@ -10,7 +10,8 @@ One LED unit, in its LED frame (:mod:`cm2optics.optics.layout`; ``z`` along the 
 LED                 the emitter at ``z = 0`` (:mod:`cm2optics.illumination.source`)
 LED board           absorbing plane at ``z = −0.01`` across the housing's bore (the LED
                     package's own reflectance is ignored: a conservative choice)
-collimator          a closed mesh (CAD part or STL), dielectric, smooth vertex normals
+collimator          a closed mesh (CAD part or STL), dielectric, smooth vertex normals within
+                    each face of the CAD solid (an STL: creased above :data:`CREASE_DEG`)
 excitation filter   a ``width × length × t`` plate at ``g ≤ z ≤ g + t``: the face towards the
                     LED carries the coating, the other is bare glass, the edges absorb; where
                     it rests on the collimator's exit face (``g`` = exit height) it is lifted
@@ -58,12 +59,13 @@ __all__ = [
     "Role",
     "build_scene",
     "collimator_from_design",
+    "collimator_from_solid",
     "collimator_from_stl",
     "corner_normals",
 ]
 
-#: Crease angle of the smooth normals: neighbouring faces meeting at a sharper angle keep a
-#: crease between them, degrees.
+#: Crease angle of the smooth normals of a mesh without B-rep faces (an STL): neighbouring
+#: triangles meeting at a sharper angle keep a crease between them, degrees.
 CREASE_DEG = 30.0
 #: Half-side of the square sample plane, mm; rays landing beyond it "left the scene".
 SAMPLE_HALF_MM = 25.0
@@ -138,11 +140,14 @@ class CollimatorMesh:
     label: short name for tables (``cm2-v2 (CAD)``, an STL's file name).
     mesh: the watertight solid with outward normals.
     material: its material (sets n(λ)).
+    face_ids: (F,) the smooth surface (B-rep face of the CAD solid) each triangle lies on: the
+        smooth normals crease exactly along the solid's edges; None (an STL): creased by angle.
     """
 
     label: str
     mesh: trimesh.Trimesh
     material: Material
+    face_ids: np.ndarray | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -219,10 +224,13 @@ class IlluminationScene:
 # ----------------------------------------------------------------------------- smooth normals
 
 
-def corner_normals(vertices: np.ndarray, faces: np.ndarray, crease_deg: float = CREASE_DEG) -> np.ndarray:
+def corner_normals(
+    vertices: np.ndarray, faces: np.ndarray, face_ids: np.ndarray | None = None, crease_deg: float = CREASE_DEG
+) -> np.ndarray:
     """Smooth normals at each face corner: the area-weighted mean of the normals of the faces
-    around that vertex that meet the face at less than ``crease_deg`` (degrees); sharper
-    edges stay creased. Returns (F, 3, 3) unit vectors along the faces' winding normals."""
+    around that vertex on the same smooth surface: with ``face_ids`` ((F,), e.g. the B-rep face
+    of each triangle) those with the same id, without them those meeting the face at less
+    than ``crease_deg`` (degrees). Returns (F, 3, 3) unit vectors along the faces' winding normals."""
     tri = vertices[faces]
     cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # length = 2 × area
     length = np.linalg.norm(cross, axis=1, keepdims=True)
@@ -240,8 +248,12 @@ def corner_normals(vertices: np.ndarray, faces: np.ndarray, crease_deg: float = 
         idx = group[:, None] + np.arange(valence)[None, :]  # (n, k) positions in sorted order
         corners = order[idx]  # corner ids
         fids = corner_f[corners]  # (n, k) faces around each vertex
-        n = unit[fids]  # (n, k, 3)
-        agree = np.einsum("nid,njd->nij", n, n) >= cos_crease  # (n, k, k)
+        if face_ids is None:
+            n = unit[fids]  # (n, k, 3)
+            agree = np.einsum("nid,njd->nij", n, n) >= cos_crease  # (n, k, k)
+        else:
+            surface = face_ids[fids]
+            agree = surface[:, :, None] == surface[:, None, :]
         summed = np.einsum("nij,njd->nid", agree.astype(float), cross[fids])
         result[corners.ravel()] = summed.reshape(-1, 3)
     result /= np.maximum(np.linalg.norm(result, axis=1, keepdims=True), 1e-300)
@@ -313,23 +325,32 @@ def collimator_from_stl(
     return CollimatorMesh(label or path.name, mesh, Material(material))
 
 
+def collimator_from_solid(
+    solid: object, label: str, material: Material, tolerance_mm: float = CAD_TOLERANCE_MM
+) -> CollimatorMesh:
+    """A CadQuery solid (LED frame, mm) tessellated with chord tolerance ``tolerance_mm`` (mm),
+    each triangle tagged with its B-rep face (:attr:`CollimatorMesh.face_ids`)."""
+    from cm2optics.cad.tessellate import tessellate_faces
+
+    vertices, faces, face_ids = tessellate_faces(solid, tolerance_mm)
+    mesh = trimesh.Trimesh(vertices, faces, process=False)
+    mesh.merge_vertices()  # the faces' copies of their shared edges' nodes; keeps the face order
+    merged = np.asarray(mesh.faces)
+    # Triangles collapsed onto a pole (e.g. a cone's apex, meshed once per seam node).
+    keep = (merged[:, 0] != merged[:, 1]) & (merged[:, 1] != merged[:, 2]) & (merged[:, 2] != merged[:, 0])
+    mesh = _check_solid(trimesh.Trimesh(mesh.vertices, merged[keep], process=False), label)
+    return CollimatorMesh(label, mesh, Material(material), face_ids[keep])
+
+
 def collimator_from_design(design: SystemDesign, tolerance_mm: float = CAD_TOLERANCE_MM) -> CollimatorMesh:
     """The design's collimator: the CAD solid (:func:`cm2optics.cad.collimator.build_collimator`)
-    tessellated with chord tolerance ``tolerance_mm`` (mm)."""
-    import tempfile
-
+    tessellated with chord tolerance ``tolerance_mm`` (mm), its faces kept for the normals."""
     from cm2optics.cad.collimator import build_collimator
-    from cm2optics.cad.tessellate import export_stl
 
     if design.collimator is None:
         raise ValueError(f"design {design.name!r} has no collimator")
     solid = build_collimator(design)
-    with tempfile.TemporaryDirectory() as folder:
-        path = Path(folder) / "collimator.stl"
-        export_stl(solid.val(), path, tolerance_mm)
-        mesh = trimesh.load_mesh(path, force="mesh")
-    mesh = _check_solid(mesh, f"{design.name} collimator (CAD)")
-    return CollimatorMesh(f"{design.name} (CAD)", mesh, design.collimator.material)
+    return collimator_from_solid(solid.val(), f"{design.name} (CAD)", design.collimator.material, tolerance_mm)
 
 
 # ----------------------------------------------------------------------------- simple quads
@@ -517,8 +538,8 @@ def build_scene(
     excitation_filter: put the excitation filter in each unit.
     housing: surround each unit by its absorbing housing and add the imaging tower
         (False: a bare optical trace; the LED board stays).
-    smooth_normals: shade the collimator with smooth vertex normals (creases above
-        :data:`CREASE_DEG`) rather than its flat facets.
+    smooth_normals: shade the collimator with smooth vertex normals (creased along its B-rep
+        faces' edges, or above :data:`CREASE_DEG` for an STL) rather than its flat facets.
     Raises ValueError when the collimator does not fit (see :func:`_check_fit`).
     """
     lay = _unit_layout(design, collimator)
@@ -529,7 +550,7 @@ def build_scene(
     if collimator is not None:
         cm_vertices = np.asarray(collimator.mesh.vertices, dtype=float)
         cm_faces = np.asarray(collimator.mesh.faces, dtype=np.int64)
-        cm_normals = corner_normals(cm_vertices, cm_faces) if smooth_normals else None
+        cm_normals = corner_normals(cm_vertices, cm_faces, collimator.face_ids) if smooth_normals else None
     portal_z = lay.filter_z1 + design.mechanics.clearance_mm / 2
     for unit, matrix in enumerate(poses):
         rot = matrix[:3, :3]

@@ -91,6 +91,8 @@ CONE_PARAMETERS: dict[str, tuple[float, float]] = {
     "collimator.tir_cone_curvature_per_mm": (-0.5, 0.3),
     "collimator.tir_max_radius_mm": (1.6, 1.95),
 }
+#: The fields of a prescribed wall, reset when :data:`PARAMETERS` sweeps the designed one.
+CONE_WALL_FIELDS = ("tir_cone_deg", "tir_cone_curvature_per_mm", "tir_max_radius_mm")
 #: The units' placement, swept with ``free_aim``: tilt, aperture offset, aim point on the focal
 #: plane (:attr:`cm2optics.design.LEDArray.aim_mm`) and the array's azimuth against the square
 #: imaging tower (mm, degrees). A candidate whose units enter the tower, reach below its flange
@@ -130,8 +132,9 @@ def search_box(
 
 def _changes(values: dict[str, float], design: SystemDesign) -> dict[str, Any]:
     """The design changes of a candidate of ``design``: its values (Zernike terms merged into the
-    design's own list), and when the profile is swept the TIR sub-beam crossing the axis and
-    the excitation filter kept on the collimator's exit face."""
+    design's own list), and when the profile is swept the TIR sub-beam crossing the axis, the
+    excitation filter kept on the collimator's exit face, and either wall alone (a prescribed
+    cone drops the designed wall's spread; the designed wall drops a base's cone)."""
     changes: dict[str, Any] = {}
     terms = list(design.collimator.lens_freeform_um) if design.collimator is not None else []
     for name, value in values.items():
@@ -146,6 +149,8 @@ def _changes(values: dict[str, float], design: SystemDesign) -> dict[str, Any]:
         changes["collimator.tir_crossing"] = True
     if "collimator.tir_cone_deg" in values:
         changes["collimator.tir_spread_deg"] = 0.0  # a prescribed wall has no ray mapping
+    elif "collimator.tir_spread_deg" in values:  # the designed wall (PARAMETERS), whole, from any base
+        changes.update({f"collimator.{name}": 0.0 for name in CONE_WALL_FIELDS})
     gap = changes.get("collimator.led_gap_mm")
     height = changes.get("collimator.height_mm")
     if gap is not None and height is not None:

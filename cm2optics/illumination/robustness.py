@@ -151,7 +151,7 @@ def perturbed_scene(scene: IlluminationScene, errors: list[UnitError]) -> Illumi
             faces = np.asarray(mesh.faces, dtype=np.int64)
             normals = None
             if part.corner_normals is not None:
-                normals = corner_normals(vertices, faces) @ tilted[:3, :3].T
+                normals = corner_normals(vertices, faces, scene.collimator.face_ids) @ tilted[:3, :3].T
             parts.append(
                 dataclasses.replace(part, vertices_mm=_place(tilted, vertices), faces=faces, corner_normals=normals)
             )

@@ -18,6 +18,7 @@ from cm2optics.illumination.geometry import (
     Part,
     Role,
     build_scene,
+    collimator_from_solid,
     corner_normals,
 )
 from cm2optics.illumination.metrics import figures_of_merit
@@ -187,6 +188,32 @@ def test_smooth_normals_keep_creases_and_follow_curved_surfaces():
     box = trimesh.creation.box(extents=[1, 2, 3])
     creased = corner_normals(np.asarray(box.vertices), np.asarray(box.faces))
     np.testing.assert_allclose(creased, np.repeat(box.face_normals[:, None, :], 3, axis=1), atol=1e-12)
+
+
+def test_smooth_normals_crease_along_the_solids_edges_at_any_angle():
+    """A cone of half-angle 20° on a cylinder: their edge is sharp (20°) but below the
+    :data:`CREASE_DEG` threshold; shading by B-rep face keeps the side's normals horizontal and
+    the cone's at 20° up to the edge, where the angle threshold averages them."""
+    import cadquery as cq
+
+    cone_deg = 20.0
+    apex = 1.0 + 1.0 / math.tan(math.radians(cone_deg))
+    solid = cq.Workplane("XZ").polyline([(0, 0), (1, 0), (1, 1), (0, apex)]).close().revolve(360, (0, 0), (0, 1))
+    part = collimator_from_solid(solid.val(), "cone on a cylinder", Material.PMMA, tolerance_mm=0.002)
+    vertices, faces = np.asarray(part.mesh.vertices), np.asarray(part.mesh.faces)
+    corners = vertices[faces]  # (F, 3, 3)
+    on_side = np.abs(np.hypot(corners[..., 0], corners[..., 1]).mean(axis=1) - 1.0) < 1e-3
+    on_side &= corners[..., 2].mean(axis=1) > 0.05  # not the bottom disc's rim triangles
+    on_side &= np.ptp(corners[..., 2], axis=1) > 1e-6
+    on_cone = corners[..., 2].min(axis=1) >= 1.0 - 1e-9
+    at_edge = np.abs(corners[..., 2] - 1.0) < 1e-9  # (F, 3) corners on the edge
+    assert (on_side[:, None] & at_edge).any() and (on_cone[:, None] & at_edge).any()
+    up = math.sin(math.radians(cone_deg))
+    for face_ids, tight in ((part.face_ids, True), (None, False)):
+        normals = corner_normals(vertices, faces, face_ids)
+        side, cone = normals[on_side[:, None] & at_edge], normals[on_cone[:, None] & at_edge]
+        errors = (np.abs(side[:, 2]).max(), np.abs(cone[:, 2] - up).max(), np.abs(np.hypot(*side[:, :2].T) - 1).max())
+        assert (max(errors) < 5e-3) == tight  # the threshold (20° < CREASE_DEG) rounds the edge off
 
 
 @pytest.fixture(scope="module")
