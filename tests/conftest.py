@@ -37,9 +37,6 @@ PAPER_COLLIMATOR = {
     "collimator.lens_exponent": 0.5,
     "collimator.tir_exponent": 0.5,
     "collimator.lens_freeform_um": [],
-    "collimator.tir_max_radius_mm": 0.0,
-    "collimator.tir_cone_deg": 0.0,
-    "collimator.tir_cone_curvature_per_mm": 0.0,
 }
 
 
@@ -48,40 +45,6 @@ def v2_collimating(v2) -> SystemDesign:
     """cm2-v2 with the paper's collimating, revolved collimator at 45° / 6.7 mm (``PAPER_COLLIMATOR``)."""
     design = v2.with_changes(PAPER_COLLIMATOR)
     assert design.collimator.collimates and not design.collimator.is_freeform
-    return design
-
-
-#: ``ff4``, cm2-v2's preset before the cone-wall design became the default (issue 16): the
-#: shaped, freeform-lens collimator (both sub-beams spread, Zernike sag on the lens) at its free aim.
-#: Tests of the freeform lens and the shaped profiles use it.
-FREEFORM_COLLIMATOR = {
-    "led_array.offset_mm": 8.12363,
-    "led_array.tilt_deg": 54.08452,
-    "led_array.azimuth_deg": 7.23057,
-    "led_array.excitation_gap_mm": 2.58264,
-    "led_array.aim_mm": 0.2058,
-    "collimator.led_gap_mm": 0.0932,
-    "collimator.lens_half_angle_deg": 24.74396,
-    "collimator.cavity_radius_mm": 0.50357,
-    "collimator.entry_wall_mm": 0.43967,
-    "collimator.height_mm": 2.48944,
-    "collimator.lens_spread_deg": 16.24598,
-    "collimator.tir_spread_deg": 28.23241,
-    "collimator.tir_crossing": True,
-    "collimator.lens_exponent": 0.40345,
-    "collimator.tir_exponent": 0.25258,
-    "collimator.lens_freeform_um": [0.0, 0.0, 0.86259, 12.15563, 0.0, -8.05118, 3.87238, 0.0, 0.0, 0.0, 1.75653],
-    "collimator.tir_max_radius_mm": 0.0,
-    "collimator.tir_cone_deg": 0.0,
-    "collimator.tir_cone_curvature_per_mm": 0.0,
-}
-
-
-@pytest.fixture(scope="session")
-def v2_freeform(v2) -> SystemDesign:
-    """cm2-v2 with ``ff4``'s freeform-lens collimator at its placement (``FREEFORM_COLLIMATOR``)."""
-    design = v2.with_changes(FREEFORM_COLLIMATOR)
-    assert design.collimator.is_freeform and not design.collimator.collimates
     return design
 
 

@@ -127,29 +127,11 @@ def test_bounding_box_from_the_sockets_and_rails(design, plate):
     assert bb.xlen < design.sensor_board.size_mm and bb.ylen < design.sensor_board.size_mm and bb.zlen < 11
 
 
-def _sockets_lowest_z_mm(design) -> float:
-    """Height of the LED sockets' lowest edge (device frame), mm."""
-    layout = led_housing_layout(design)
-    side = layout.half_mm + design.mechanics.clearance_mm + design.mechanics.wall_mm
-    low = layout.back_z_mm - design.mechanics.clearance_mm - design.mechanics.wall_mm
-    return float(led_poses(design)[0].apply(np.array([(0, side, low)]))[0, 2])
-
-
-@pytest.fixture(scope="module")
-def domed(design, plate, v2_freeform):
-    """(design, plate) with a band of dome alone below the sockets: the default's sockets reach
-    to 0.04 mm above the imaging tower's flange, so for cm2-v2 its previous (``ff4``) placement."""
-    if _sockets_lowest_z_mm(design) - mla_housing_envelope(design).flange_top_z_mm > 0.55:
-        return design, plate
-    assert design.name == "cm2-v2"
-    return v2_freeform, build_base_plate(v2_freeform).val()
-
-
-def test_dome_volume_from_its_sections(domed):
+def test_dome_volume_from_its_sections(design, plate):
     """Below the sockets the plate is the dome alone: a square ring whose inner side slopes at
     the units' tilt and whose outer side is vertical, then slopes."""
-    design, plate = domed
     c, t = design.mechanics.clearance_mm, design.base_plate.thickness_mm
+    wall = design.mechanics.wall_mm
     cos_t, sin_t = math.cos(math.radians(design.led_array.tilt_deg)), math.sin(math.radians(design.led_array.tilt_deg))
     layout = led_housing_layout(design)
     pose = led_poses(design)[0]
@@ -160,7 +142,9 @@ def test_dome_volume_from_its_sections(domed):
         return (reach - k - z * sin_t) / cos_t
 
     z0 = mla_housing_envelope(design).flange_top_z_mm
-    z1 = _sockets_lowest_z_mm(design) - 0.05
+    side = socket + wall
+    lowest = pose.apply(np.array([(0, side, layout.back_z_mm - c - wall)]))[0, 2]  # the sockets' lowest edge
+    z1 = lowest - 0.05
     assert z1 - z0 > 0.5
     foot = apothem(z0, socket + 1.5 * t) + t / (cos_t + sin_t)
     z = np.linspace(z0, z1, 20001)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from cm2optics.design import load_preset
 from cm2optics.optics.freeform import lens_sag_mm, rim_piston_um, zernike, zernike_with_gradient
 
 TERMS = (3, 4, 6, 7, 11)
@@ -63,10 +64,9 @@ def _objective(base, c, start, rays):
 
 
 @pytest.fixture(scope="module")
-def at_start(jit, v2_freeform):
-    """(base design, start terms, the objective and its gradient there): ``ff4`` (the freeform
-    lens, conftest), the model LED and filter, seed 3."""
-    base = v2_freeform
+def at_start(jit):
+    """(base design, start terms, the objective and its gradient there): cm2-v2, the model LED and filter, seed 3."""
+    base = load_preset("cm2-v2")
     start = np.array([base.collimator.lens_freeform_um[j - 1] for j in TERMS])
     return base, start, _objective(base, start, start, 20_000)
 

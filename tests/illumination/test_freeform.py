@@ -51,10 +51,10 @@ def test_noll_zernike_terms_are_the_textbook_ones_and_orthonormal():
 
 
 @pytest.fixture(scope="module")
-def revolved(v2_freeform):
-    """``ff4`` with its lens's Zernike terms removed: the revolved part of the same profile."""
-    design = v2_freeform.with_changes({"collimator.lens_freeform_um": []})
-    assert not design.collimator.is_freeform
+def revolved(v2):
+    """cm2-v2 with its lens's Zernike terms removed: the revolved part of the same profile."""
+    design = v2.with_changes({"collimator.lens_freeform_um": []})
+    assert v2.collimator.is_freeform and not design.collimator.is_freeform
     return design
 
 
@@ -90,8 +90,8 @@ def test_freeform_part_is_watertight_printable_and_carries_the_sag(v2_collimatin
     assert mesh.volume == pytest.approx(_stl_mesh(v2_collimating).volume, rel=1e-3)
 
 
-def test_freeform_lens_is_one_smooth_face_on_the_sag(v2_freeform, tmp_path):
-    """``ff4``'s lens is one B-spline face: its points over the cavity's disc (a 60 × 60
+def test_default_freeform_lens_is_one_smooth_face_on_the_sag(v2, tmp_path):
+    """The default's lens is one B-spline face: its points over the cavity's disc (a 60 × 60
     grid of its parameters) lie within 1 µm of ``z_lens(r) + S(x, y)`` (the profile's 401 lens
     points interpolated, the Zernike sag); the part's STEP file stays small (not a faceted
     solid)."""
@@ -99,31 +99,31 @@ def test_freeform_lens_is_one_smooth_face_on_the_sag(v2_freeform, tmp_path):
 
     from cm2optics.cad.tessellate import export_step
 
-    part = build_collimator(v2_freeform)
+    part = build_collimator(v2)
     splines = [f for f in part.faces().vals() if f.geomType() == "BSPLINE"]
     assert len(splines) == 1
     surface = BRep_Tool.Surface_s(splines[0].wrapped)
     u0, u1, v0, v1 = surface.Bounds()
     points = np.array([surface.Value(u, v).Coord() for u in np.linspace(u0, u1, 60) for v in np.linspace(v0, v1, 60)])
-    profile = collimator_profile(v2_freeform)
+    profile = collimator_profile(v2)
     a = profile.cavity_radius_mm
     r = np.hypot(points[:, 0], points[:, 1])
     points, r = points[r < a], r[r < a]
     assert len(points) > 2000
     expected = np.interp(r, profile.lens_r_mm, profile.lens_z_mm) + lens_sag_mm(
-        v2_freeform.collimator.lens_freeform_um, points[:, 0], points[:, 1], a
+        v2.collimator.lens_freeform_um, points[:, 0], points[:, 1], a
     )
     assert np.max(np.abs(points[:, 2] - expected)) < 1e-3
     export_step(part, tmp_path / "c.step")
     assert (tmp_path / "c.step").stat().st_size < 500_000
 
 
-def test_lens_tilt_term_deflects_the_beam_by_the_closed_form_angle(v2_freeform):
+def test_lens_tilt_term_deflects_the_beam_by_the_closed_form_angle(v2):
     """A Z₂ term c tilts the lens by α = atan(2c/a): a ray from the LED along the axis meets it
     at incidence α, refracts to β = asin(sin α / n) from the normal, runs α − β off the axis and
     leaves the flat exit face at γ = asin(n sin(α − β)), towards −x."""
     n = 1.5
-    profile = collimator_profile(v2_freeform)
+    profile = collimator_profile(v2)
     a = profile.cavity_radius_mm
     alpha = math.radians(4.0)
     c_um = 1e3 * a * math.tan(alpha) / 2
@@ -138,7 +138,7 @@ def test_lens_tilt_term_deflects_the_beam_by_the_closed_form_angle(v2_freeform):
         plane = portal + [0, 0, 20.0]
         quad = np.array([[0, 1, 2], [0, 2, 3]])
         scene = IlluminationScene(
-            design=v2_freeform,
+            design=v2,
             label=label,
             parts=(
                 Part("collimator", np.asarray(mesh.vertices), np.asarray(mesh.faces), Role.DIELECTRIC),
@@ -172,15 +172,15 @@ def test_lens_tilt_term_deflects_the_beam_by_the_closed_form_angle(v2_freeform):
     assert abs(directions["tilted"][1]) < 1e-3
 
 
-def test_freeform_sweep_candidates_carry_their_zernike_terms(v2_freeform):
+def test_freeform_sweep_candidates_carry_their_zernike_terms(v2):
     from cm2optics.illumination.optimize import AIM_PARAMETERS, FREEFORM_PARAMETERS, candidate_collimator, search_box
 
     assert search_box(True, freeform=True, fixed_profile=True) == AIM_PARAMETERS | FREEFORM_PARAMETERS
-    base = v2_freeform.with_changes({"collimator.lens_freeform_um": [0.0, 0.0, 0.0, 0.0, 1.5]})
+    base = v2.with_changes({"collimator.lens_freeform_um": [0.0, 0.0, 0.0, 0.0, 1.5]})
     values = {"collimator.lens_freeform_um[3]": 4.0, "collimator.lens_freeform_um[7]": -2.0}
     design, mesh, profile = candidate_collimator(base, values)
     assert design.collimator.lens_freeform_um == (0.0, 0.0, 4.0, 0.0, 1.5, 0.0, -2.0)
-    assert design.collimator.tir_crossing == v2_freeform.collimator.tir_crossing  # the profile is untouched
+    assert design.collimator.tir_crossing == v2.collimator.tir_crossing  # the profile is untouched
     revolved = revolve_profile(profile, 128)
     moved = np.linalg.norm(mesh.mesh.vertices - revolved.vertices, axis=1) > 1e-9
     r = np.hypot(*revolved.vertices[moved, :2].T)

@@ -30,9 +30,9 @@ def test_zero_spread_is_exactly_the_collimating_design(v2_collimating):
     assert shaped.tir_z_mm[-1] == pytest.approx(reference.tir_z_mm[-1], rel=1e-8)
 
 
-def test_spread_lens_sends_its_edge_ray_at_the_requested_angle(v2_freeform):
+def test_spread_lens_sends_its_edge_ray_at_the_requested_angle(v2):
     """Refract the lens-edge ray at the computed surface and the flat exit face: ψ = α."""
-    design = _shaped(v2_freeform, lens_spread_deg=20.0, tir_spread_deg=25.0, tir_crossing=True)
+    design = _shaped(v2, lens_spread_deg=20.0, tir_spread_deg=25.0, tir_crossing=True)
     profile = collimator_profile(design)  # dispatches to the shaping design for non-zero spreads
     n = profile.refractive_index
     r, z = profile.lens_r_mm, profile.lens_z_mm
@@ -48,19 +48,18 @@ def test_spread_lens_sends_its_edge_ray_at_the_requested_angle(v2_freeform):
     theta = math.atan2(r[k], z[k])
     expected = math.degrees(
         math.atan(
-            math.tan(math.radians(20.0))
-            * (math.sin(theta) / math.sin(math.radians(v2_freeform.collimator.lens_half_angle_deg)))
+            math.tan(math.radians(20.0)) * (math.sin(theta) / math.sin(math.radians(v2.collimator.lens_half_angle_deg)))
         )
     )
     assert psi == pytest.approx(expected, abs=0.05)
 
 
-def test_revolved_mesh_is_a_closed_solid_with_the_cad_volume(v2_freeform):
+def test_revolved_mesh_is_a_closed_solid_with_the_cad_volume(v2):
     from cm2optics.cad.collimator import build_collimator
 
-    mesh = revolve_profile(shaped_profile(v2_freeform.collimator, v2_freeform.led.peak_nm))
+    mesh = revolve_profile(shaped_profile(v2.collimator, v2.led.peak_nm))
     assert mesh.is_watertight and mesh.is_winding_consistent and mesh.volume > 0
-    exact = build_collimator(v2_freeform).val().Volume()
+    exact = build_collimator(v2).val().Volume()
     assert mesh.volume == pytest.approx(exact, rel=2e-3)
 
 
@@ -83,9 +82,9 @@ def test_the_design_yaml_rebuilds_the_shaped_part(v2_collimating, tmp_path):
     assert abs(shaped_volume - build_collimator(v2_collimating).val().Volume()) > 1e-3
 
 
-def test_etendue_bound(v2_collimating):
-    bound = etendue_bound(v2_collimating, samples=200_000)
-    assert bound["g_source_mm2sr"] == pytest.approx(math.pi * v2_collimating.led.emitter_mm**2, rel=1e-4)
+def test_etendue_bound(v2):
+    bound = etendue_bound(v2, samples=200_000)
+    assert bound["g_source_mm2sr"] == pytest.approx(math.pi * v2.led.emitter_mm**2, rel=1e-4)
     # Aperture 3.4 × 3.4 mm, the 8-mm circle ≈ 8 mm away at 45°: ≈ 11.6 × 50.3 × cos 45° / 64 ≈ 6 mm² sr.
     assert 4.0 < bound["g_target_mm2sr"] < 8.0
     assert bound["geometric_bound"] == 1.0
@@ -117,20 +116,13 @@ def test_uniform_beam_bound_of_the_oblique_array(v2):
         uniform_beam_bound(v2, max_cv=0.0)
 
 
-def test_optimize_writes_a_printable_design(v2_freeform, tmp_path):
-    """A small sweep of the designed wall from ``ff4``'s placement (the default's cone-wall units
-    sit where a taller part's housing meets the imaging tower's flange)."""
+def test_optimize_writes_a_printable_design(tmp_path):
     from cm2optics.cli.illum import illum_app
 
-    (tmp_path / "in").mkdir()
-    v2_freeform.save(tmp_path / "in" / "ff4.yaml")
-    out = tmp_path / "out"
     result = CliRunner().invoke(
         illum_app,
         [
             "optimize",
-            "--preset",
-            str(tmp_path / "in" / "ff4.yaml"),
             "--samples",
             "4",
             "--rounds",
@@ -141,7 +133,7 @@ def test_optimize_writes_a_printable_design(v2_freeform, tmp_path):
             "1",
             "--json",
             "--out",
-            str(out),
+            str(tmp_path),
         ],
     )
     assert result.exit_code == 0, result.output
@@ -149,12 +141,12 @@ def test_optimize_writes_a_printable_design(v2_freeform, tmp_path):
     for key in ("delivered_fraction", "uniformity_cv", "etendue_bound", "printability", "parameters"):
         assert key in data
     assert data["printability"]["watertight"]
-    design = load_design(out / "design.yaml")
+    design = load_design(tmp_path / "design.yaml")
     assert design.collimator.lens_half_angle_deg == pytest.approx(
         data["parameters"]["collimator.lens_half_angle_deg"], rel=1e-4
     )
-    assert (out / "collimator.stl").is_file() and (out / "sweep.json").is_file()
-    assert (out / "collimator.step").stat().st_size > 0 and (out / "irradiance.png").is_file()
+    assert (tmp_path / "collimator.stl").is_file() and (tmp_path / "sweep.json").is_file()
+    assert (tmp_path / "collimator.step").stat().st_size > 0 and (tmp_path / "irradiance.png").is_file()
     assert 0 < data["built_part"]["delivered_fraction"] < 1
     assert design.collimator.lens_spread_deg == pytest.approx(
         data["parameters"]["collimator.lens_spread_deg"], rel=1e-4

@@ -71,13 +71,13 @@ def test_truncation_keeps_the_designed_wall_below_the_radius(v2_collimating):
     assert cut.outer_radius_exit_mm == pytest.approx(1.5)
 
 
-def test_new_fields_leave_old_files_and_hashes_alone(v2_freeform, cone):
-    collimator = v2_freeform.to_dict()["collimator"]
+def test_new_fields_leave_old_files_and_hashes_alone(v2, cone):
+    collimator = v2.to_dict()["collimator"]
     assert not {"tir_max_radius_mm", "tir_cone_deg", "tir_cone_curvature_per_mm"} & set(collimator)
     data = cone.to_dict()
     assert data["collimator"]["tir_cone_deg"] == 30.0 and data["collimator"]["tir_max_radius_mm"] == 1.95
     again = design_from_dict(data)
-    assert again == cone and again.parameter_hash() == cone.parameter_hash() != v2_freeform.parameter_hash()
+    assert again == cone and again.parameter_hash() == cone.parameter_hash() != v2.parameter_hash()
 
 
 @pytest.mark.parametrize(
@@ -112,27 +112,20 @@ def test_cone_part_with_the_led_at_the_mouth_is_a_printable_solid(cone, tmp_path
 
 
 def test_cone_box_replaces_the_profile_box():
-    from cm2optics.illumination.optimize import AIM_PARAMETERS, CONE_PARAMETERS, _changes, search_box
+    from cm2optics.illumination.optimize import (
+        AIM_PARAMETERS,
+        CONE_PARAMETERS,
+        CONE_WALL_FIELDS,
+        _changes,
+        search_box,
+    )
 
     assert search_box(True, cone_wall=True) == CONE_PARAMETERS | AIM_PARAMETERS
     assert CONE_PARAMETERS["collimator.cavity_radius_mm"][0] > math.hypot(0.5, 0.5)  # encloses the 1-mm emitter
     assert _changes({"collimator.tir_cone_deg": 30.0}, design=_Stub())["collimator.tir_spread_deg"] == 0.0
-
-
-def test_designed_wall_candidates_of_a_cone_wall_base_drop_the_cone(v2, v2_freeform):
-    """The default (a cone wall) swept over :data:`PARAMETERS` (the designed wall): a candidate
-    with ``ff4``'s profile values is ``ff4``'s designed wall, not a cone with a spread (which the
-    design rejects)."""
-    from cm2optics.illumination.optimize import PARAMETERS, candidate_collimator
-
-    assert v2.collimator.tir_cone_deg > 0
-    values = {name: getattr(v2_freeform.collimator, name.split(".")[1]) for name in PARAMETERS}
-    design, mesh, profile = candidate_collimator(v2, values)
-    collimator = design.collimator
-    assert (collimator.tir_cone_deg, collimator.tir_cone_curvature_per_mm, collimator.tir_max_radius_mm) == (0, 0, 0)
-    reference = collimator_profile(v2_freeform)
-    np.testing.assert_allclose(profile.tir_r_mm, reference.tir_r_mm)
-    assert mesh.mesh.is_watertight
+    # the designed wall swept from a cone-wall base drops the base's cone, whole
+    designed = _changes({"collimator.tir_spread_deg": 10.0}, design=_Stub())
+    assert all(designed[f"collimator.{name}"] == 0.0 for name in CONE_WALL_FIELDS)
 
 
 class _Stub:
