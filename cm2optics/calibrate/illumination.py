@@ -369,6 +369,31 @@ class _Fit:
         residual, var = self.residual(slots, theta)
         return float(np.sum(residual**2 / var))
 
+    def profiled(self, slots: list[_Slot], theta: np.ndarray) -> tuple[np.ndarray, float]:
+        """``theta`` with its linear values — the scale and the free relative fluxes — solved in
+        closed form (weighted least squares, the noise of the prediction at ``theta``) for its
+        geometry and offset, and the χ² there."""
+        _, offset, flux, geometry = self.unpack(slots, theta)
+        maps, _ = self.maps.maps(geometry)
+        _, var = self.predict(slots, theta)
+        free = [i for i, s in enumerate(slots) if s.effect is not None and s.column < 0]
+        free_units = [slots[i].effect.unit for i in free]
+        fixed = np.array([u not in free_units for u in range(self.maps.units)])
+        basis = [flux[fixed] @ maps[fixed]] if fixed.any() else []
+        basis = np.array(basis + [maps[u] for u in free_units])
+        weight = 1.0 / np.sqrt(var)
+        data = self.maps.measured.values_at(offset)
+        coef = np.linalg.lstsq((basis * weight).T, data * weight, rcond=None)[0]
+        out = theta.copy()
+        scale = coef[0] if fixed.any() else theta[0]
+        out[0] = scale
+        for i, c in zip(free, coef[1:] if fixed.any() else coef, strict=True):
+            out[i] = c / scale
+        low = np.array([s.parameter.low for s in slots])
+        high = np.array([s.parameter.high for s in slots])
+        out = np.clip(out, low, high)
+        return out, self.chi2(slots, out)
+
     def jacobian(
         self, slots: list[_Slot], theta: np.ndarray, central: bool = False
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -462,8 +487,10 @@ def _refitted(
 ) -> tuple[float, UnitEffect, list[_Slot], tuple[np.ndarray, float, np.ndarray]]:
     """``candidate`` refitted by Gauss–Newton beside the slots already free (all of them free
     again): its BIC, the candidate, the slots and the fit (values, χ², covariance). A traced
-    candidate starts from the best (by χ²) of its current values and the points half its range
-    away on a 3 × 3 grid: a tilt of a few degrees moves a unit's spot too far for one linearisation."""
+    candidate starts from the best (by χ², the scale and free fluxes solved in closed form at
+    each point) of its current values and the points half its range away on a 3 × 3 grid: a
+    tilt of a few degrees moves a unit's spot too far for one linearisation, and changes the
+    power on the sample, which stale linear values would count against it."""
     trial_slots = slots + _effect_slots(candidate)
     current = _current(fit, slots, theta, candidate)
     starts = [current]
@@ -471,8 +498,9 @@ def _refitted(
         half = np.array([p.high for p in candidate.parameters]) / 2
         grid = np.stack(np.meshgrid(*[(-1, 0, 1)] * len(current), indexing="ij"), -1).reshape(-1, len(current))
         starts = [np.clip(current + g * half, -2 * half, 2 * half) for g in grid]
-    start = min(starts, key=lambda values: fit.chi2(trial_slots, np.concatenate([theta, values])))
-    refit = fit.refine(trial_slots, np.concatenate([theta, start]))
+    profiled = [fit.profiled(trial_slots, np.concatenate([theta, values])) for values in starts]
+    start, _ = min(profiled, key=lambda t: t[1])
+    refit = fit.refine(trial_slots, start)
     return refit[1] + penalty * len(trial_slots), candidate, trial_slots, refit
 
 
