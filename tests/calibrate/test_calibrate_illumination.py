@@ -5,7 +5,8 @@ Synthetic maps (:mod:`illumination_maps`): the design as built traced with 5× t
 rays on a 50-µm camera grid, Poisson noise, the optical axis at ``OFFSET_MM`` from the image's
 centre (the fitted offset is the axis's position in the image). Every effect alone at two
 magnitudes, the pair, clean maps for ten seeds (slow tests); the tool is not told what was injected.
-Tolerances (the recovery accuracy at these ray counts, BENCHMARKS.md): relative LED flux ± 0.1,
+Tolerances (≈ 2σ of the precision measured at these ray counts, BENCHMARKS.md; the matrix's one
+run, at load ≈ 17, did not meet them: two cases failed, the clean seeds timed out): relative LED flux ± 0.1,
 unit tilt ± 1° about each axis (± 0.5° for the pair's tilt with 1 000 000 model rays), collimator
 decentre ± 0.05 mm, offset ± 0.08 mm. Detection limit (BENCHMARKS.md): a 2° tilt is not named at
 400 000 model rays.
