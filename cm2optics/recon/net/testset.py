@@ -26,12 +26,11 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-__all__ = ["TEST_SEED", "check_seed", "field_view_px", "net_test_set"]
+__all__ = ["TEST_SEED", "check_seed", "net_test_set"]
 
 #: The test set's seed: the training data use the config's seed, validation that + 7919.
 TEST_SEED = 1_000_003
@@ -69,12 +68,13 @@ def net_test_set(
     instead of the weights' forward model (e.g. a higher-rank build of ``model``'s scan).
 
     field_mm: the test volumes' field, a disc of this diameter (default: the training field), the
-    network given views that hold it (:func:`field_view_px`) instead of the training views; it
+    network given views that hold it (:func:`~cm2optics.recon.net.infer.field_view_px`) instead of the training views; it
     needs ``model`` (the weights' forward model is cut to the training views), of the whole
     sensor, which images set (a) itself unless ``imaging_model`` does."""
     from cm2optics.lsv.model import load_model
     from cm2optics.recon.compare import compare_baselines
     from cm2optics.recon.net.data import forward_imaging, sensor_window
+    from cm2optics.recon.net.infer import field_view_px
     from cm2optics.recon.net.weights import load_weights
     from cm2optics.synth.imaging import Imaging
 
@@ -89,7 +89,9 @@ def net_test_set(
     test = config.synth.with_changes(
         view_px=0, patch_px=0, patches_per_volume=0, store_volume=False, density_per_mm2=(10.0, 100.0), **field
     )
-    view_px = config.synth.view_px if field_mm is None else field_view_px(test.grid, loaded.planes.max_shift_px)
+    view_px = config.synth.view_px
+    if field_mm is not None:
+        view_px = field_view_px(field_mm, test.voxel_um[1], loaded.planes.max_shift_px)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     model_path = out_dir / "forward-model.lsv.h5"
@@ -126,14 +128,6 @@ def net_test_set(
         log=log,
         imaging=imaging,
     )
-
-
-def field_view_px(grid: Any, border_px: int) -> int:
-    """Side of the views (px, even) that hold ``grid``'s field — one view pixel per voxel, within
-    the 2 % the network's geometry check allows — and the refocusing border (``border_px``, the
-    largest shift) on each side: 1,732 px for the 7-mm field at 4.15 µm and 5 px."""
-    side = max(grid.shape[1:]) * 1.02 + 2 * border_px
-    return 2 * math.ceil(side / 2)
 
 
 def check_seed(seed: int, training_seed: int) -> None:
