@@ -2,8 +2,8 @@
 
 The test volumes are made the paper's way — on the training sensor window, grid and noise, with
 the paper's densities (U[10, 100] per mm²) and diameters (8–20 µm) and a seed no training,
-validation or reference volume used; or over the whole field (``field_mm``: a disc of that diameter,
-the network given full-size views) — and imaged
+validation or reference volume used; or over the whole field (``field_mm``: a disc of that
+diameter, the network given views that hold it) — and imaged
 
 (a) through the forward model the weights were trained through (as in training), or
 (b) by the emission ray tracer (``traced``: a factory of an imaging source such as
@@ -68,9 +68,9 @@ def net_test_set(
     instead of the weights' forward model (e.g. a higher-rank build of ``model``'s scan).
 
     field_mm: the test volumes' field, a disc of this diameter (default: the training field), the
-    network given views that hold it (:func:`~cm2optics.recon.net.infer.field_view_px`) instead of the training views; it
-    needs ``model`` (the weights' forward model is cut to the training views), of the whole
-    sensor, which images set (a) itself unless ``imaging_model`` does."""
+    network given views that hold it (:func:`~cm2optics.recon.net.infer.field_view_px`) instead
+    of the training views; it needs ``model`` (the weights' forward model is cut to the training
+    views), of the whole sensor, which images set (a) itself unless ``imaging_model`` does."""
     from cm2optics.lsv.model import load_model
     from cm2optics.recon.compare import compare_baselines
     from cm2optics.recon.net.data import forward_imaging, sensor_window
