@@ -73,6 +73,14 @@ def reconstruct_command(
         float | None,
         typer.Option("--threshold", help="--method net: detection threshold on [0, 1] (default: the weights')."),
     ] = None,
+    field_mm: Annotated[
+        float | None,
+        typer.Option(
+            "--field-mm",
+            help="--method net: reconstruct a disc of this diameter, mm (views that hold it; e.g. 7 for the whole "
+            "field of a full-sensor frame with a model of the whole sensor); default: the training views' field.",
+        ),
+    ] = None,
     forward: Annotated[
         str,
         typer.Option("--forward", help="lsv (the 3D-LSV model) or lsi (the V1 depth-wise LSI model derived from it)."),
@@ -113,11 +121,21 @@ def reconstruct_command(
         out = measurement.with_name(measurement.stem + ".volume.tif")
     if method == "net":
         _reconstruct_net(
-            measurement, model, out, weights, emitters_out, preprocess, threshold, dark_level, overwrite, as_json
+            measurement,
+            model,
+            out,
+            weights,
+            emitters_out,
+            preprocess,
+            threshold,
+            field_mm,
+            dark_level,
+            overwrite,
+            as_json,
         )
         return
-    if weights is not None or emitters_out is not None:
-        raise UserError("--weights and --emitters-out go with --method net")
+    if weights is not None or emitters_out is not None or field_mm is not None:
+        raise UserError("--weights, --emitters-out and --field-mm go with --method net")
     if model is None:
         raise UserError(f"--method {method}: give the forward model with --model (an LSV model or a PSF stack)")
     for path in (out, out.with_suffix(".json")):
@@ -159,6 +177,7 @@ def _reconstruct_net(
     emitters_out: Path | None,
     preprocess: str,
     threshold: float | None,
+    field_mm: float | None,
     dark_level: float,
     overwrite: bool,
     as_json: bool,
@@ -174,6 +193,8 @@ def _reconstruct_net(
         raise UserError(f"--preprocess {preprocess}: must be one of {', '.join(PREPROCESS)}")
     if threshold is not None and not 0.0 < threshold < 1.0:
         raise UserError(f"--threshold {threshold}: must lie strictly between 0 and 1")
+    if field_mm is not None and not 0.0 < field_mm <= 100.0:
+        raise UserError(f"--field-mm {field_mm}: must lie in (0, 100] mm")
     inputs = [p for p in (measurement, model, weights) if p is not None]
     outputs = [out, out.with_suffix(".json")] + ([emitters_out] if emitters_out is not None else [])
     for path in outputs:
@@ -187,6 +208,7 @@ def _reconstruct_net(
         preprocess=preprocess,
         threshold=threshold,
         dark_level=dark_level,
+        field_mm=field_mm,
     )
     if as_json:
         print(json.dumps(record, indent=2, ensure_ascii=False))

@@ -141,6 +141,24 @@ def net_testset_command(
             "faster FISTA. Its geometry must be the weights'.",
         ),
     ] = None,
+    imaging_model: Annotated[
+        Path | None,
+        typer.Option(
+            "--imaging-model",
+            help="Set (a): the 3D-LSV model (.lsv.h5) that images the test volumes instead of the weights' forward "
+            "model, e.g. a higher-rank build of --model's scan.",
+        ),
+    ] = None,
+    field_mm: Annotated[
+        float | None,
+        typer.Option(
+            "--field-mm",
+            min=0.01,
+            help="Test volumes over a disc of this diameter, mm (e.g. 7: the whole field), the network given "
+            "views that hold it instead of the training views; needs --model of the whole sensor, which images "
+            "set (a) unless --imaging-model does. Default: the weights' training field.",
+        ),
+    ] = None,
     n_volumes: Annotated[int, typer.Option("--n-volumes", min=1, help="Test volumes.")] = 10,
     seed: Annotated[int, typer.Option("--seed", min=0, help="Seed of the test volumes (never the run's).")] = 1_000_003,
     fista_iterations: Annotated[
@@ -172,11 +190,15 @@ def net_testset_command(
         factory = _traced_factory(loaded.config.forward_model, preset, binning)
     elif preset is not None or binning is not None:
         raise UserError("--preset and --binning choose what --traced traces; give --traced or leave them out")
-    if model is not None and not model.is_file():
-        raise UserError(f"--model {model}: no such file")
-    output_folder(
-        out_dir, "net-testset", inputs=[weights] + ([model] if model is not None else []), overwrite=overwrite
-    )
+    for option, path in (("--model", model), ("--imaging-model", imaging_model)):
+        if path is not None and not path.is_file():
+            raise UserError(f"{option} {path}: no such file")
+    if field_mm is not None and model is None:
+        raise UserError("--field-mm: a whole-field test set needs --model, a 3D-LSV model of the whole sensor")
+    if imaging_model is not None and traced:
+        raise UserError("--imaging-model images set (a); --traced traces set (b): give one of them")
+    inputs = [weights] + [path for path in (model, imaging_model) if path is not None]
+    output_folder(out_dir, "net-testset", inputs=inputs, overwrite=overwrite)
     summary = net_test_set(
         weights,
         out_dir,
@@ -187,6 +209,8 @@ def net_testset_command(
         reuse=reuse,
         traced=factory,
         model=model,
+        imaging_model=imaging_model,
+        field_mm=field_mm,
         log=(lambda _: None) if as_json else typer.echo,
     )
     keys = ("recall", "precision", "f1", "rmse_lateral_um", "rmse_axial_um", "seconds_per_volume", "threshold")

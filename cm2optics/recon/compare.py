@@ -121,7 +121,12 @@ def _run_net(model_path: str, grid: Any, run: dict[str, Any], samples: list[str]
     for path in samples:
         data = read_sample(path)
         result = reconstruct_with_net(
-            data["measurement"], loaded, model, preprocess=run.get("preprocess", "none"), grid=grid
+            data["measurement"],
+            loaded,
+            model,
+            preprocess=run.get("preprocess", "none"),
+            grid=grid,
+            view_px=run.get("view_px"),
         )
         target = folder / (Path(path).stem + ".npy")
         np.save(target, result.volume)

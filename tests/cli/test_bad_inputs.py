@@ -637,6 +637,18 @@ def _network_and_calibration_cases() -> list[Case]:
             ["net-testset", weights, "{case}/o", "--traced", "--model", "{missing}"],
             ("--model", "no such file"),
         ),
+        Case(
+            "net-testset",
+            "input-file",
+            ["net-testset", weights, "{case}/o", "--imaging-model", "{missing}"],
+            ("--imaging-model", "no such file"),
+        ),
+        Case(
+            "net-testset",
+            "option",
+            ["net-testset", weights, "{case}/o", "--field-mm", "7"],
+            ("--field-mm", "--model", "whole sensor"),
+        ),
         Case("train", "input-file", ["train", "{missing}"], ("missing.tif", "no such")),
         Case("train", "input-file", ["train", "{garbage_yaml}"], ("garbage.yaml", "YAML")),
         Case("calibrate scan", "input-file", ["calibrate", "scan", "{missing}", "--out", "{case}/r"], ("no such",)),

@@ -361,6 +361,18 @@ def test_cm2_reconstruct_method_net_writes_the_volume_record_and_emitters(weight
     assert json.loads((tmp_path / "meas.volume.json").read_text())["n_emitters"] == len(
         read_emitters(tmp_path / "e.csv")
     )
+    # --field-mm: views that hold a wider disc than the training views' (the whole field of a frame)
+    from cm2optics.recon.net.infer import field_view_px
+
+    assert field_view_px(7.0, 4.15, 5) == 1732  # 1,687 voxels · 1.02 + 10 px of border, even
+    wide = 2.0 * config.synth.fov_mm[1]
+    side = field_view_px(wide, grid.voxel_um[1], load_weights(weights).planes.max_shift_px)
+    result = runner.invoke(
+        app, [*args, "--preprocess", "none", "--field-mm", str(wide), "--out", str(tmp_path / "wide.npy"), "--json"]
+    )
+    assert result.exit_code == 0, result.output
+    assert json.loads(result.stdout)["view_px"] == side > config.synth.view_px
+    assert np.load(tmp_path / "wide.npy").shape == (config.n_planes, side, side)
     for extra, message in (
         ([], "exists; pass --overwrite"),  # the volume is there now
         (["--out", str(tmp_path / "v.tif"), "--weights", str((tmp_path / "empty").resolve())], "empty"),
@@ -375,6 +387,10 @@ def test_cm2_reconstruct_method_net_writes_the_volume_record_and_emitters(weight
     assert failed.exit_code == 2 and "--weights" in failed.output
     failed = runner.invoke(app, ["reconstruct", str(tmp_path / "meas.npy"), "--out", str(tmp_path / "w.tif")])
     assert failed.exit_code == 2 and "--model" in failed.output
+    failed = runner.invoke(
+        app, ["reconstruct", str(tmp_path / "meas.npy"), "--field-mm", "2", "--out", str(tmp_path / "w.tif")]
+    )
+    assert failed.exit_code == 2 and "--field-mm go with --method net" in failed.output
 
 
 def test_histogram_matching_maps_quantiles():

@@ -15,6 +15,7 @@ from tiny_net import tiny
 
 from cm2optics.recon.compare import _model_description, _reusable_testset
 from cm2optics.recon.net.data import VALIDATION_SEED_OFFSET
+from cm2optics.recon.net.infer import field_view_px
 from cm2optics.recon.net.testset import TEST_SEED, net_test_set
 from cm2optics.recon.net.train import make_net
 from cm2optics.recon.net.weights import load_weights, save_weights
@@ -68,6 +69,39 @@ def test_the_test_set_uses_a_seed_no_training_volume_used_and_scores_net_and_fis
     alone = net_test_set(lsv_weights, tmp_path / "a", n_volumes=2, fista_iterations=0, workers=0, reuse=True, log=None)
     assert set(alone["runs"]) == {"cm2net"} and alone["runs"]["cm2net"]["f1"] == summary["runs"]["cm2net"]["f1"]
     assert (tmp_path / "a" / "cm2net" / "run.json").stat().st_mtime_ns == made_at
+
+
+@pytest.mark.slow  # a test set and a network run on a Dask worker: ≈ 30 s at load 9, 60 s at load 20
+def test_a_whole_field_test_set_spans_the_field_and_the_network_sees_all_of_it(lsv_weights, lsv_model_path, tmp_path):
+    """``field_mm``: the volumes fill a disc of that diameter (here 4 mm on the whole 8×-binned
+    sensor, the weights trained on ≤ 1.9 mm), the network is given views that hold it (its output
+    reaches the field's edge, not the 64-px training views' 2.1 mm), and the model is required."""
+    from cm2optics.formats.volume import VolumeGrid
+    from cm2optics.synth.dataset import read_sample
+
+    with pytest.raises(ValueError, match="whole sensor"):
+        net_test_set(lsv_weights, tmp_path / "refused", field_mm=4.0, log=None)
+    out = tmp_path / "w"
+    summary = net_test_set(
+        lsv_weights, out, n_volumes=1, fista_iterations=0, workers=0, model=lsv_model_path, field_mm=4.0, log=None
+    )
+    grid = VolumeGrid.from_dict(summary["grid"])
+    voxel = grid.voxel_um[1]
+    assert summary["config"]["fov_mm"] == [4.0, 4.0] and grid.shape[1] == grid.shape[2] == int(np.ceil(4000 / voxel))
+    loaded = load_weights(lsv_weights)
+    view_px = field_view_px(4.0, voxel, loaded.planes.max_shift_px)
+    assert view_px >= grid.shape[1] + 2 * loaded.planes.max_shift_px > loaded.config.synth.view_px
+    run = json.loads((out / "cm2net" / "run.json").read_text())
+    assert run["run"]["view_px"] == view_px
+    truth = read_sample(next((out / "testset" / "samples").glob("*.h5")))["emitters"]
+    radius_mm = np.hypot(truth.x_um, truth.y_um) / 1000.0
+    assert 1.7 < radius_mm.max() <= 2.0
+    volume = np.load(run["result"]["records"][0]["volume"])
+    assert volume.shape == grid.shape
+    # 1.8 mm off axis, beyond the training views' 1.05-mm half-width: the untrained net's σ(logit) > 0
+    y, x = np.ogrid[: grid.shape[1], : grid.shape[2]]
+    ring = np.abs(np.hypot(y - grid.shape[1] / 2, x - grid.shape[2] / 2) * voxel - 1800.0) < 2 * voxel
+    assert volume[:, ring].min() > 0.0
 
 
 @pytest.mark.slow  # two test sets with both runs: ≈ 3 min at load 20

@@ -27,6 +27,7 @@ refocusing shifts recomputed from its geometry, one view pixel per voxel; anythi
 from __future__ import annotations
 
 import json
+import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -102,6 +103,14 @@ def views_from_measurement(measurement: np.ndarray, model: Any, view_px: int) ->
     from cm2optics.synth.views import crop_views
 
     return crop_views(np.asarray(measurement, np.float32), _chief_rays(model), view_px)
+
+
+def field_view_px(field_mm: float, voxel_um: float, border_px: int) -> int:
+    """Side (px, even) of the views that hold a disc of ``field_mm`` at one view pixel per
+    ``voxel_um`` (within the 2 % :func:`check_geometry` allows) and the refocusing border
+    (``border_px``, the largest shift) on each side: 1,732 for the 7-mm field at 4.15 µm and 5 px."""
+    side = math.ceil(field_mm * 1000.0 / voxel_um - 1e-9) * 1.02 + 2 * border_px
+    return 2 * math.ceil(side / 2)
 
 
 def _load_model(model: Any, grid: VolumeGrid, config: Any) -> Any:
@@ -260,10 +269,13 @@ def reconstruct_net_file(
     preprocess: str = "histogram",
     threshold: float | None = None,
     dark_level: float = 0.0,
+    field_mm: float | None = None,
 ) -> dict[str, Any]:
     """Read a measurement, reconstruct it with the weights folder ``weights``, write the volume
     (TIFF with ImageJ spacing, or .npy), ``<out>.json`` beside it and, if asked, the detected
-    emitters (CSV, µm, centred on the axis); returns the JSON record."""
+    emitters (CSV, µm, centred on the axis); returns the JSON record. field_mm: reconstruct a disc
+    of this diameter (views that hold it, :func:`field_view_px`; e.g. 7 for the whole field of a
+    full-sensor frame) instead of the training views' field."""
     from cm2optics.errors import UserError
     from cm2optics.formats.atomic import write_json_atomic
     from cm2optics.formats.emitters import write_emitters
@@ -277,8 +289,17 @@ def reconstruct_net_file(
         raise UserError(f"--emitters-out {emitters_out}: give a .csv file name")
     measurement = read_measurement(measurement_path, dark_level)
     loaded = load_weights(weights)
+    view_px = None
+    if field_mm is not None:
+        view_px = field_view_px(field_mm, loaded.config.synth.voxel_um[1], loaded.planes.max_shift_px)
     result = reconstruct_with_net(
-        measurement, loaded, model, preprocess=preprocess, threshold=threshold, name=str(measurement_path)
+        measurement,
+        loaded,
+        model,
+        preprocess=preprocess,
+        threshold=threshold,
+        view_px=view_px,
+        name=str(measurement_path),
     )
     write_volume(out_path, result.volume, result.grid.voxel_um)
     record: dict[str, Any] = {
@@ -292,6 +313,7 @@ def reconstruct_net_file(
         "preprocess": preprocess,
         "threshold": result.threshold,
         "n_emitters": len(result.emitters),
+        "view_px": int(result.volume.shape[1]) if view_px is None else view_px,
         "border_px": result.border_px,
         "lateral_correction": json.loads(loaded.lateral.to_json()) if loaded.lateral is not None else None,
         "seconds": {k: round(v, 3) for k, v in result.seconds.items()},

@@ -2,7 +2,8 @@
 
 The test volumes are made the paper's way — on the training sensor window, grid and noise, with
 the paper's densities (U[10, 100] per mm²) and diameters (8–20 µm) and a seed no training,
-validation or reference volume used — and imaged
+validation or reference volume used; or over the whole field (``field_mm``: a disc of that
+diameter, the network given views that hold it) — and imaged
 
 (a) through the forward model the weights were trained through (as in training), or
 (b) by the emission ray tracer (``traced``: a factory of an imaging source such as
@@ -47,6 +48,8 @@ def net_test_set(
     reuse: bool = False,
     traced: Callable[[Any], Any] | None = None,
     model: str | Path | None = None,
+    imaging_model: str | Path | None = None,
+    field_mm: float | None = None,
     log=print,
 ) -> dict[str, Any]:
     """Make the test set, reconstruct it with the weights and with FISTA, evaluate; returns the
@@ -60,31 +63,47 @@ def net_test_set(
     (b) e.g. one built from a traced PSF scan of the design (``cm2 psf simulate`` → ``cm2 lsv
     build``), the calibrated model a real device is reconstructed with; or a lower-rank build of
     the weights' own scan, for a faster FISTA. Its geometry must be the weights' (checked by the
-    network's run); cut to the training views' sensor window and written to
-    ``out_dir/forward-model.lsv.h5``."""
+    network's run); cut to the views' sensor window and written to
+    ``out_dir/forward-model.lsv.h5``. imaging_model: a 3D-LSV model file that images set (a)
+    instead of the weights' forward model (e.g. a higher-rank build of ``model``'s scan).
+
+    field_mm: the test volumes' field, a disc of this diameter (default: the training field), the
+    network given views that hold it (:func:`~cm2optics.recon.net.infer.field_view_px`) instead
+    of the training views; it needs ``model`` (the weights' forward model is cut to the training
+    views), of the whole sensor, which images set (a) itself unless ``imaging_model`` does."""
     from cm2optics.lsv.model import load_model
     from cm2optics.recon.compare import compare_baselines
     from cm2optics.recon.net.data import forward_imaging, sensor_window
+    from cm2optics.recon.net.infer import field_view_px
     from cm2optics.recon.net.weights import load_weights
     from cm2optics.synth.imaging import Imaging
 
     loaded = load_weights(weights)
     config = loaded.config
     check_seed(seed, config.seed)
+    if field_mm is not None and model is None:
+        raise ValueError("a whole-field test set needs a 3D-LSV model of the whole sensor (model)")
+    if imaging_model is not None and traced is not None:
+        raise ValueError("imaging_model images set (a), traced images set (b): give one of them")
+    field = {} if field_mm is None else {"fov_mm": (field_mm, field_mm), "field_shape": "disk"}
+    test = config.synth.with_changes(
+        view_px=0, patch_px=0, patches_per_volume=0, store_volume=False, density_per_mm2=(10.0, 100.0), **field
+    )
+    view_px = config.synth.view_px
+    if field_mm is not None:
+        view_px = field_view_px(field_mm, test.voxel_um[1], loaded.planes.max_shift_px)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     model_path = out_dir / "forward-model.lsv.h5"
     imaging_source = forward_imaging(config).source  # the training sensor window
-    source = imaging_source if model is None else sensor_window(load_model(model), config.synth.view_px)
+    source = imaging_source if model is None else sensor_window(load_model(model), view_px)
     if not hasattr(source, "save"):
         raise ValueError(f"{config.forward_model}: a test set needs a 3D-LSV forward model, not a toy operator")
     if model is not None or traced is not None or not model_path.is_file():
         source.save(model_path)
-    test = config.synth.with_changes(
-        view_px=0, patch_px=0, patches_per_volume=0, store_volume=False, density_per_mm2=(10.0, 100.0)
-    )
+    net_run = {"method": "net", "weights": str(Path(weights).resolve()), "preprocess": "none"}
     runs = {
-        "cm2net": {"method": "net", "weights": str(Path(weights).resolve()), "preprocess": "none"},
+        "cm2net": net_run if field_mm is None else net_run | {"view_px": view_px},
         "lsv-fista": {"forward": "lsv", "method": "fista", "l1": 0.02, "max_iter": fista_iterations},
     }
     if fista_iterations == 0:
@@ -92,7 +111,9 @@ def net_test_set(
     imaging = None  # set (a) imaged by the reconstruction model itself, on Dask workers
     if traced is not None:
         imaging = Imaging(traced(source), test.grid)
-    elif model is not None:
+    elif imaging_model is not None:
+        imaging = Imaging(sensor_window(load_model(imaging_model), view_px), test.grid)
+    elif model is not None and field_mm is None:
         imaging = Imaging(imaging_source, test.grid)  # set (a): the weights' own model images it
     return compare_baselines(
         model_path,
