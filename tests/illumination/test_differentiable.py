@@ -50,6 +50,56 @@ def jit():
         pytest.skip("gradients need Dr.Jit's LLVM or CUDA variant")
 
 
+def test_rim_band_rays_are_re_aimed_onto_either_side_of_the_lens_rim(jit):
+    """The boundary term's rays (cm2-v2 with 10 µm of coma, so that the rim's height varies by
+    ±28 µm round the cavity): re-aimed 2 µm below the rim they meet the cavity wall (a vertical
+    facet at r = a), 2 µm above it the lens (a facet facing the LED), every one of them; and the
+    band holds about twice the rays when twice as wide."""
+    from cm2optics.illumination.differentiable import _rim_crossings
+    from cm2optics.illumination.geometry import build_scene
+    from cm2optics.illumination.optimize import candidate_collimator
+    from cm2optics.illumination.scene import mitsuba_scene
+    from cm2optics.illumination.source import led_source
+    from cm2optics.illumination.tracer import emit_rays
+    from cm2optics.optics.backend import mitsuba
+    from cm2optics.optics.collimator import collimator_profile
+
+    mi = mitsuba()
+    design, mesh, _ = candidate_collimator(load_preset("cm2-v2"), {"collimator.lens_freeform_um[7]": 10.0})
+    scene = build_scene(design, mesh, excitation_filter=False, housing=False)  # the first hits need the parts only
+    batch = emit_rays(scene, led_source(design), 20_000, 3)
+    rim = _rim_crossings(scene, batch, 0.04)
+    wider = _rim_crossings(scene, batch, 0.08)
+    assert 60 < len(rim.index) and abs(len(wider.index) / len(rim.index) - 2.0) < 0.4, (
+        len(rim.index),
+        len(wider.index),
+    )
+    msc = mitsuba_scene(scene)
+    rotation = scene.poses[batch.unit[rim.index], :3, :3]
+    shift = scene.poses[batch.unit[rim.index], :3, 3]
+    a = collimator_profile(design).cavity_radius_mm
+
+    def first_hit(direction):
+        def f32(v):
+            return mi.Float(np.ascontiguousarray(v, np.float32))
+
+        origin = batch.origin_mm[rim.index]
+        si = msc.scene.ray_intersect(
+            mi.Ray3f(
+                mi.Point3f(*(f32(origin[:, k]) for k in range(3))),
+                mi.Vector3f(*(f32(direction[:, k]) for k in range(3))),
+            )
+        )
+        normal = np.stack([si.n.x.numpy(), si.n.y.numpy(), si.n.z.numpy()], 1)
+        point = np.stack([si.p.x.numpy(), si.p.y.numpy(), si.p.z.numpy()], 1) - shift
+        return np.einsum("nji,nj->ni", rotation, normal), np.einsum("nji,nj->ni", rotation, point)  # LED frame
+
+    normal, point = first_hit(rim.below)
+    assert np.all(np.abs(normal[:, 2]) < 0.05) and np.allclose(np.hypot(point[:, 0], point[:, 1]), a, atol=2e-4)
+    normal, point = first_hit(rim.above)
+    assert np.all(normal[:, 2] < -0.3) and np.all(np.hypot(point[:, 0], point[:, 1]) < a)
+
+
 def _objective(base, c, start, rays):
     from cm2optics.illumination.differentiable import smooth_objective
     from cm2optics.illumination.excitation import design_filter_transmission
