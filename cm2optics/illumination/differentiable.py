@@ -2,7 +2,7 @@
 
 The trace is the tracer's own step (:class:`cm2optics.illumination.tracer._Kernel`: Mitsuba's
 intersection, Fresnel, the coating's T(λ, θ), Snell, TIR, the smooth-normal fallback), run on
-the mesh of the current coefficients, with three changes that make the objective differentiable:
+the mesh of the current coefficients, with four changes that make the objective differentiable:
 
 * **attached geometry.** Mitsuba's hit points follow the (attached) rays. On the collimator the
   smooth normal is interpolated again in Dr.Jit, from the attached hit point's barycentric
@@ -21,13 +21,22 @@ the mesh of the current coefficients, with three changes that make the objective
 * **a bilinear splat** of each landed ray's weight into the uniformity bins (``bin_mm``, as
   :mod:`.metrics`), so the CV and the delivered fraction move smoothly with the hit points.
 
-Not differentiated: changes of visibility (a ray moving across an edge — the housing's aperture,
-the filter's edge — or between TIR and refraction), whose boundary terms would need edge
-sampling or a reparameterisation. Against finite differences of this same objective (BENCHMARKS.md:
-2·10⁴ rays, h = 0.5 µm, the same rays): dD/dc₄, dCV′/dc₄ and dD/dc₁₁ agree within 13 %, dCV′/dc₆
-within 15–30 % (its sign was wrong before the two fixes above); dD/dc₇, dCV′/dc₇ and dCV′/dc₁₁
-do not (about 2×, 2× and 16×), and for coma the rays changing path carry about half of the finite difference. Ray by ray (defocus, three surfaces), the derivatives of the
-hit points and directions agree with finite differences of the rebuilt mesh within ≈ 5 %.
+* **the lens rim's boundary term.** The terms without rotational symmetry (Noll 3, 6, 7) move
+  the rim where the lens meets the cavity wall, by ``v(φ) = Σ_j δc_j Z_j(1, φ)`` (the piston
+  holds it for 4 and 11), and the rays crossing the cavity's cylinder between its old and new
+  height go to the wall instead of the lens: a jump that no attached derivative sees. Its
+  derivative is estimated from the rays whose first segment crosses the cylinder within a band
+  ``ε`` (``rim_band_mm``) about the rim: each is traced twice more, re-aimed 2 µm below the rim
+  (onto the wall) and 2 µm above it (onto the lens), and splats ``± v(φ)/ε`` times its landed
+  weight (zero-valued, attached): ``δH = Σ_band (H_wall − H_lens) v(φ)/ε``, the flux per unit
+  height at the rim times the difference of the two fates. Unbiased up to the density's
+  curvature over ``ε``; its noise falls as 1/√(rays in the band).
+
+Not differentiated: other changes of visibility (a ray moving across a fixed edge — the
+housing's aperture, the filter's edge — or between TIR and refraction). Against central finite
+differences of this same objective (BENCHMARKS.md) on the same rays the comparison is limited by
+the finite differences' own noise: the rays changing path between c ± h each move dD by
+1/(2 h N).
 
 Objective (maximised), the sweep's ranking (:mod:`.optimize`) on these smooth figures:
 ``J = D − 2 max(0, CV′ − max_cv)``, ``D`` the weight in the bins centred inside the field
