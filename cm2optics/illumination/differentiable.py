@@ -2,7 +2,7 @@
 
 The trace is the tracer's own step (:class:`cm2optics.illumination.tracer._Kernel`: Mitsuba's
 intersection, Fresnel, the coating's T(λ, θ), Snell, TIR, the smooth-normal fallback), run on
-the mesh of the current coefficients, with three changes that make the objective differentiable:
+the mesh of the current coefficients, with four changes that make the objective differentiable:
 
 * **attached geometry.** Mitsuba's hit points follow the (attached) rays. On the collimator the
   smooth normal is interpolated again in Dr.Jit, from the attached hit point's barycentric
@@ -21,13 +21,22 @@ the mesh of the current coefficients, with three changes that make the objective
 * **a bilinear splat** of each landed ray's weight into the uniformity bins (``bin_mm``, as
   :mod:`.metrics`), so the CV and the delivered fraction move smoothly with the hit points.
 
-Not differentiated: changes of visibility (a ray moving across an edge — the housing's aperture,
-the filter's edge — or between TIR and refraction), whose boundary terms would need edge
-sampling or a reparameterisation. Against finite differences of this same objective (BENCHMARKS.md:
-2·10⁴ rays, h = 0.5 µm, the same rays): dD/dc₄, dCV′/dc₄ and dD/dc₁₁ agree within 13 %, dCV′/dc₆
-within 15–30 % (its sign was wrong before the two fixes above); dD/dc₇, dCV′/dc₇ and dCV′/dc₁₁
-do not (about 2×, 2× and 16×), and for coma the rays changing path carry about half of the finite difference. Ray by ray (defocus, three surfaces), the derivatives of the
-hit points and directions agree with finite differences of the rebuilt mesh within ≈ 5 %.
+* **the lens rim's boundary term.** The terms without rotational symmetry (Noll 3, 6, 7) move
+  the rim where the lens meets the cavity wall, by ``v(φ) = Σ_j δc_j Z_j(1, φ)`` (the piston
+  holds it for 4 and 11), and the rays crossing the cavity's cylinder between its old and new
+  height go to the wall instead of the lens: a jump that no attached derivative sees. Its
+  derivative is estimated from the rays whose first segment crosses the cylinder within a band
+  ``ε`` (``rim_band_mm``) about the rim: each is traced twice more, re-aimed 2 µm below the rim
+  (onto the wall) and 2 µm above it (onto the lens), and splats ``± v(φ)/ε`` times its landed
+  weight (zero-valued, attached): ``δH = Σ_band (H_wall − H_lens) v(φ)/ε``, the flux per unit
+  height at the rim times the difference of the two fates. Unbiased up to the density's
+  curvature over ``ε``; its noise falls as 1/√(rays in the band).
+
+Not differentiated: other changes of visibility (a ray moving across a fixed edge — the
+housing's aperture, the filter's edge — or between TIR and refraction). Against central finite
+differences of this same objective (BENCHMARKS.md) on the same rays the comparison is limited by
+the finite differences' own noise: the rays changing path between c ± h each move dD by
+1/(2 h N).
 
 Objective (maximised), the sweep's ranking (:mod:`.optimize`) on these smooth figures:
 ``J = D − 2 max(0, CV′ − max_cv)``, ``D`` the weight in the bins centred inside the field
@@ -50,14 +59,18 @@ from cm2optics.illumination.scene import mitsuba_scene
 from cm2optics.illumination.source import LEDSource
 from cm2optics.illumination.tracer import DEFAULT_MAX_BOUNCES, _Kernel, emit_rays, filter_table
 from cm2optics.optics.backend import is_jit, mitsuba
-from cm2optics.optics.freeform import rim_piston_um, zernike_with_gradient
+from cm2optics.optics.freeform import rim_piston_um, zernike, zernike_with_gradient
 
-__all__ = ["CV_PENALTY", "SmoothFigures", "smooth_objective"]
+__all__ = ["CV_PENALTY", "RIM_BAND_MM", "SmoothFigures", "smooth_objective"]
 
 #: Weight of the CV excess in the objective (the sweep's ranking).
 CV_PENALTY = 2.0
 #: −n_z of a facet's outward normal (LED frame) above which a hit inside the cavity is on the lens, not its wall.
 _LENS_FACET_NZ = 0.3
+#: Default width of the band of rays about the lens's rim that estimates its boundary term, mm.
+RIM_BAND_MM = 0.04
+#: How far above and below the rim (mm) a band ray is re-aimed to trace the lens's and the wall's side.
+_RIM_NUDGE_MM = 0.002
 
 
 @dataclass(frozen=True)
@@ -192,6 +205,52 @@ def _splat(dr: Any, mi: Any, hist: Any, noise: Any, x: Any, y: Any, w: Any, half
         dr.scatter_add(noise, dr.detach(w * b) ** 2, index, inside)
 
 
+@dataclass(frozen=True)
+class _RimCrossings:
+    """The LED rays whose first segment leaves the cavity's cylinder (radius ``a``) within half a
+    band ``ε`` of the lens's rim: index into the batch, the crossing's azimuth φ (rad) and the
+    two nudged directions (device frame) that cross at the rim ± ``_RIM_NUDGE_MM``, below onto
+    the cavity wall and above onto the lens."""
+
+    index: np.ndarray
+    azimuth: np.ndarray
+    below: np.ndarray
+    above: np.ndarray
+
+
+def _rim_crossings(scene: Any, batch: Any, band_mm: float) -> _RimCrossings:
+    """The rays of ``batch`` crossing the rim's band (:class:`_RimCrossings`); the rim's height at
+    azimuth φ is the lens edge's plus the sag ``S(a, φ)`` of the design's own terms."""
+    from cm2optics.optics.collimator import collimator_profile
+    from cm2optics.optics.freeform import lens_sag_mm
+
+    collimator = scene.design.collimator
+    profile = collimator_profile(scene.design)
+    a, mouth = float(profile.cavity_radius_mm), float(profile.entry_z_mm)
+    rot = scene.poses[batch.unit, :3, :3]
+    o = np.einsum("nji,nj->ni", rot, batch.origin_mm - scene.poses[batch.unit, :3, 3])  # LED frame
+    d = np.einsum("nji,nj->ni", rot, batch.direction)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        at_mouth = o[:, :2] + d[:, :2] * ((mouth - o[:, 2]) / d[:, 2])[:, None]
+        enters = (d[:, 2] > 0) & (np.einsum("ni,ni->n", at_mouth, at_mouth) < a * a)
+        qa = np.einsum("ni,ni->n", d[:, :2], d[:, :2])
+        qb = np.einsum("ni,ni->n", o[:, :2], d[:, :2])
+        qc = np.einsum("ni,ni->n", o[:, :2], o[:, :2]) - a * a
+        t = (-qb + np.sqrt(qb * qb - qa * qc)) / qa  # the outward crossing of r = a
+    crossing = o + t[:, None] * d
+    phi = np.arctan2(crossing[:, 1], crossing[:, 0])
+    rim_z = profile.lens_edge_z_mm + lens_sag_mm(collimator.lens_freeform_um, a * np.cos(phi), a * np.sin(phi), a)
+    index = np.flatnonzero(enters & np.isfinite(t) & (np.abs(crossing[:, 2] - rim_z) < band_mm / 2))
+    phi, rim_z, o = phi[index], rim_z[index], o[index]
+
+    def towards(dz: float) -> np.ndarray:
+        target = np.column_stack([a * np.cos(phi), a * np.sin(phi), rim_z + dz]) - o
+        target /= np.linalg.norm(target, axis=1, keepdims=True)
+        return np.einsum("nij,nj->ni", rot[index], target)
+
+    return _RimCrossings(index, phi, towards(-_RIM_NUDGE_MM), towards(_RIM_NUDGE_MM))
+
+
 def smooth_objective(
     design: SystemDesign,
     collimator: Any,
@@ -204,13 +263,16 @@ def smooth_objective(
     max_cv: float = 0.10,
     bin_mm: float = 0.5,
     max_bounces: int = DEFAULT_MAX_BOUNCES,
+    rim_band_mm: float = RIM_BAND_MM,
 ) -> SmoothFigures:
     """Trace ``rays`` rays through ``design`` with ``collimator`` (its mesh built with the design's
     own lens terms) and return the smooth objective and its gradient with respect to the Noll
     ``terms`` (not 1) of ``design.collimator.lens_freeform_um`` (µm), the piston ``c_1`` following
-    them (:func:`~cm2optics.optics.freeform.rim_piston_um`: the lens's rim stays put, so no ray
-    changes between lens and cavity wall — a change this trace could not differentiate). transmission: the excitation
-    filter's T(λ, θ) (None without a filter). The same seed gives the same rays."""
+    them (:func:`~cm2optics.optics.freeform.rim_piston_um`: the rotationally symmetric terms keep
+    the lens's rim in place). The others move the rim, and rays switch between lens and cavity
+    wall there: the boundary term of the module docstring, from the rays within ``rim_band_mm``
+    (mm; 0: left out) of the rim. transmission: the excitation filter's T(λ, θ) (None without a
+    filter). The same seed gives the same rays."""
     if 1 in terms:
         raise ValueError("the piston (Noll 1) follows the other terms: leave it out of terms")
     if not is_jit():
@@ -237,44 +299,60 @@ def smooth_objective(
     inside = mi.Float(inside_np.astype(np.float32))
     hist = dr.zeros(mi.Float, side * side)
     noise = dr.zeros(mi.Float, side * side)
-
     n_coll, n_filt = scene.refractive_indices(batch.wavelength_nm)
 
     def f32(values: np.ndarray) -> Any:
         return mi.Float(np.ascontiguousarray(values, dtype=np.float32))
 
-    o = mi.Point3f(*(f32(batch.origin_mm[:, k]) for k in range(3)))
-    d = mi.Vector3f(*(f32(batch.direction[:, k]) for k in range(3)))
-    wl, nc, nf = f32(batch.wavelength_nm), f32(n_coll), f32(n_filt)
-    unit = mi.UInt32(batch.unit.astype(np.uint32))
-    weight = dr.ones(mi.Float, len(batch.unit))
-    for _ in range(max_bounces):
-        active = dr.full(mi.Bool, True, dr.width(unit))
-        si = msc.scene.ray_intersect(mi.Ray3f(o, d), kernel.flags, False, active)
-        active = si.is_valid()
-        code = kernel.code(si, active)
-        on_collimator = active & ((code & 15) == int(Role.DIELECTRIC)) & (((code >> 4) & 15) == int(Medium.COLLIMATOR))
-        p, ns = attach(si, d, unit, on_collimator)
-        si.p = p
-        hit = kernel.surface(si, d, wl, nc, nf, active, ns)
-        role = hit["role"]
-        refracts = ((role == int(Role.DIELECTRIC)) | (role == int(Role.COATED))) & ~hit["tir"]
-        weight = weight * dr.select(refracts, 1.0 - hit["reflectance"], 1.0)
-        new_d, _ = kernel.scatter(d, hit, hit["tir"])
-        new_d = mi.Vector3f(new_d)
-        landed = active & (role == int(Role.SAMPLE))
-        _splat(dr, mi, hist, noise, p.x, p.y, dr.select(landed, weight, 0.0), half, bin_mm, side)
-        going = active & ~landed & (role != int(Role.ABSORBER))
-        ray = si.spawn_ray(new_d)
-        keep = dr.compress(going)
-        if dr.width(keep) == 0:
-            break
-        o = dr.gather(mi.Point3f, ray.o, keep)
-        d = dr.gather(mi.Vector3f, new_d, keep)
-        weight = dr.gather(mi.Float, weight, keep)
-        wl, nc, nf = (dr.gather(mi.Float, a, keep) for a in (wl, nc, nf))
-        unit = dr.gather(mi.UInt32, unit, keep)
-        dr.eval(o, d, weight, wl, nc, nf, unit, hist, noise)
+    def trace(index: np.ndarray, direction: np.ndarray, weight: Any) -> None:
+        """Trace the batch's rays ``index`` along ``direction`` (device frame) from their origins,
+        starting with ``weight``, and splat what lands into ``hist``."""
+        o = mi.Point3f(*(f32(batch.origin_mm[index, k]) for k in range(3)))
+        d = mi.Vector3f(*(f32(direction[:, k]) for k in range(3)))
+        wl, nc, nf = f32(batch.wavelength_nm[index]), f32(n_coll[index]), f32(n_filt[index])
+        unit = mi.UInt32(batch.unit[index].astype(np.uint32))
+        for _ in range(max_bounces):
+            active = dr.full(mi.Bool, True, dr.width(unit))
+            si = msc.scene.ray_intersect(mi.Ray3f(o, d), kernel.flags, False, active)
+            active = si.is_valid()
+            code = kernel.code(si, active)
+            on_collimator = (
+                active & ((code & 15) == int(Role.DIELECTRIC)) & (((code >> 4) & 15) == int(Medium.COLLIMATOR))
+            )
+            p, ns = attach(si, d, unit, on_collimator)
+            si.p = p
+            hit = kernel.surface(si, d, wl, nc, nf, active, ns)
+            role = hit["role"]
+            refracts = ((role == int(Role.DIELECTRIC)) | (role == int(Role.COATED))) & ~hit["tir"]
+            weight = weight * dr.select(refracts, 1.0 - hit["reflectance"], 1.0)
+            new_d, _ = kernel.scatter(d, hit, hit["tir"])
+            new_d = mi.Vector3f(new_d)
+            landed = active & (role == int(Role.SAMPLE))
+            _splat(dr, mi, hist, noise, p.x, p.y, dr.select(landed, weight, 0.0), half, bin_mm, side)
+            going = active & ~landed & (role != int(Role.ABSORBER))
+            ray = si.spawn_ray(new_d)
+            keep = dr.compress(going)
+            if dr.width(keep) == 0:
+                break
+            o = dr.gather(mi.Point3f, ray.o, keep)
+            d = dr.gather(mi.Vector3f, new_d, keep)
+            weight = dr.gather(mi.Float, weight, keep)
+            wl, nc, nf = (dr.gather(mi.Float, a, keep) for a in (wl, nc, nf))
+            unit = dr.gather(mi.UInt32, unit, keep)
+            dr.eval(o, d, weight, wl, nc, nf, unit, hist, noise)
+
+    everything = np.arange(len(batch.unit))
+    trace(everything, batch.direction, dr.ones(mi.Float, len(everything)))
+    if rim_band_mm > 0:
+        rim = _rim_crossings(scene, batch, rim_band_mm)
+        if len(rim.index):
+            # The rim rises by v(φ) = Σ_j δc_j Z_j(1, φ) (zero-valued, attached): the rays
+            # crossing between its old and new height go to the wall instead of the lens.
+            lift = mi.Float(0.0)
+            for j, delta in zip(attach.terms, attach.delta, strict=True):
+                lift = lift + delta * f32(1e-3 * zernike(j, np.ones_like(rim.azimuth), rim.azimuth))
+            trace(rim.index, rim.below, lift / rim_band_mm)
+            trace(rim.index, rim.above, -lift / rim_band_mm)
 
     emitted = float(len(batch.unit)) if not batch.rays_per_unit else float(batch.rays_per_unit * scene.units)
     n_inside = float(inside_np.sum())
