@@ -244,7 +244,7 @@ def turn_check(
         axes = (np.asarray(axes[0])[lateral[0]], np.asarray(axes[1])[lateral[1]], axes[2])
     else:
         rows = np.arange(len(gi))
-    held = rows[heldout_nodes(gi, n_heldout, seed)]
+    held = heldout_nodes(gi, n_heldout, seed)  # positions in gi (and rows)
     keep = np.ones(len(crops), bool)
     stacks = _Stacks(crops, {tuple(k): n for k, n in zip(gi, rows, strict=True)}, keep, np.asarray(axes[2], float))
     variants = {"fixed_orientation": (None, False)}
@@ -255,14 +255,14 @@ def turn_check(
         if turn is not None:
             variants["turned_warped"] = (turn, True)
     errors: dict[str, list[float]] = {name: [] for name in variants}
-    sub_index = {int(n): k for n, k in zip(rows, gi, strict=True)}
-    for n in held:
+    for position in held:
+        n = rows[position]
         keep[:] = True
         keep[n] = False  # this node alone left out
         y = np.asarray(crops[n], np.float64)
         norm = max(float((y**2).sum()), 1e-300)
         for name, (how, warping) in variants.items():
-            predicted = _neighbour_predictions(stacks, sub_index[int(n)], axes, surface, how, "xy", warping)
+            predicted = _neighbour_predictions(stacks, gi[position], axes, surface, how, "xy", warping)
             if predicted:
                 errors[name].append(float(np.mean([((p - y) ** 2).sum() / norm for p in predicted.values()])))
     return {

@@ -313,7 +313,7 @@ def reconstruct_net_file(
         "preprocess": preprocess,
         "threshold": result.threshold,
         "n_emitters": len(result.emitters),
-        "view_px": int(result.volume.shape[1]) if view_px is None else view_px,
+        "view_px": view_px or loaded.config.synth.view_px,
         "border_px": result.border_px,
         "lateral_correction": json.loads(loaded.lateral.to_json()) if loaded.lateral is not None else None,
         "seconds": {k: round(v, 3) for k, v in result.seconds.items()},
