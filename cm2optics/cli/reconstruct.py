@@ -103,6 +103,12 @@ def reconstruct_command(
     max_memory_gib: Annotated[
         float, typer.Option("--max-memory-gib", help="Refuse a run estimated above this.")
     ] = 20.0,
+    device: Annotated[
+        str,
+        typer.Option(
+            "--device", help="fista, admm, rl: where the operator and the solver run, cpu or cuda[:N] (a GPU)."
+        ),
+    ] = "cpu",
     overwrite: OverwriteOption = False,
     as_json: JsonOption = False,
 ) -> None:
@@ -120,6 +126,8 @@ def reconstruct_command(
     if out is None:
         out = measurement.with_name(measurement.stem + ".volume.tif")
     if method == "net":
+        if device != "cpu":
+            raise UserError("--device goes with fista, admm and rl (--method net runs on the CPU)")
         _reconstruct_net(
             measurement,
             model,
@@ -136,6 +144,7 @@ def reconstruct_command(
         return
     if weights is not None or emitters_out is not None or field_mm is not None:
         raise UserError("--weights, --emitters-out and --field-mm go with --method net")
+    _check_device(device)
     if model is None:
         raise UserError(f"--method {method}: give the forward model with --model (an LSV model or a PSF stack)")
     for path in (out, out.with_suffix(".json")):
@@ -158,7 +167,15 @@ def reconstruct_command(
             bar.update(task, completed=k, change=f"{info.get('rel_change', float('nan')):.2e}")
 
         record = reconstruct_file(
-            measurement, model, out, options, forward=forward, grid=grid, dark_level=dark_level, progress=progress
+            measurement,
+            model,
+            out,
+            options,
+            forward=forward,
+            grid=grid,
+            dark_level=dark_level,
+            progress=progress,
+            device=device,
         )
     if as_json:
         print(json.dumps(record, indent=2, ensure_ascii=False))
@@ -217,6 +234,24 @@ def _reconstruct_net(
         f"[green]{out}[/]: CM²Net, {record['n_emitters']} emitters at threshold {record['threshold']:g}, "
         f"{record['seconds']['total']:.1f} s"
     )
+
+
+def _check_device(device: str) -> None:
+    """A UserError unless ``device`` names the CPU or a CUDA device this machine has."""
+    import torch
+
+    try:
+        parsed = torch.device(device)
+    except RuntimeError:
+        raise UserError(f"--device {device}: give cpu or cuda[:N]") from None
+    if parsed.type not in ("cpu", "cuda"):
+        raise UserError(f"--device {device}: give cpu or cuda[:N]")
+    if parsed.type == "cuda":
+        count = torch.cuda.device_count()
+        if count == 0:
+            raise UserError(f"--device {device}: no CUDA device on this machine")
+        if parsed.index is not None and parsed.index >= count:
+            raise UserError(f"--device {device}: this machine has {count} CUDA device(s)")
 
 
 def _grid_option(grid_shape: str | None, voxel_um: str | None) -> Any:

@@ -261,8 +261,10 @@ def reconstruct_file(
     grid=None,
     dark_level: float = 0.0,
     progress=None,
+    device: str = "cpu",
 ) -> dict:
-    """Read, reconstruct, write the volume (TIFF/.npy) and ``<out>.json`` beside it; returns the record."""
+    """Read, reconstruct, write the volume (TIFF/.npy) and ``<out>.json`` beside it; returns the
+    record. device: where the operator and the solver's arrays live (``cpu``, ``cuda:N``)."""
     from cm2optics.formats.atomic import write_json_atomic
     from cm2optics.formats.measurement import read_measurement
     from cm2optics.formats.models import model_grid
@@ -274,11 +276,17 @@ def reconstruct_file(
         raise UserError(f"--out {out_path}: give a .tif or .npy file name")
     check_memory(grid or model_grid(model_path), options)  # before anything is read or allocated
     measurement = read_measurement(measurement_path, dark_level)
-    operator = load_operator(model_path, grid, forward=forward)
+    operator = load_operator(model_path, grid, forward=forward, device=device)
     volume, record = reconstruct(measurement, operator, options, progress=progress)
     write_volume(out_path, volume, operator.grid.voxel_um)
     record.update(
-        {"measurement": str(measurement_path), "model": str(model_path), "forward": forward, "volume": str(out_path)}
+        {
+            "measurement": str(measurement_path),
+            "model": str(model_path),
+            "forward": forward,
+            "volume": str(out_path),
+            "device": str(device),
+        }
     )
     write_json_atomic(out_path.with_suffix(".json"), record)
     return record

@@ -101,8 +101,16 @@ class _Monitor:
         return self.calm >= self.stopping.patience
 
 
-def _tensor(data: Any) -> torch.Tensor:
-    return torch.as_tensor(np.asarray(data) if not isinstance(data, torch.Tensor) else data, dtype=torch.float32)
+def _tensor(data: Any, device: torch.device | None = None) -> torch.Tensor:
+    return torch.as_tensor(
+        np.asarray(data) if not isinstance(data, torch.Tensor) else data, dtype=torch.float32, device=device
+    )
+
+
+def _device(operator: VolumeOperator) -> torch.device:
+    """Where the operator computes (its ``device``; the CPU for operators that state none): the
+    solvers keep their volume-sized arrays there."""
+    return torch.device(getattr(operator, "device", "cpu"))
 
 
 #: ‖A‖² per operator object (it depends on nothing else): computed once per operator.
@@ -127,7 +135,7 @@ def lipschitz(operator: VolumeOperator) -> float:
 def power_iteration(operator: VolumeOperator, iterations: int = 20, seed: int = 0) -> float:
     """Estimate ‖A‖² (the largest eigenvalue of AᵀA) by power iteration; returns it × 1.02."""
     generator = torch.Generator().manual_seed(seed)
-    x = torch.rand(operator.grid.shape, generator=generator, dtype=torch.float32)
+    x = torch.rand(operator.grid.shape, generator=generator, dtype=torch.float32).to(_device(operator))
     x /= torch.linalg.vector_norm(x)
     value = 0.0
     for _ in range(max(int(iterations), 1)):
@@ -159,12 +167,17 @@ def fista(
 ) -> SolverResult:
     """FISTA with restart (see the module docstring). l1, tv: relative weights."""
     start = time.perf_counter()
-    b = _tensor(b)
+    device = _device(operator)
+    b = _tensor(b, device)
     L = lipschitz_value if lipschitz_value is not None else lipschitz(operator)
     scale = float(_tensor(operator.adjoint(b)).max()) or 1.0
     lam1, lamtv = l1 * scale, tv * scale
     reg = _tv(tv_weights, operator, tv_iterations)
-    x = torch.zeros(operator.grid.shape, dtype=torch.float32) if x0 is None else _tensor(x0).clone()
+    x = (
+        torch.zeros(operator.grid.shape, dtype=torch.float32, device=device)
+        if x0 is None
+        else _tensor(x0, device).clone()
+    )
     y = x.clone()
     t = 1.0
     monitor = _Monitor(stopping, progress)
@@ -234,14 +247,15 @@ def admm(
 ) -> SolverResult:
     """ADMM for any operator (see the module docstring). mu: penalty relative to ‖A‖²."""
     start = time.perf_counter()
-    b = _tensor(b)
+    device = _device(operator)
+    b = _tensor(b, device)
     L = lipschitz_value if lipschitz_value is not None else lipschitz(operator)
     Atb = _tensor(operator.adjoint(b))
     scale = float(Atb.max()) or 1.0
     lam1, lamtv = l1 * scale, tv * scale
     m = mu * L
     reg = _tv(tv_weights, operator, 0)
-    x = torch.zeros(operator.grid.shape, dtype=torch.float32)
+    x = torch.zeros(operator.grid.shape, dtype=torch.float32, device=device)
     w = x.clone()
     rho = x.clone()
     use_tv = lamtv > 0
@@ -460,14 +474,15 @@ def richardson_lucy(
     """Richardson–Lucy (see the module docstring); ``background``: constant added to the model
     image (the sensor offset), in b's units."""
     start = time.perf_counter()
-    b = torch.clamp(_tensor(b), min=0.0)
+    device = _device(operator)
+    b = torch.clamp(_tensor(b, device), min=0.0)
     ones = _tensor(operator.adjoint(torch.ones_like(b)))
     sens = float(ones.mean()) or 1.0
     floor = 1e-6 * float(ones.max())
     lam1, lamtv = l1 * sens, tv * sens
     reg = _tv(tv_weights, operator, 0)
     total = float(torch.clamp(b - background, min=0.0).sum())
-    x = torch.full(operator.grid.shape, total / max(float(ones.sum()), 1e-30), dtype=torch.float32)
+    x = torch.full(operator.grid.shape, total / max(float(ones.sum()), 1e-30), dtype=torch.float32, device=device)
     monitor = _Monitor(stopping, progress)
     b_norm = float(torch.linalg.vector_norm(b)) or 1.0
     eps = 1e-6 * (float(b.max()) or 1.0)

@@ -159,6 +159,26 @@ def test_losses_are_finite_and_the_border_is_left_out():
 
 
 # ----------------------------------------------------------------------------- data
+def test_interleaved_volumes_give_each_of_g_workers_one_volume_of_the_same_items():
+    plain = tiny(train_volumes=5, batch_size=2, synth=SYNTH.with_changes(patches_per_volume=7))
+    mixed = plain.with_changes(interleave_volumes=3)
+    assert plain.hash() != mixed.hash()  # 1 (the default) stays out of the hash: the shipped weights load
+    a, b = epoch_items(plain, 1), epoch_items(mixed, 1)
+    assert sorted(a, key=lambda i: (i.volume, i.patch)) == sorted(b, key=lambda i: (i.volume, i.patch))
+    volume_order = list(dict.fromkeys(i.volume for i in a))  # the plain order: a volume's patches in a row
+    for v in volume_order:
+        assert [i.patch for i in a if i.volume == v] == [i.patch for i in b if i.volume == v]
+    # group 1 = the first 3 volumes: 3 full batches each, batch j from its volume j mod 3; then the
+    # leftover patch of each; then group 2 (2 volumes) likewise
+    batches = [b[k : k + 2] for k in range(0, 18, 2)]
+    for j, batch in enumerate(batches):
+        assert {i.volume for i in batch} == {volume_order[j % 3]}
+    assert [i.volume for i in b[18:21]] == volume_order[:3]
+    assert {i.volume for i in b[21:23]} == {volume_order[3]} and {i.volume for i in b[23:25]} == {volume_order[4]}
+    with pytest.raises(ConfigError, match="interleave_volumes"):
+        tiny(interleave_volumes=0)
+
+
 def test_patch_targets_are_the_synth_volume_patches_and_reproducible():
     from cm2optics.synth.raster import rasterize_balls
     from cm2optics.synth.views import volume_patch

@@ -223,12 +223,15 @@ def test_cli_reconstruct_then_evaluate(op, scene, tmp_path):
             "100",
             "--background",
             "none",
+            "--device",
+            "cpu",
             "--json",
         ],
     )
     assert result.exit_code == 0, result.output
     record = json.loads(result.stdout)
     assert record["method"] == "fista" and record["iterations"] >= 1 and "memory_estimate" in record
+    assert record["device"] == "cpu"
     volume, grid = read_volume(tmp_path / "vol.tif")
     assert grid.shape == GRID.shape and grid.voxel_um == pytest.approx(GRID.voxel_um, rel=1e-5)
     assert json.loads((tmp_path / "vol.json").read_text())["volume"] == str(tmp_path / "vol.tif")
@@ -272,6 +275,9 @@ def test_cli_reconstruct_errors_are_one_line(op, tmp_path):
         )
     )
     assert ".tif or .npy" in _one_line_error(runner.invoke(_app(), args[:-1] + [str(tmp_path / "v.png")]))
+    assert "cpu or cuda" in _one_line_error(runner.invoke(_app(), args + ["--device", "gpu"]))
+    assert "cpu or cuda" in _one_line_error(runner.invoke(_app(), args + ["--device", "mps"]))
+    assert "CUDA device" in _one_line_error(runner.invoke(_app(), args + ["--device", "cuda:99"]))
     assert not (tmp_path / "v.tif").exists()
 
 

@@ -78,6 +78,9 @@ class NetConfig:
     synth: the synthetic recipe (views, patches, densities, noise); seed: data and weights seed;
     train_volumes: volumes per epoch; val_volumes: validation volumes (fixed);
     fresh_volumes: new volumes every epoch (else the same ``train_volumes`` every epoch);
+    interleave_volumes: consecutive batches cycle over groups of this many volumes, each batch
+    from one volume (1: a volume's batches in a row) — with as many DataLoader ``workers``, each
+    worker renders only its own volume of the group instead of every one;
     curriculum_epochs: epochs over which the density grows linearly from
     curriculum_start_density (per mm²) to ``synth.density_per_mm2`` (0: no curriculum);
     target: ``occupancy`` (fraction of each voxel inside an emitter, the paper's binned balls)
@@ -113,6 +116,7 @@ class NetConfig:
     train_volumes: int = 64
     val_volumes: int = 4
     fresh_volumes: bool = True
+    interleave_volumes: int = 1
     curriculum_epochs: int = 0
     curriculum_start_density: tuple[float, float] = (5.0, 20.0)
     target: str = "occupancy"
@@ -162,6 +166,7 @@ class NetConfig:
         _int("val_volumes", self.val_volumes, 0, 1_000_000)
         if not isinstance(self.fresh_volumes, bool):
             raise ConfigError(f"fresh_volumes = {self.fresh_volumes!r}: must be true or false")
+        _int("interleave_volumes", self.interleave_volumes, 1, 10_000_000)
         _int("curriculum_epochs", self.curriculum_epochs, 0, 100_000)
         try:
             lo, hi = (float(v) for v in self.curriculum_start_density)
@@ -237,13 +242,15 @@ class NetConfig:
 
     def hash(self) -> str:
         """SHA-256 (hex) of the fields that change the weights (not :data:`RUNTIME_FIELDS`; nor
-        ``ablation`` when ``none`` nor an empty ``init_weights``, so that configs written before
-        they existed keep their hash)."""
+        ``ablation`` when ``none`` nor an empty ``init_weights`` nor ``interleave_volumes`` of 1, so
+        that configs written before they existed keep their hash)."""
         data = {k: v for k, v in self.to_dict().items() if k not in RUNTIME_FIELDS}
         if data["ablation"] == "none":
             del data["ablation"]
         if not data["init_weights"]:
             del data["init_weights"]
+        if data["interleave_volumes"] == 1:
+            del data["interleave_volumes"]
         return hashlib.sha256(json.dumps(data, sort_keys=True, default=str).encode()).hexdigest()
 
     def with_changes(self, **changes: Any) -> NetConfig:

@@ -15,7 +15,10 @@ Order: per epoch the volumes are shuffled and each volume's patches shuffled (ge
 ``(seed, epoch)``), and consecutive patches share a volume (one synthesis serves them). The global
 batch at step s is items ``[s·B, (s+1)·B)``; DDP rank r of w takes the r-th contiguous B/w of it.
 Epoch e uses volumes ``e·train_volumes + v`` (``fresh_volumes``) or ``v``; the curriculum sets
-the density range per epoch. Validation is a fixed set from a separate seed.
+the density range per epoch. With ``interleave_volumes`` G > 1, consecutive batches cycle over
+groups of G volumes instead (batch j of a group from its volume j mod G), so that G DataLoader
+workers, which take the batches in turn, each render one volume of the group. Validation is a
+fixed set from a separate seed.
 """
 
 from __future__ import annotations
@@ -292,11 +295,30 @@ def epoch_items(config: NetConfig, epoch: int) -> list[Item]:
     rng = np.random.default_rng(np.random.SeedSequence([config.seed, epoch, 17]))
     density = density_at(config, epoch)
     base = epoch * config.train_volumes if config.fresh_volumes else 0
-    items = []
-    for v in rng.permutation(config.train_volumes):
-        for k in rng.permutation(config.synth.patches_per_volume):
-            items.append(Item(config.seed, int(base + v), int(k), density))
-    return items
+    per_volume = [
+        [Item(config.seed, int(base + v), int(k), density) for k in rng.permutation(config.synth.patches_per_volume)]
+        for v in rng.permutation(config.train_volumes)
+    ]
+    G = config.interleave_volumes
+    return [
+        item
+        for start in range(0, len(per_volume), G)
+        for item in _interleaved(per_volume[start : start + G], config.batch_size)
+    ]
+
+
+def _interleaved(volumes: list[list[Item]], batch: int) -> list[Item]:
+    """The items of a group of volumes, batch after batch cycling over the volumes (each batch
+    from one volume); each volume's last partial batch, if any, at the end."""
+    n_full = [len(items) // batch for items in volumes]
+    out = [
+        item
+        for j in range(max(n_full, default=0))
+        for items, n in zip(volumes, n_full, strict=True)
+        if j < n
+        for item in items[j * batch : (j + 1) * batch]
+    ]
+    return out + [item for items, n in zip(volumes, n_full, strict=True) for item in items[n * batch :]]
 
 
 def steps_per_epoch(config: NetConfig) -> int:
