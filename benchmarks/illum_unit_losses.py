@@ -11,8 +11,9 @@ missed; ``illum_ray_families.first_surfaces``) and by where it ends:
 
 The bore's walls are split by thin absorbing tallies 1 µm inside them, so the tracer's ledger
 tells the zones apart. Also traced bare (no housing): the fraction leaving the part forwards
-(crossing a 20 × 20-mm plane above it) and within 30° of the axis — the figure of issue 16's
-independent trace of the authors' part (86–87 % forward, 74–75 % within 30°).
+(crossing a 20 × 20-mm plane above it), within 30° of the axis — the figures of issue 16's
+independent trace of the authors' part (86–87 % forward, 74–75 % within 30°) — and back onto its
+LED board without having left.
 
     .venv/bin/python benchmarks/illum_unit_losses.py --rays 400000   # authors' STL, cm2-v2, the cone wall
 """
@@ -130,7 +131,7 @@ def unit_losses(design, collimator, cavity_radius_mm: float, setup, rays: int, s
         "cavity_radius_mm": cavity_radius_mm,
         "bare_forward": round(float(forward.mean()), 4),
         "bare_within_30deg": round(float((forward & (bare_angle <= 30.0)).mean()), 4),
-        "bare_back_to_board": round(float((free.status == absorbed + int(Absorber.LED_BOARD)).mean()), 4),
+        "bare_back_to_board": round(float((~forward & (free.status == absorbed + int(Absorber.LED_BOARD))).mean()), 4),
         "stderr": round(math.sqrt(0.25 / rays), 4),
         "families": rows,
     }
