@@ -29,10 +29,9 @@ from enum import IntEnum
 from pathlib import Path
 
 import numpy as np
-from illum_ray_families import AUTHORS_CAVITY_RADIUS_MM, FAMILIES, REFERENCE, first_surfaces
+from illum_ray_families import AUTHORS_CAVITY_RADIUS_MM, FAMILIES, first_surfaces, reference_inputs
 
 from cm2optics.design import load_preset
-from cm2optics.illumination.compare import setup_from_options, stl_collimator
 from cm2optics.illumination.geometry import (
     BOARD_Z_MM,
     Absorber,
@@ -146,13 +145,7 @@ def main() -> None:
     args = parser.parse_args()
 
     v2 = load_preset("cm2-v2")
-    setup = setup_from_options(
-        v2,
-        led_profile=REFERENCE / "led_angular_profile.csv",
-        led_spectrum=REFERENCE / "led_spectrum.csv",
-        filter_table=REFERENCE / "coating_real_ex.csv",
-    )
-    authors = stl_collimator(v2, REFERENCE / "CM2_V2_freeform_illuminator.stl", [0.0, 0.0, 1.0], [0.0, 0.0, -1.0])
+    setup, authors = reference_inputs(v2)
     sys.path.insert(0, str(ROOT / "tests"))
     from conftest import PAPER_COLLIMATOR  # a 2.0-mm excitation gap: the authors' 2.0-mm part under its filter
 
