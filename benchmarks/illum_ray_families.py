@@ -33,6 +33,19 @@ AUTHORS_CAVITY_RADIUS_MM = 0.7275
 FAMILIES = ("lens", "cavity wall (TIR)", "entry ring", "outer wall", "missed")
 
 
+def reference_inputs(design):
+    """(setup, authors' part): the tracer's inputs from the authors' LED profile, spectrum and
+    coating table, and their collimator STL with the LED at its cavity mouth."""
+    setup = setup_from_options(
+        design,
+        led_profile=REFERENCE / "led_angular_profile.csv",
+        led_spectrum=REFERENCE / "led_spectrum.csv",
+        filter_table=REFERENCE / "coating_real_ex.csv",
+    )
+    authors = stl_collimator(design, REFERENCE / "CM2_V2_freeform_illuminator.stl", [0.0, 0.0, 1.0], [0.0, 0.0, -1.0])
+    return setup, authors
+
+
 def first_surfaces(collimator: CollimatorMesh, origin: np.ndarray, direction: np.ndarray, cavity_radius_mm: float):
     """The family of each ray (LED frame, mm): the first face of the part it meets."""
     mesh = collimator.mesh
@@ -115,13 +128,7 @@ def main() -> None:
         "led_array.azimuth_deg": 0.0,
     }
     paper = load_preset("cm2-v2").with_changes({**PAPER_COLLIMATOR, **placement})
-    setup = setup_from_options(
-        paper,
-        led_profile=REFERENCE / "led_angular_profile.csv",
-        led_spectrum=REFERENCE / "led_spectrum.csv",
-        filter_table=REFERENCE / "coating_real_ex.csv",
-    )
-    authors = stl_collimator(paper, REFERENCE / "CM2_V2_freeform_illuminator.stl", [0.0, 0.0, 1.0], [0.0, 0.0, -1.0])
+    setup, authors = reference_inputs(paper)
     parts = [
         (paper, authors, AUTHORS_CAVITY_RADIUS_MM),
         (

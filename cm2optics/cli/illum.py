@@ -396,6 +396,21 @@ def optimize(
     led_placement_um: LedPlacementOption = 50.0,
     unit_tilt_deg: UnitTiltOption = 1.0,
     surface_rms_um: SurfaceRmsOption = 2.0,
+    min_sbr_interference: Annotated[
+        float,
+        typer.Option(
+            "--min-sbr-interference",
+            help="Least SBR of the interference-only emission chain, computed from each candidate's traced beam "
+            "(its glow and the excitation a flat sample mirrors into the lenslets); 0: unconstrained (--method sweep).",
+        ),
+    ] = 0.0,
+    min_sbr_hybrid: Annotated[
+        float,
+        typer.Option(
+            "--min-sbr-hybrid",
+            help="Least SBR of the hybrid chain (with the film), from each candidate's traced beam; 0: unconstrained.",
+        ),
+    ] = 0.0,
 ) -> None:
     """Search the collimator's parameters for the largest delivered fraction whose array
     uniformity (CV inside the circle) is ≤ --max-cv, as a parallel sweep on Dask, and write
@@ -413,10 +428,13 @@ def optimize(
     from --filter-table and --led-spectrum when given. With --robust-samples N every candidate is
     also traced as N built devices (LED placement, unit tilt and printer surface errors, drawn
     as cm2 illum robustness draws them, the same N for every candidate) and ranked on
-    E[delivered] − 2 max(0, E[CV′] − max CV) (`robust` in the result).
+    E[delivered] − 2 max(0, E[CV′] − max CV) (`robust` in the result). With --min-sbr-interference
+    / --min-sbr-hybrid every candidate's SBR is computed from its traced beam and held to the floor,
+    its score scaled by the shortfall (`sbr` in the result): a brighter aim may not buy its light with
+    excitation mirrored into the lenslets.
     """
     from cm2optics.design import load_preset
-    from cm2optics.illumination.optimize import RobustScoring, optimize_collimator
+    from cm2optics.illumination.optimize import RobustScoring, SBRFloor, optimize_collimator
 
     files = (led_profile, led_spectrum, filter_table)
     _check_optimize_options(max_cv, rays, samples, rounds, workers, files)
@@ -427,6 +445,12 @@ def optimize(
     tolerances = _tolerances(led_placement_um, unit_tilt_deg, surface_rms_um)
     if method == "gradient" and robust_samples:
         raise UserError("--robust-samples scores the sweep's candidates: it needs --method sweep")
+    for name, value in (("--min-sbr-interference", min_sbr_interference), ("--min-sbr-hybrid", min_sbr_hybrid)):
+        if not (math.isfinite(value) and value >= 0):
+            raise UserError(f"{name} = {value}: must be a finite number ≥ 0")
+    sbr_floor = SBRFloor(min_sbr_interference, min_sbr_hybrid) if min_sbr_interference or min_sbr_hybrid else None
+    if method == "gradient" and sbr_floor is not None:
+        raise UserError("--min-sbr-interference/--min-sbr-hybrid hold the sweep's candidates: they need --method sweep")
     if method == "gradient":
         _optimize_gradient(
             preset, rays, max_cv, seed, files, iterations, learning_rate_um, free_aim, out_dir, overwrite, as_json
@@ -454,6 +478,7 @@ def optimize(
         fixed_profile=fixed_profile,
         cone_wall=cone_wall,
         robust=RobustScoring(robust_samples, tolerances, seed) if robust_samples else None,
+        sbr_floor=sbr_floor,
     )
     summary = {k: v for k, v in result.items() if k != "candidates"}  # every candidate is in sweep.json
     _echo_optimized(
@@ -469,6 +494,12 @@ def optimize(
                 ""
                 if summary["base_plate_printable"] is None
                 else f"; base plate printable: {summary['base_plate_printable']}"
+            )
+            + (
+                ""
+                if summary["sbr"] is None
+                else f"; SBR of the traced beam {summary['sbr']['sbr_interference_only']:.3g} (interference only) / "
+                f"{summary['sbr']['sbr_hybrid']:.4g} (hybrid), floor met: {summary['sbr']['meets_sbr']}"
             )
         ),
     )

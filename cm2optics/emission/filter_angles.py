@@ -47,6 +47,8 @@ __all__ = [
     "excitation_footprint",
     "excitation_half_angle_rad",
     "field_sources",
+    "footprint_from_hits",
+    "mirror_on_sample",
     "specular_rays",
     "trace_from_sources",
     "trace_rays",
@@ -177,9 +179,17 @@ def excitation_footprint(design: SystemDesign, step_mm: float = 0.5, samples: in
     ``step_mm`` (mm): the glow of diffusely scattered excitation light. Hits so far out that
     nothing from there can reach the sensor (more than 75° off the axis, seen from the mask)
     are dropped."""
+    hits, _, power = _beam_hits(design, samples)
+    return footprint_from_hits(design, hits[:, :2], power, step_mm)
+
+
+def footprint_from_hits(design: SystemDesign, hits_mm: np.ndarray, power: np.ndarray, step_mm: float = 0.5) -> Sources:
+    """The glow of :func:`excitation_footprint` from given excitation hits on the object plane
+    ((N, 2) x, y, mm; power shares): counted on a grid of ``step_mm`` (mm), hits beyond the
+    sensor's reach (more than 75° off the axis, seen from the mask) dropped."""
     if not (math.isfinite(step_mm) and 0.05 <= step_mm <= 5.0):
         raise ValueError(f"step_mm = {step_mm!r}: must lie within 0.05–5 mm")
-    hits, _, power = _beam_hits(design, samples)
+    hits = np.asarray(hits_mm, dtype=float)
     reach = (first_order.object_plane_z_mm(design) - design.mask_z_mm) * math.tan(math.radians(75.0))
     keep = np.hypot(hits[:, 0], hits[:, 1]) <= reach + design.aperture_mask.opening_mm
     cells = np.rint(hits[keep, :2] / step_mm).astype(int)
@@ -193,10 +203,18 @@ def specular_rays(design: SystemDesign, surface_index: float, samples: int = 24)
     plane: (origins_mm, directions, power), power = share of the beam × unpolarised Fresnel
     reflectance at the beam ray's angle. Trace them with :func:`trace_rays`."""
     hits, directions, power = _beam_hits(design, samples)
+    return mirror_on_sample(hits, directions, power, surface_index)
+
+
+def mirror_on_sample(
+    hits_mm: np.ndarray, directions: np.ndarray, power: np.ndarray, surface_index: float
+) -> tuple[np.ndarray, ...]:
+    """Excitation rays (landing points on the object plane, mm; unit directions, +z; power shares)
+    mirrored by a flat sample surface of index ``surface_index``: (origins_mm, directions,
+    power × unpolarised Fresnel reflectance at each ray's angle)."""
     cos_i = directions[:, 2]
     reflectance = 1.0 - fresnel_transmittance(np.arccos(np.clip(cos_i, -1, 1)), surface_index)
-    mirrored = directions * np.array([1.0, 1.0, -1.0])
-    return hits, mirrored, power * reflectance
+    return hits_mm, directions * np.array([1.0, 1.0, -1.0]), power * reflectance
 
 
 # ----------------------------------------------------------------------------- tracing

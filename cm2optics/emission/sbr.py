@@ -220,6 +220,7 @@ def signal_and_background(
     design: SystemDesign,
     sample: Sample = Sample(),
     glow: Sources | None = None,
+    specular: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
     field_step_mm: float = 0.4,
     pupil_samples: int = 24,
     beam_samples: int = 16,
@@ -229,6 +230,9 @@ def signal_and_background(
 
     glow: where the diffusely scattered excitation light comes from (default:
         :func:`excitation_footprint`).
+    specular: the excitation mirrored by the sample's surface, (origins_mm, directions, power)
+        as :func:`specular_rays` gives them (default: the model beams' own, ``beam_samples``;
+        a traced illumination's: :func:`cm2optics.illumination.traced_sbr.traced_background`).
     field_step_mm: spacing of the fluorescent source points, mm; pupil_samples: directions per
         source along each side of the mask opening (see :func:`trace_from_sources`);
         beam_samples: sampling of each LED beam for the specular reflection (:func:`specular_rays`).
@@ -240,7 +244,9 @@ def signal_and_background(
     signal_rays = trace_from_sources(design, field_sources(design, field_step_mm), Emitter.ISOTROPIC, pupil_samples)
     background_rays = {
         "diffuse": trace_from_sources(design, glow, Emitter.LAMBERTIAN, pupil_samples),
-        "specular": trace_rays(design, *specular_rays(design, sample.surface_index, beam_samples)),
+        "specular": trace_rays(
+            design, *(specular if specular is not None else specular_rays(design, sample.surface_index, beam_samples))
+        ),
     }
     background_scale = {"diffuse": sample.diffuse_reflectance, "specular": 1.0}
 

@@ -33,6 +33,12 @@ its irradiance maps in ``irradiance.png``).
 
 The étendue bound and the uniform-beam bound (:mod:`.bounds`) are reported beside the result,
 and with ``free_aim`` the bound of re-aimed units with the finite LED (:func:`.bounds.free_aim_bound`).
+
+With an :class:`SBRFloor` every candidate's SBR is computed from its traced beam
+(:func:`.traced_sbr.traced_sbr`): a candidate meets the constraints only with both SBRs at or above
+the floor (in the sweep and in its confirmation), and its score is scaled by the shortfall,
+``min(1, SBR/floor)`` of each chain, so the refinement stays where the excitation mirrored by the
+sample does not reach the lenslets.
 """
 
 from __future__ import annotations
@@ -54,6 +60,7 @@ __all__ = [
     "AIM_PARAMETERS",
     "PARAMETERS",
     "RobustScoring",
+    "SBRFloor",
     "design_bounds",
     "evaluate_candidate",
     "export_collimator",
@@ -197,12 +204,14 @@ def evaluate_candidate(
     threads: int | None = None,
     inputs: tuple[str | None, str | None, str | None] = (None, None, None),
     robust: RobustScoring | None = None,
+    sbr_floor: SBRFloor | None = None,
 ) -> dict[str, Any]:
     """Trace one candidate (runs on a Dask worker). Returns its parameters and figures, or
     ``feasible: False`` and the reason. ``design_data``: the base design as plain data.
     inputs: paths of the LED's angular profile, its spectrum and the excitation filter's
     coating table (each None: the design's model). robust: also trace the candidate under
-    ``robust.samples`` drawn builds and score it on their expected figures (:class:`RobustScoring`)."""
+    ``robust.samples`` drawn builds and score it on their expected figures (:class:`RobustScoring`).
+    sbr_floor: also compute its traced SBR and hold it to the floor (:class:`SBRFloor`)."""
     from cm2optics.optics.backend import mitsuba
 
     mi = mitsuba()
@@ -234,7 +243,8 @@ def evaluate_candidate(
     profile, spectrum, table = read_inputs(*inputs)
     transmission = table if table is not None else design_filter_transmission(design)
     source = led_source(design, profile, spectrum)
-    figures = figures_of_merit(trace(scene, source, rays, transmission=transmission, seed=seed), scene)
+    record = trace(scene, source, rays, transmission=transmission, seed=seed)
+    figures = figures_of_merit(record, scene)
     delivered, cv = figures.delivered_fraction.value, figures.uniformity_cv.value
     # Monte Carlo noise adds in quadrature to the true spread: rank on the noise-free estimate.
     cv_corrected = math.sqrt(max(cv**2 - figures.uniformity_cv_noise**2, 0.0))
@@ -253,6 +263,8 @@ def evaluate_candidate(
     if robust is not None:
         entry.update(nominal_score=entry["score"], nominal_meets_uniformity=entry["meets_uniformity"])
         entry.update(robust.score(scene, source, transmission, rays, seed, max_cv))
+    if sbr_floor is not None:
+        entry.update(sbr_floor.check(record, scene, seed, entry["score"]))
     entry["seconds"] = round(time.perf_counter() - start, 2)
     return entry
 
@@ -287,6 +299,41 @@ class RobustScoring:
             **expected,
             "score": expected["expected_score"],
             "meets_uniformity": bool(expected["expected_uniformity_cv_corrected"] <= max_cv),
+        }
+
+
+@dataclasses.dataclass(frozen=True)
+class SBRFloor:
+    """The least SBR a candidate's traced beam may give (:func:`.traced_sbr.traced_sbr`, coarse
+    sampling): interference-only chain and hybrid chain (0: that chain unconstrained)."""
+
+    interference_only: float = 0.0
+    hybrid: float = 0.0
+
+    def __post_init__(self) -> None:
+        for name in ("interference_only", "hybrid"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise ValueError(f"SBR floor {name} = {value!r}: must be a finite number ≥ 0")
+
+    def check(self, record: Any, scene: Any, seed: int, score: float) -> dict[str, Any]:
+        """The traced SBRs of ``record`` in ``scene``, whether they meet the floor, and ``score``
+        scaled by their shortfall."""
+        from cm2optics.illumination.traced_sbr import COARSE_SAMPLING, traced_sbr
+
+        result = traced_sbr(record, scene, seed=seed, **COARSE_SAMPLING)
+        shares = [
+            min(1.0, value / floor) if floor > 0 else 1.0
+            for value, floor in (
+                (result.sbr_interference_only, self.interference_only),
+                (result.sbr_hybrid, self.hybrid),
+            )
+        ]
+        return {
+            "sbr_interference_only": round(result.sbr_interference_only, 4),
+            "sbr_hybrid": round(result.sbr_hybrid, 2),
+            "meets_sbr": bool(min(shares) >= 1.0),
+            "score": score * shares[0] * shares[1] if score > 0 else score,
         }
 
 
@@ -331,6 +378,7 @@ def optimize_collimator(
     fixed_profile: bool = False,
     cone_wall: bool = False,
     robust: RobustScoring | None = None,
+    sbr_floor: SBRFloor | None = None,
 ) -> dict[str, Any]:
     """Run the sweep (see the module docstring) and write ``design.yaml``, ``collimator.stl``,
     ``collimator.step``, ``irradiance.png`` and ``sweep.json`` into ``out_dir``; returns the
@@ -349,6 +397,7 @@ def optimize_collimator(
     table (each None: the design's model), used by every trace and by the bounds.
     robust: rank every candidate (and choose among the confirmed ones) on its expected figures
         over drawn builds instead of its nominal ones (:class:`RobustScoring`).
+    sbr_floor: hold every candidate's traced SBR to this floor (:class:`SBRFloor`).
     """
     from cm2optics.formats.atomic import write_json_atomic
 
@@ -364,12 +413,25 @@ def optimize_collimator(
         if not box:
             raise ValueError("nothing to sweep: a fixed profile needs free aim and/or freeform terms")
         _sweep(
-            client, base, box, candidates, rays, max_cv, samples, rounds, seed, threads, show_progress, inputs, robust
+            client,
+            base,
+            box,
+            candidates,
+            rays,
+            max_cv,
+            samples,
+            rounds,
+            seed,
+            threads,
+            show_progress,
+            inputs,
+            robust,
+            sbr_floor,
         )
         feasible = [c for c in candidates if c["feasible"]]
-        meeting = [c for c in feasible if c["meets_uniformity"]]
+        meeting = [c for c in feasible if _meets(c)]
         best, confirm, assembly = _confirm_finalists(
-            client, base, feasible, meeting, rays, max_cv, seed, threads, inputs, free_aim, robust
+            client, base, feasible, meeting, rays, max_cv, seed, threads, inputs, free_aim, robust, sbr_floor
         )
     finally:
         client.close()
@@ -391,6 +453,12 @@ def optimize_collimator(
         "meets_uniformity": bool(confirm.get("feasible") and _confirmed_uniform(confirm, max_cv)),
         "max_cv": max_cv,
         **{key: confirm.get(key) for key in _CONFIRMED_FIGURES},
+        "sbr": None
+        if sbr_floor is None
+        else {
+            "floor": dataclasses.asdict(sbr_floor),
+            **{key: confirm.get(key) for key in ("sbr_interference_only", "sbr_hybrid", "meets_sbr")},
+        },
         "robust": None
         if robust is None
         else {
@@ -412,7 +480,7 @@ def optimize_collimator(
         **design_bounds(improved, max_cv, inputs, free_aim),
         "candidates_traced": len(candidates),
         "candidates_feasible": len(feasible),
-        "candidates_meeting_uniformity": len(meeting),
+        "candidates_meeting_uniformity": len(meeting),  # and the SBR floor, with one
         "seconds": round(time.perf_counter() - start, 1),
     }
     write_json_atomic(out_dir / "sweep.json", {"candidates": candidates})
@@ -468,6 +536,7 @@ def _sweep(
     show_progress: bool,
     inputs: tuple[str | None, str | None, str | None],
     robust: RobustScoring | None = None,
+    sbr_floor: SBRFloor | None = None,
 ) -> None:
     """A Sobol sweep of the box ``parameters`` (name → range), then ``rounds`` sweeps of a box
     halved each round around the best feasible candidate so far; every evaluated candidate is
@@ -481,7 +550,9 @@ def _sweep(
         for round_index in range(rounds + 1):
             points = batches[-1]
             futures = [
-                client.submit(evaluate_candidate, base, p, rays, seed + 1, max_cv, threads, inputs, robust, pure=False)
+                client.submit(
+                    evaluate_candidate, base, p, rays, seed + 1, max_cv, threads, inputs, robust, sbr_floor, pure=False
+                )
                 for p in points
             ]
             for future in futures:
@@ -513,6 +584,7 @@ def _confirm_finalists(
     inputs: tuple[str | None, str | None, str | None],
     check_assembly: bool = False,
     robust: RobustScoring | None = None,
+    sbr_floor: SBRFloor | None = None,
 ) -> tuple[dict[str, Any], dict[str, Any], list[dict[str, Any]] | None]:
     """Re-trace the best ``CONFIRMED`` candidates with 4 × ``rays``; returns the chosen candidate
     (the most light among those confirmed uniform, else the first), its confirmation and, with
@@ -552,12 +624,17 @@ def _confirm_finalists(
                 threads,
                 inputs,
                 robust,
+                sbr_floor,
                 pure=False,
             )
             for c in finalists
         ]
     ]
-    passing = [i for i, c in enumerate(confirmations) if c.get("feasible") and _confirmed_uniform(c, max_cv)]
+    passing = [
+        i
+        for i, c in enumerate(confirmations)
+        if c.get("feasible") and _confirmed_uniform(c, max_cv) and c.get("meets_sbr", True)
+    ]
     order = sorted(passing, key=lambda i: _light(confirmations[i]), reverse=True) or [0]
     if not check_assembly:
         return finalists[order[0]], confirmations[order[0]], None
@@ -571,6 +648,11 @@ def _confirm_finalists(
 def _light(candidate: dict[str, Any]) -> float:
     """A candidate's delivered fraction to rank by: the expected one when it was scored robustly."""
     return candidate.get("expected_delivered_fraction", candidate["delivered_fraction"])
+
+
+def _meets(candidate: dict[str, Any]) -> bool:
+    """Whether a swept candidate meets the constraints: the CV limit, and the SBR floor when one is set."""
+    return bool(candidate["meets_uniformity"] and candidate.get("meets_sbr", True))
 
 
 def _confirmed_uniform(confirmation: dict[str, Any], max_cv: float) -> bool:

@@ -218,7 +218,7 @@ def trace_rays_numpy(
         leaving_filter = (role == int(Role.GLASS)) & ~entering & ~reflect
         crossing = valid & ((portal & (_dot(d, ng) > 0)) | leaving_filter) & ~passed[idx]
         passed[idx[crossing]] = True
-        exit_dir[idx[crossing]] = d[crossing]
+        exit_dir[idx[crossing]] = new_d[crossing]  # in the air, after the portal or the filter
         absorbed = valid & (role == int(Role.ABSORBER))
         new_status = np.where(absorbed, int(Status.ABSORBED) + group, new_status)
         landed = valid & (role == int(Role.SAMPLE))

@@ -109,7 +109,8 @@ class RayRecord:
     status: :class:`Status` code (``ABSORBED + group`` for absorbed rays).
     hit_mm: (N, 2) x, y where the ray landed on the sample plane (device frame), mm; NaN otherwise.
     passed: the ray crossed its unit's portal outwards (it left the unit through the filter).
-    exit_direction: (N, 3) direction when it crossed the portal; NaN where it did not.
+    exit_direction: (N, 3) direction in which it left the unit (after the portal, or out of the
+        filter's back face into the air); NaN where it did not.
     wavelength_nm: the ray's wavelength, nm.
     bounces: surfaces met.
     power_mw: power of each ray, mW.
@@ -390,7 +391,7 @@ class _Kernel:
             )
             done = status != int(Status.ACTIVE)
             dr.scatter(out_passed, True, index, crossing)
-            for k, component in enumerate((d.x, d.y, d.z)):
+            for k, component in enumerate((d2.x, d2.y, d2.z)):
                 dr.scatter(out_exit[k], component, index, crossing)
             dr.scatter(out_status, status, index, done)
             dr.scatter(out_hx, hx, index, done)
@@ -439,9 +440,9 @@ class _Kernel:
 
         def body(o, d, depth, passed, crossed, active, status, hx, hy, ex, ey, ez):
             o2, d2, st, hx2, hy2, crossing = self.step(o, d, ray_id, depth, wl, nc, nf, passed, active)
-            ex = dr.select(crossing, d.x, ex)
-            ey = dr.select(crossing, d.y, ey)
-            ez = dr.select(crossing, d.z, ez)
+            ex = dr.select(crossing, d2.x, ex)
+            ey = dr.select(crossing, d2.y, ey)
+            ez = dr.select(crossing, d2.z, ez)
             passed = passed | crossing
             crossed = crossed | crossing
             done = active & (st != int(Status.ACTIVE))
@@ -473,11 +474,10 @@ class _Kernel:
             wl, nc, nf = float(batch.wavelength_nm[i]), float(n_coll[i]), float(n_filt[i])
             passed, depth, status = False, 0, int(Status.ACTIVE)
             while status == int(Status.ACTIVE):
-                d_in = d
                 o, d, status, hx, hy, crossing = self.step(o, d, offset + i, depth, wl, nc, nf, passed, True)
                 if crossing:
                     passed = True
-                    out["exit"][i] = d_in.x, d_in.y, d_in.z
+                    out["exit"][i] = d.x, d.y, d.z
                 depth += 1
             out["bounces"][i], out["status"][i], out["passed"][i] = depth, status, passed
             out["hit"][i] = hx, hy

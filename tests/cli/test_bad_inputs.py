@@ -514,6 +514,18 @@ def _input_cases() -> list[Case]:
         Case(
             "illum optimize",
             "option",
+            ["illum", "optimize", "--min-sbr-hybrid", "-1", "--out", "{case}/o"],
+            ("--min-sbr-hybrid",),
+        ),
+        Case(
+            "illum optimize",
+            "option",
+            ["illum", "optimize", "--method", "gradient", "--min-sbr-interference", "5", "--out", "{case}/o"],
+            ("--min-sbr-interference",),
+        ),
+        Case(
+            "illum optimize",
+            "option",
             ["illum", "optimize", "--robust-samples", "4", "--unit-tilt-deg", "-1", "--out", "{case}/o"],
             ("unit_tilt_deg",),
         ),

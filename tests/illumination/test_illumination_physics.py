@@ -257,3 +257,22 @@ def test_mitsuba_and_numpy_tracers_agree_ray_for_ray(v2_scene_and_rays):
     assert both.sum() > 100
     # Mitsuba leaves each surface ≈ 1.5 µm along its normal (float32 offset), NumPy 0.002 µm.
     assert np.median(np.abs(ours.hit_mm[both] - reference.hit_mm[both])) < 5e-3
+
+
+def test_exit_direction_is_the_direction_in_air_after_the_filter():
+    """The filter is a plane-parallel plate: a ray crossing it without reflection leaves in the
+    direction it was emitted in (V1, a bare LED under its filter). The direction inside the glass
+    (what the record held before) is bent towards the axis, by ≈ 1/n in sin θ."""
+    from cm2optics.design import load_preset
+    from cm2optics.illumination.compare import setup_from_options
+
+    v1 = load_preset("cm2-v1")
+    setup = setup_from_options(v1)
+    scene = build_scene(v1, None)
+    batch = emit_rays(scene, setup.source, 4000, seed=5)
+    record = trace_rays(scene, batch, filter_table(scene, setup.source, setup.transmission), seed=5)
+    straight = record.passed & (record.status == Status.SAMPLE) & (record.bounces == 3)  # coated face, back, sample
+    assert straight.sum() > 200
+    tilted = straight & (np.abs(batch.direction @ scene.unit_axes[0]) < math.cos(math.radians(15.0)))
+    assert tilted.sum() > 50  # rays ≥ 15° off the axis, where the glass would bend them by ≥ 5°
+    assert np.abs(record.exit_direction[straight] - batch.direction[straight]).max() < 1e-4
