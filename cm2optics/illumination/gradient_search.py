@@ -85,8 +85,9 @@ def optimize_lens_gradient(
     show_progress: bool = True,
 ) -> dict[str, Any]:
     """Run the search (module docstring; ``step_rule``: one of :data:`STEP_RULES`) from
-    ``design``'s own lens terms; returns the summary (also ``result.json``). inputs: paths of the LED's angular profile, spectrum and the
-    excitation filter's coating table (each None: the design's model)."""
+    ``design``'s own lens terms; returns the summary (also ``result.json``). inputs: paths of
+    the LED's angular profile, spectrum and the excitation filter's coating table (each None:
+    the design's model)."""
     from rich.progress import Progress
 
     from cm2optics.formats.atomic import write_json_atomic
