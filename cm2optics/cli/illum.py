@@ -256,6 +256,7 @@ def _optimize_gradient(
     files: tuple[Path | None, ...],
     iterations: int,
     learning_rate_um: float,
+    step_rule: str,
     free_aim: bool,
     out_dir: Path,
     overwrite: bool,
@@ -263,9 +264,11 @@ def _optimize_gradient(
 ) -> None:
     """``cm2 illum optimize --method gradient``: check its options, run the search, print the summary."""
     from cm2optics.design import load_preset
-    from cm2optics.illumination.gradient_search import optimize_lens_gradient
+    from cm2optics.illumination.gradient_search import STEP_RULES, optimize_lens_gradient
     from cm2optics.optics.backend import is_jit, mitsuba
 
+    if step_rule not in STEP_RULES:
+        raise UserError(f"--step-rule {step_rule}: must be one of {', '.join(STEP_RULES)}")
     if free_aim:
         raise UserError("--method gradient optimises the lens's Zernike terms only: --free-aim needs --method sweep")
     if iterations < 2:
@@ -290,6 +293,7 @@ def _optimize_gradient(
         learning_rate_um=learning_rate_um,
         max_cv=max_cv,
         seed=seed,
+        step_rule=step_rule,
         inputs=inputs,
         show_progress=not as_json,
     )
@@ -382,8 +386,22 @@ def optimize(
     ] = "sweep",
     iterations: Annotated[int, typer.Option("--iterations", help="Gradient steps (--method gradient).")] = 24,
     learning_rate_um: Annotated[
-        float, typer.Option("--learning-rate-um", help="Adam step of the Zernike terms, µm (--method gradient).")
+        float,
+        typer.Option(
+            "--learning-rate-um",
+            help="Step of the Zernike terms, µm: Adam's per term, or the projected rule's first step length "
+            "(--method gradient).",
+        ),
     ] = 1.5,
+    step_rule: Annotated[
+        str,
+        typer.Option(
+            "--step-rule",
+            help="adam: Adam on D − 2 max(0, CV′ − max CV), fresh rays every step, the mean of the second half's "
+            "iterates; projected: gradient projection on dD with CV′ ≤ max CV a constraint, the same rays every "
+            "step, a trust region, the best iterate (--method gradient).",
+        ),
+    ] = "adam",
     robust_samples: Annotated[
         int,
         typer.Option(
@@ -453,7 +471,18 @@ def optimize(
         raise UserError("--min-sbr-interference/--min-sbr-hybrid hold the sweep's candidates: they need --method sweep")
     if method == "gradient":
         _optimize_gradient(
-            preset, rays, max_cv, seed, files, iterations, learning_rate_um, free_aim, out_dir, overwrite, as_json
+            preset,
+            rays,
+            max_cv,
+            seed,
+            files,
+            iterations,
+            learning_rate_um,
+            step_rule,
+            free_aim,
+            out_dir,
+            overwrite,
+            as_json,
         )
         return
     if fixed_profile and not (free_aim or freeform):

@@ -502,6 +502,12 @@ def _input_cases() -> list[Case]:
         Case(
             "illum optimize",
             "option",
+            ["illum", "optimize", "--method", "gradient", "--step-rule", "newton", "--out", "{case}/o"],
+            ("--step-rule",),
+        ),
+        Case(
+            "illum optimize",
+            "option",
             ["illum", "optimize", "--robust-samples", "-1", "--out", "{case}/o"],
             ("--robust-samples",),
         ),

@@ -41,6 +41,24 @@ def test_rim_piston_holds_the_rim_of_the_symmetric_terms():
     assert lens_sag_mm(tuple(symmetric), np.array([0.0]), np.array([0.0]), radius)[0] != 0.0  # the lens moves
 
 
+def test_projected_step_climbs_d_and_lands_cv_on_its_limit():
+    from cm2optics.illumination.gradient_search import projected_step
+
+    gd, gc = np.array([2e-4, 1e-4, 0.0]), np.array([3e-3, -1e-3, 2e-3])  # 1/µm, like dD/dc and dCV′/dc
+    # Inside, a step that stays inside: the full length along dD/dc.
+    np.testing.assert_allclose(projected_step(gd, gc, 0.05, 0.10, 2.0), 2.0 * gd / np.linalg.norm(gd))
+    # Outside (CV′ 0.103): the linearised CV′ lands on 0.10 and D still rises.
+    for cv in (0.103, 0.097):  # and inside, where the full step would take CV′ past the limit
+        step = projected_step(gd, gc, cv, 0.10, 2.0)
+        assert cv + step @ gc == pytest.approx(0.10, abs=1e-12)
+        assert step @ gd > 0
+        tangent = step - (step @ gc) / (gc @ gc) * gc
+        assert np.linalg.norm(tangent) == pytest.approx(2.0)
+    # Far outside, the Newton step back is capped at the step length.
+    step = projected_step(gd, gc, 0.5, 0.10, 2.0)
+    assert -(step @ gc) / np.linalg.norm(gc) == pytest.approx(2.0)
+
+
 @pytest.fixture(scope="module")
 def jit():
     from cm2optics.optics.backend import is_jit, mitsuba
