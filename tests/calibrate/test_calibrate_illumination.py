@@ -45,7 +45,6 @@ def test_the_comparison_grid_averages_the_map_and_moves_it_smoothly():
     assert np.allclose(grid.values_at(np.array([0.13, -0.2])), 10 + 2 * (grid.centres_mm[:, 0] + 0.13), atol=1e-9)
 
 
-@pytest.mark.slow  # 30 s at load 12: two scenes built and traced
 def test_the_fit_traces_a_tilt_and_a_decentre_as_the_design_injects_them(v2):
     """The tool's geometry (tilt about x, y in degrees; collimator dx, dy in mm, per unit) traces
     exactly the rays that ``illumination_as_built`` does for the same values (same seed): the fit
