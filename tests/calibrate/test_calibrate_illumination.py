@@ -23,7 +23,7 @@ import tifffile
 import yaml
 from typer.testing import CliRunner
 
-from cm2optics.calibrate.illumination import bin_measured_map, calibrate_illumination
+from cm2optics.calibrate.illumination import TracedMaps, bin_measured_map, calibrate_illumination
 from cm2optics.cli import app
 from cm2optics.design import design_from_dict
 
@@ -43,6 +43,30 @@ def test_the_comparison_grid_averages_the_map_and_moves_it_smoothly():
     assert grid.values.size > 100 and np.all(np.hypot(*grid.centres_mm.T) <= 4.0)
     assert np.allclose(grid.values, 10 + 2 * grid.centres_mm[:, 0], atol=1e-9)
     assert np.allclose(grid.values_at(np.array([0.13, -0.2])), 10 + 2 * (grid.centres_mm[:, 0] + 0.13), atol=1e-9)
+
+
+def test_the_fit_traces_a_tilt_and_a_decentre_as_the_design_injects_them(v2):
+    """The tool's geometry (tilt about x, y in degrees; collimator dx, dy in mm, per unit) traces
+    exactly the rays that ``illumination_as_built`` does for the same values (same seed): the fit
+    and the injection agree on units, axes and signs."""
+    changes = {
+        "led_tilt_deg": [[1.5, -2.0], [0, 0], [0, 0], [0, 0]],
+        "collimator_decenter_mm": [[0, 0], [0, 0], [0.1, -0.2], [0, 0]],
+    }
+    built = v2.with_changes({f"illumination_as_built.{k}": v for k, v in changes.items()})
+    units = unit_pixel_maps(built, rays=20_000, seed=3)
+    grid = bin_measured_map(units.sum(0), 50.0, 0.5, 4.0)
+    geometry = np.zeros((4, 4))
+    geometry[0, :2], geometry[2, 2:] = (1.5, -2.0), (0.1, -0.2)
+    hits, unit, _ = TracedMaps(v2, grid, 20_000, 3)._hits(geometry)
+    half = units.shape[-1] * 0.05 / 2
+    traced = np.stack(
+        [
+            np.histogram2d(hits[unit == u, 1], hits[unit == u, 0], bins=units.shape[-1], range=[[-half, half]] * 2)[0]
+            for u in range(4)
+        ]
+    )
+    assert units.sum() > 1000 and np.array_equal(traced, units)
 
 
 @pytest.fixture(scope="module")
