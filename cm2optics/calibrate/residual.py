@@ -40,13 +40,30 @@ class CalibrationError(UserError):
 
 @dataclass(frozen=True)
 class ScanData:
-    """Frames to compare: raw counts (N, y, x), exposures (N,) ms, positions (N, 3) mm, names."""
+    """Frames to compare: raw counts (N, y, x), exposures (N,) ms, positions (N, 3) mm, names;
+    ``defects`` (y, x): the sensor's defective pixels, left out of every fit (None: none known)."""
 
     counts: np.ndarray
     exposure_ms: np.ndarray
     positions_mm: np.ndarray
     files: tuple[str, ...]
     bit_depth: int
+    defects: np.ndarray | None = None
+
+    def good_pixels(self) -> np.ndarray:
+        """(y, x) bool: the pixels that are not defects."""
+        return np.ones(self.counts.shape[-2:], bool) if self.defects is None else ~self.defects
+
+    def subset(self, index: np.ndarray) -> ScanData:
+        """The frames ``index`` (same defects)."""
+        return ScanData(
+            self.counts[index],
+            self.exposure_ms[index],
+            self.positions_mm[index],
+            tuple(self.files[i] for i in index),
+            self.bit_depth,
+            self.defects,
+        )
 
 
 @dataclass(frozen=True)
@@ -146,7 +163,7 @@ def analyse_scan(
     _check_inputs(data, model_rate, model_positions_mm)
     counts = data.counts.astype(np.float32)
     used, flags = _usable_frames(data, model_rate)
-    valid = used[:, None, None] & np.isfinite(counts)
+    valid = used[:, None, None] & np.isfinite(counts) & data.good_pixels()[None]
     registration, model_counts = register(counts, data.exposure_ms, model_rate, valid)
     model_counts = model_counts.astype(np.float32)
 
@@ -201,7 +218,7 @@ def analyse_scan(
 def _usable_frames(data: ScanData, model_rate: np.ndarray) -> tuple[np.ndarray, dict[str, list[str]]]:
     """(N,) frames that take part, and the flags of those left out: saturated frames and frames
     without light; an error when none is left."""
-    saturated = (data.counts >= 2**data.bit_depth - 1).any(axis=(-2, -1))
+    saturated = ((data.counts >= 2**data.bit_depth - 1) & data.good_pixels()[None]).any(axis=(-2, -1))
     flags: dict[str, list[str]] = {"saturated": [data.files[i] for i in np.flatnonzero(saturated)]}
     light = model_rate.reshape(len(model_rate), -1).max(axis=1) > 0
     used = ~saturated & light

@@ -32,6 +32,7 @@ from warnings import catch_warnings, simplefilter
 import numpy as np
 
 from cm2optics.calibrate.attribute import Attribution, Problem, attribute
+from cm2optics.calibrate.defects import defective_pixels, describe_defects, fill_defects
 from cm2optics.calibrate.effects import apply_image_effects, library, split_key
 from cm2optics.calibrate.lowrank_correction import LowRankCorrection, fit_correction, held_out_error
 from cm2optics.calibrate.residual import CalibrationError, ResidualAnalysis, ScanData, analyse_scan, check_frames
@@ -121,19 +122,38 @@ def _usable_subset(data: ScanData, simulator: TracerSimulator, subset: np.ndarra
     from an analysis of their frames alone against the nominal model (traced here; the
     attribution re-uses the trace); a scan taken on another design is refused here, before the
     attribution, and again on the whole scan."""
-    frames = ScanData(
-        data.counts[subset],
-        data.exposure_ms[subset],
-        data.positions_mm[subset],
-        tuple(data.files[i] for i in subset),
-        data.bit_depth,
-    )
+    frames = data.subset(subset)
     positions = data.positions_mm[subset]
     rate = simulator.rates(positions, {})
     centres = simulator.focus_centres_px(positions)
     analysis = analyse_scan(frames, rate, positions, centres, simulator.pitch_px(), counts_per_electron=gain)
     _check_magnification(analysis)
     return subset[analysis.used]
+
+
+def _without_defects(data: ScanData, simulator: TracerSimulator, subset: np.ndarray) -> tuple[ScanData, list[str]]:
+    """``data`` with the sensor's defective pixels (:mod:`.defects`, found on the frames of
+    ``subset`` against the nominal model there) marked and filled, and a warning naming them."""
+    defects = defective_pixels(data.counts[subset], simulator.rates(data.positions_mm[subset], {}))
+    if not defects.any():
+        return data, []
+    found = describe_defects(defects)
+    counts = fill_defects(data.counts, defects)
+    where = ", ".join(
+        part
+        for part in (
+            f"columns {found['columns']}" if found["columns"] else "",
+            f"rows {found['rows']}" if found["rows"] else "",
+            f"pixels (row, col) {found['other_pixels']}" if found["other_pixels"] else "",
+        )
+        if part
+    )
+    warning = (
+        f"{found['pixels']} defective sensor pixels (hot, dead or stuck; {where}) are left out of the fit and "
+        f"filled from their neighbours: a defect of the sensor, not of the optics"
+    )
+    filled = ScanData(counts, data.exposure_ms, data.positions_mm, data.files, data.bit_depth, defects)
+    return filled, [warning]
 
 
 def _with_image_effects(rate: np.ndarray, simulator: TracerSimulator, attribution: Attribution) -> np.ndarray:
@@ -281,12 +301,16 @@ def calibrate_scan(
     with tracing_pool(workers) as pool:
         say(f"tracing the nominal design at {len(positions)} positions")
         nominal_job = submit_rates(pool, simulator, positions, {}, with_centres=True, here=subset)
+        data, defect_warning = _without_defects(data, simulator, subset)
+        for warning in defect_warning:
+            say(f"warning: {warning}")
+        warnings += defect_warning
         subset = _usable_subset(data, simulator, subset, gain)
         say(f"attributing the residual on {len(subset)} positions")
-        valid = scan.images[subset] < 2**scan.meta.bit_depth - 1
+        valid = (data.counts[subset] < 2**scan.meta.bit_depth - 1) & data.good_pixels()[None]
         problem = Problem(
             simulator,
-            scan.images[subset],
+            data.counts[subset],
             scan.exposure_ms[subset],
             positions[subset],
             valid,
@@ -310,6 +334,7 @@ def calibrate_scan(
         "design_hash": design.parameter_hash(),
         "source": source.describe(),
         "warnings": warnings,
+        "sensor_defects": describe_defects(~data.good_pixels()),
         "corrected_design_hash": corrected.parameter_hash(),
         **_summary(before, after, attribution, problem, simulator.pixel_um),
         "fit": _fit_record(subset, attribution, problem),
