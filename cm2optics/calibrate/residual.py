@@ -166,6 +166,8 @@ def analyse_scan(
     valid = used[:, None, None] & np.isfinite(counts) & data.good_pixels()[None]
     registration, model_counts = register(counts, data.exposure_ms, model_rate, valid)
     model_counts = model_counts.astype(np.float32)
+    if data.defects is not None:  # defective pixels hold no information: the model's value, a zero residual
+        counts = np.where(data.defects[None], model_counts, counts)
 
     signal = counts - registration.dark_level
     model_signal = model_counts - registration.dark_level

@@ -31,6 +31,7 @@ from warnings import catch_warnings, simplefilter
 
 import numpy as np
 
+from cm2optics.calibrate.acquisition import flux_drift
 from cm2optics.calibrate.attribute import Attribution, Problem, attribute
 from cm2optics.calibrate.defects import defective_pixels, describe_defects, fill_defects
 from cm2optics.calibrate.effects import apply_image_effects, library, split_key
@@ -327,6 +328,10 @@ def calibrate_scan(
         _check_magnification(before)
         rate = _with_image_effects(corrected_job()[0], simulator, attribution)
     after = analyse_scan(data, rate, positions, centres, pitch, counts_per_electron=gain)
+    drift = flux_drift(after)
+    if drift is not None:
+        say(f"warning: {drift}")
+        warnings.append(drift)
     corrected = corrected_design(design, attribution)
     document = {
         "scan": str(scan_dir),

@@ -60,8 +60,14 @@ def test_defects_are_filled_from_their_neighbours_and_every_frame_stays_in_the_f
     positions = np.column_stack([centres[:, 1], centres[:, 0], np.zeros(len(centres))]) * 0.01
     files = tuple(f"{i}.tif" for i in range(len(counts)))
     with pytest.raises(CalibrationError, match="saturated"):  # defects not known: every frame saturated
-        analyse_scan(ScanData(damaged, exposure, positions, files, 12), rate, positions, centres_j, 30.0)
+        analyse_scan(ScanData(damaged, exposure, positions, files, 12), rate, positions, centres_j, 16.0)
     data = ScanData(filled, exposure, positions, files, 12, truth)
-    analysis = analyse_scan(data, rate, positions, centres_j, 30.0, counts_per_electron=1.0)
+    analysis = analyse_scan(data, rate, positions, centres_j, 16.0, counts_per_electron=1.0)
     assert analysis.used.all() and "saturated" not in analysis.flags
+    assert np.all(analysis.residual_counts[:, truth] == 0)  # no information there: no misfit
+    clean = analyse_scan(
+        ScanData(counts, exposure, positions, files, 12), rate, positions, centres_j, 16.0, counts_per_electron=1.0
+    )
     assert analysis.chi2_total < 1.2
+    assert abs(analysis.nmse_total - clean.nmse_total) < 0.3 * clean.nmse_total
+    assert np.nanmax(np.abs(analysis.energy_ratio - 1.0)) < 0.05  # the foci the column crosses included

@@ -1,0 +1,44 @@
+"""A source that drifts over the scan (`calibrate.acquisition.flux_drift`): a flux falling 30 %
+along the acquisition order is reported with its size, clean frames and a flux that changes with
+the field (as an optical effect does) are not."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from cm2optics.calibrate.acquisition import flux_drift, frame_flux
+from cm2optics.calibrate.noise import raw_frames
+from cm2optics.calibrate.residual import ScanData, analyse_scan
+
+SHAPE = (60, 80)
+CENTRES = np.array([[r, c] for r in (12.0, 24.5, 36.0, 47.3) for c in (15.2, 32.0, 48.6, 64.1)])
+
+
+def _analysis(flux: np.ndarray, seed: int = 0):
+    """The analysis of a Gaussian focus moving over a 4 × 4 raster, frame i at ``flux[i]`` × the model's."""
+    rows, cols = np.mgrid[0 : SHAPE[0], 0 : SHAPE[1]]
+    rate = np.exp(-((rows - CENTRES[:, None, None, 0]) ** 2 + (cols - CENTRES[:, None, None, 1]) ** 2) / 2.88)
+    rate = rate.astype(np.float32)
+    expected = 100.0 + 2500.0 * flux[:, None, None] * rate
+    counts = raw_frames(expected, 100.0, 1.0, 2.0, 12, np.random.default_rng(seed))
+    positions = np.column_stack([CENTRES[:, 1], CENTRES[:, 0], np.zeros(len(CENTRES))]) * 0.01
+    data = ScanData(counts, np.ones(len(counts)), positions, tuple(f"{i}.tif" for i in range(len(counts))), 12)
+    return analyse_scan(data, rate, positions, CENTRES[:, None, :], 16.0, counts_per_electron=1.0)
+
+
+def test_a_flux_falling_along_the_acquisition_order_is_reported_with_its_size():
+    drift = 1.0 - 0.3 * np.arange(16) / 15
+    analysis = _analysis(drift)
+    flux = frame_flux(analysis)
+    assert flux / flux[0] == pytest.approx(drift, abs=0.02)
+    warning = flux_drift(analysis)
+    assert warning is not None and "drifted" in warning
+    assert "-30%" in warning or "-29%" in warning or "-31%" in warning
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_clean_frames_and_a_flux_that_changes_with_the_field_are_no_drift(seed):
+    assert flux_drift(_analysis(np.ones(16), seed)) is None
+    radius = np.hypot(CENTRES[:, 0] - 30.0, CENTRES[:, 1] - 40.0)
+    assert flux_drift(_analysis(1.0 - 0.3 * (radius / radius.max()) ** 2, seed)) is None
