@@ -200,7 +200,12 @@ def effects_document(attribution: Attribution) -> list[dict[str, Any]]:
 
 
 def _summary(
-    before: ResidualAnalysis, after: ResidualAnalysis, attribution: Attribution, problem: Problem, pixel_um: float
+    before: ResidualAnalysis,
+    after: ResidualAnalysis,
+    attribution: Attribution,
+    problem: Problem,
+    pixel_um: float,
+    drifted: bool = False,
 ) -> dict[str, Any]:
     """The report's headline keys: effects, NMSE and χ² before and after, what stays unexplained."""
     return {
@@ -209,7 +214,7 @@ def _summary(
         "nmse_after": round(after.nmse_total, 6),
         "chi2_before": round(before.chi2_total, 4),
         "chi2_after": round(after.chi2_total, 4),
-        "unexplained": describe_unexplained(after, pixel_um),
+        "unexplained": describe_unexplained(after, pixel_um, per_frame=drifted),
         "noise_model": "camera gain from scan.yaml" if problem.noise_known else "gain estimated from the data",
     }
 
@@ -341,7 +346,7 @@ def calibrate_scan(
         "warnings": warnings,
         "sensor_defects": describe_defects(~data.good_pixels()),
         "corrected_design_hash": corrected.parameter_hash(),
-        **_summary(before, after, attribution, problem, simulator.pixel_um),
+        **_summary(before, after, attribution, problem, simulator.pixel_um, drift is not None),
         "fit": _fit_record(subset, attribution, problem),
         "before": before.to_dict(),
         "after": after.to_dict(),

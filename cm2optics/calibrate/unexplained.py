@@ -23,6 +23,7 @@ transmission loss that no constant per-lenslet transmission explains), or neithe
 from __future__ import annotations
 
 from typing import Any
+from warnings import catch_warnings, simplefilter
 
 import numpy as np
 
@@ -57,9 +58,12 @@ GHOST_EXPLAINS = 0.6
 GHOST_GAIN = 0.3
 
 
-def flagged_foci(after: ResidualAnalysis, half: int = PATCH_HALF_PX) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def flagged_foci(
+    after: ResidualAnalysis, half: int = PATCH_HALF_PX, per_frame: bool = False
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(N, J) flagged foci (module docstring), and the residual (against the model at the foci's
-    common energy ratio) and model-signal patches (N, J, 2·half + 1, 2·half + 1) in counts."""
+    common energy ratio; with ``per_frame``, at each frame's own, for a scan whose source drifted)
+    and model-signal patches (N, J, 2·half + 1, 2·half + 1) in counts."""
     model_signal = after.model_counts - after.registration.dark_level
     centres = after.model.centroid_px
     residual, inside = focus_patches(after.residual_counts, centres, half)
@@ -68,7 +72,13 @@ def flagged_foci(after: ResidualAnalysis, half: int = PATCH_HALF_PX) -> tuple[np
     energy = model.sum(axis=(-2, -1))
     bright = after.used[:, None] & inside & (energy >= COMMON_FOCI * np.max(energy, axis=1, keepdims=True))
     if bright.any():  # the residual against the model at the foci's common energy ratio
-        ratio = np.median(1.0 + residual.sum(axis=(-2, -1))[bright] / np.maximum(energy[bright], 1e-30))
+        ratios = 1.0 + residual.sum(axis=(-2, -1)) / np.maximum(energy, 1e-30)
+        ratio = np.median(ratios[bright])
+        if per_frame:  # each frame's own ratio (its common ratio where it has no bright focus)
+            with np.errstate(invalid="ignore"), catch_warnings():
+                simplefilter("ignore", RuntimeWarning)
+                own = np.nanmedian(np.where(bright, ratios, np.nan), axis=1)
+            ratio = np.where(np.isfinite(own), own, ratio)[:, None, None, None]
         residual = residual - (ratio - 1.0) * model
     pixels = float((2 * half + 1) ** 2)
     chi2 = np.sum(residual**2 / variance, axis=(-2, -1))
@@ -77,11 +87,14 @@ def flagged_foci(after: ResidualAnalysis, half: int = PATCH_HALF_PX) -> tuple[np
     return flagged, residual, model
 
 
-def describe_unexplained(after: ResidualAnalysis, pixel_um: float, half: int = PATCH_HALF_PX) -> list[dict[str, Any]]:
+def describe_unexplained(
+    after: ResidualAnalysis, pixel_um: float, half: int = PATCH_HALF_PX, per_frame: bool = False
+) -> list[dict[str, Any]]:
     """The entries ``{lenslets, field_mm, depths_mm, energy_fraction, description}`` of what
     remains above the noise after the fit (empty when no focus is flagged); ``pixel_um`` is the
-    binned pixel pitch, µm."""
-    flagged, residual, model = flagged_foci(after, half)
+    binned pixel pitch, µm; ``per_frame``: each frame's flux is its own (a source that drifted
+    during the scan, :mod:`.acquisition`), so that only what departs from it is described."""
+    flagged, residual, model = flagged_foci(after, half, per_frame)
     if not flagged.any():
         return []
     repeated = flagged.sum(axis=0) >= MIN_FOCI
