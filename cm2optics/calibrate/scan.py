@@ -31,7 +31,7 @@ from warnings import catch_warnings, simplefilter
 
 import numpy as np
 
-from cm2optics.calibrate.acquisition import flux_drift
+from cm2optics.calibrate.acquisition import flux_drift, stage_errors
 from cm2optics.calibrate.attribute import Attribution, Problem, attribute
 from cm2optics.calibrate.defects import defective_pixels, describe_defects, fill_defects
 from cm2optics.calibrate.effects import apply_image_effects, library, split_key
@@ -334,9 +334,10 @@ def calibrate_scan(
         rate = _with_image_effects(corrected_job()[0], simulator, attribution)
     after = analyse_scan(data, rate, positions, centres, pitch, counts_per_electron=gain)
     drift = flux_drift(after)
-    if drift is not None:
-        say(f"warning: {drift}")
-        warnings.append(drift)
+    for warning in (drift, stage_errors(after, simulator.pixel_um)):
+        if warning is not None:
+            say(f"warning: {warning}")
+            warnings.append(warning)
     corrected = corrected_design(design, attribution)
     document = {
         "scan": str(scan_dir),

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cm2optics.calibrate.acquisition import flux_drift, frame_flux
+from cm2optics.calibrate.acquisition import flux_drift, frame_flux, stage_errors
 from cm2optics.calibrate.noise import raw_frames
 from cm2optics.calibrate.residual import ScanData, analyse_scan
 from cm2optics.calibrate.unexplained import describe_unexplained
@@ -17,12 +17,19 @@ GAIN = 0.25  # counts per electron
 CENTRES = np.array([[r, c] for r in (32.0, 44.5, 56.0, 67.3) for c in (35.2, 52.0, 68.6, 84.1)])
 
 
-def _analysis(flux: np.ndarray, seed: int = 0):
-    """The analysis of a Gaussian focus moving over a 4 × 4 raster, frame i at ``flux[i]`` × the model's."""
+def _focus(centres: np.ndarray) -> np.ndarray:
     rows, cols = np.mgrid[0 : SHAPE[0], 0 : SHAPE[1]]
-    rate = np.exp(-((rows - CENTRES[:, None, None, 0]) ** 2 + (cols - CENTRES[:, None, None, 1]) ** 2) / 2.88)
-    rate = rate.astype(np.float32)
-    expected = 100.0 + 2500.0 * flux[:, None, None] * rate
+    return np.exp(-((rows - centres[:, None, None, 0]) ** 2 + (cols - centres[:, None, None, 1]) ** 2) / 2.88)
+
+
+def _analysis(flux: np.ndarray, seed: int = 0, shift_px: np.ndarray | None = None):
+    """The analysis of a Gaussian focus moving over a 4 × 4 raster, frame i at ``flux[i]`` × the
+    model's, its focus displaced by ``shift_px[i]`` columns."""
+    rate = _focus(CENTRES).astype(np.float32)
+    moved = CENTRES + np.column_stack(
+        [np.zeros(len(CENTRES)), np.zeros(len(CENTRES)) if shift_px is None else shift_px]
+    )
+    expected = 100.0 + 2500.0 * flux[:, None, None] * _focus(moved)
     counts = raw_frames(expected, 100.0, GAIN, 2.0, 12, np.random.default_rng(seed))
     positions = np.column_stack([CENTRES[:, 1], CENTRES[:, 0], np.zeros(len(CENTRES))]) * 0.01
     data = ScanData(counts, np.ones(len(counts)), positions, tuple(f"{i}.tif" for i in range(len(counts))), 12)
@@ -50,3 +57,12 @@ def test_with_the_drift_named_the_frames_own_flux_leaves_nothing_unexplained():
     analysis = _analysis(1.0 - 0.3 * np.arange(16) / 15)
     assert describe_unexplained(analysis, 19.2)  # against one flux for the scan: a position-dependent "loss"
     assert describe_unexplained(analysis, 19.2, per_frame=True) == []
+
+
+def test_frames_displaced_as_a_whole_are_named_as_a_stage_error():
+    backlash = np.where((np.arange(16) // 4) % 2 == 1, 0.8, 0.0)  # alternate rows of the raster
+    warning = stage_errors(_analysis(np.ones(16), shift_px=backlash), 19.2)
+    assert warning is not None and "stage" in warning
+    assert 0.7 < float(warning.split("up to ")[1].split(" px")[0]) < 0.9
+    assert stage_errors(_analysis(np.ones(16)), 19.2) is None
+    assert stage_errors(_analysis(np.ones(16), shift_px=np.full(16, 0.8)), 19.2) is None  # common: the sensor's offset
