@@ -142,11 +142,13 @@ def _entry(
             f"parameters do not reach"
         )
     elif shape is None:
+        kind = "a loss" if high < 0 else "a gain" if low > 0 else "a gain or loss"
         description = (
             f"the foci of lenslet{'s' if len(lenslets) > 1 else ''} {[int(j) for j in lenslets]} change in "
-            f"energy by {low:+.1%} to {high:+.1%} ({count}) while the other positions match: a loss that "
-            f"depends on the source position (e.g. a scratch or dust on a filter in front of the array), "
-            f"not a constant lenslet transmission"
+            f"energy by {low:+.1%} to {high:+.1%} ({count}) while the other positions match: {kind} that "
+            f"depends on the source position or on where the foci land on the sensor (e.g. a scratch or dust "
+            f"on a filter in front of the array, a sensor gain that varies over the sensor), not a constant "
+            f"lenslet transmission"
         )
     else:
         description = f"{shape} ({count})"
