@@ -22,7 +22,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from cm2optics.calibrate.features import FocusFeatures, away_from_foci, focus_features, focus_windows
+from cm2optics.calibrate.features import (
+    FocusFeatures,
+    away_from_foci,
+    focus_features,
+    focus_windows,
+    local_centroids,
+)
 from cm2optics.calibrate.noise import SensorNoise, estimate_noise, quantisation_step
 from cm2optics.calibrate.register import Registration, register
 from cm2optics.errors import UserError
@@ -183,8 +189,8 @@ def analyse_scan(
     nmse, chi2 = _per_image_misfit(residual, signal, noise.variance(model_signal), valid, used)
 
     centres, radii = focus_windows(model_signal, centres_px + np.asarray(registration.offset_px), pitch_px)
-    data_features = focus_features(signal, centres, radii)
-    model_features = focus_features(model_signal, centres, radii)
+    data_features = _with_local_centroids(focus_features(signal, centres, radii), signal, centres, radii)
+    model_features = _with_local_centroids(focus_features(model_signal, centres, radii), model_signal, centres, radii)
 
     error = np.linalg.norm(data_features.centroid_px - model_features.centroid_px, axis=-1)
     misplaced = used & (
@@ -214,6 +220,17 @@ def analyse_scan(
         residual_counts=residual,
         model_counts=model_counts,
         flags={k: v for k, v in flags.items() if v},
+    )
+
+
+def _with_local_centroids(
+    features: FocusFeatures, signal: np.ndarray, centres: np.ndarray, radii: np.ndarray
+) -> FocusFeatures:
+    """``features`` with centroids measured above each window's own background
+    (:func:`~cm2optics.calibrate.features.local_centroids`; energies and widths unchanged)."""
+    centroids = local_centroids(signal, centres, radii)
+    return FocusFeatures(
+        features.energy, np.where(np.isnan(features.centroid_px), np.nan, centroids), features.width_px
     )
 
 

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from cm2optics.calibrate.acquisition import flux_drift, frame_flux, stage_errors
+from cm2optics.calibrate.features import focus_features, focus_windows
 from cm2optics.calibrate.noise import raw_frames
 from cm2optics.calibrate.residual import ScanData, analyse_scan
 from cm2optics.calibrate.unexplained import describe_unexplained
@@ -66,3 +67,19 @@ def test_frames_displaced_as_a_whole_are_named_as_a_stage_error():
     assert 0.7 < float(warning.split("up to ")[1].split(" px")[0]) < 0.9
     assert stage_errors(_analysis(np.ones(16)), 19.2) is None
     assert stage_errors(_analysis(np.ones(16), shift_px=np.full(16, 0.8)), 19.2) is None  # common: the sensor's offset
+
+
+def test_a_background_gradient_does_not_pull_the_centroids():
+    """A ramp of 0–150 counts across the frame: the foci's centroids are measured above each
+    window's own background plane (the plain centroids move ≈ 0.1 px towards the bright side)."""
+    ramp = np.linspace(0.0, 150.0, SHAPE[1])[None, None, :]
+    rate = _focus(CENTRES).astype(np.float32)
+    counts = raw_frames(100.0 + 2500.0 * _focus(CENTRES) + ramp, 100.0, GAIN, 2.0, 12, np.random.default_rng(4))
+    positions = np.column_stack([CENTRES[:, 1], CENTRES[:, 0], np.zeros(len(CENTRES))]) * 0.01
+    data = ScanData(counts, np.ones(len(counts)), positions, tuple(f"{i}.tif" for i in range(len(counts))), 12)
+    analysis = analyse_scan(data, rate, positions, CENTRES[:, None, :], 40.0, counts_per_electron=GAIN)
+    local = np.nanmax(np.abs(analysis.centroid_error_px))
+    signal = counts.astype(float) - analysis.registration.dark_level
+    centres, radii = focus_windows(rate, CENTRES[:, None, :], 40.0)
+    plain = focus_features(signal, centres, radii).centroid_px
+    assert local < 0.25 * np.nanmax(np.abs(plain - CENTRES[:, None, :]))
