@@ -228,10 +228,7 @@ def _with_local_centroids(
 ) -> FocusFeatures:
     """``features`` with centroids measured above each window's own background
     (:func:`~cm2optics.calibrate.features.local_centroids`; energies and widths unchanged)."""
-    centroids = local_centroids(signal, centres, radii)
-    return FocusFeatures(
-        features.energy, np.where(np.isnan(features.centroid_px), np.nan, centroids), features.width_px
-    )
+    return FocusFeatures(features.energy, local_centroids(signal, centres, radii), features.width_px)
 
 
 def _usable_frames(data: ScanData, model_rate: np.ndarray) -> tuple[np.ndarray, dict[str, list[str]]]:
