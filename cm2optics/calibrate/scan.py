@@ -335,8 +335,8 @@ def calibrate_scan(
         _check_magnification(before)
         rate = _with_image_effects(corrected_job()[0], simulator, attribution)
     after = analyse_scan(data, rate, positions, centres, pitch, counts_per_electron=gain)
-    drift = flux_drift(after)
-    for warning in (drift, stage_errors(after, simulator.pixel_um)):
+    drift, stage = flux_drift(after), stage_errors(after, simulator.pixel_um)
+    for warning in (drift, stage):
         if warning is not None:
             say(f"warning: {warning}")
             warnings.append(warning)
@@ -354,6 +354,12 @@ def calibrate_scan(
         "before": before.to_dict(),
         "after": after.to_dict(),
     }
+    if stage is not None:  # the foci of whole frames moved: every residual of those frames shows it
+        for entry in document["unexplained"]:
+            entry["description"] += (
+                "; frames whose foci are displaced as a whole were found (a stage error, see warnings): "
+                "part or all of this residual may be theirs"
+            )
     correction = None
     if document["unexplained"]:
         say("fitting the low-rank correction to the unexplained residual (and on held-out positions)")
