@@ -91,12 +91,10 @@ def _check_magnification(before: ResidualAnalysis) -> None:
     """The foci's spread in the data against the model's, over the bright foci of the frames
     used: beyond 10 %, another design."""
     energy = before.model.energy[before.used]
-    data, model = before.data.centroid_px[before.used], before.model.centroid_px[before.used]
     with np.errstate(invalid="ignore"):
         bright = energy >= BRIGHT_FOCUS * np.nanmax(energy, axis=1, keepdims=True)
-    bright &= np.isfinite(data).all(axis=-1) & np.isfinite(model).all(axis=-1)  # the same foci in both
-    data = np.where(bright[..., None], data, np.nan)
-    model = np.where(bright[..., None], model, np.nan)
+    data = np.where(bright[..., None], before.data.centroid_px[before.used], np.nan)
+    model = np.where(bright[..., None], before.model.centroid_px[before.used], np.nan)
     ratio = _spread_px(data) / max(_spread_px(model), 1e-9)
     if np.isfinite(ratio) and abs(ratio - 1.0) > MAGNIFICATION_TOLERANCE:
         raise CalibrationError(
