@@ -16,7 +16,8 @@ to all foci (one entry); otherwise each flagged lenslet is one entry. Each entry
 how much (``energy_fraction``: Σ|residual| over its flagged patches / the model's signal in
 those patches) and what shape (``description``), read from the entry's mean residual patch
 relative to its foci's energy: a displaced copy of the foci (light outside the focus with its
-own centroid, offset and width), or foci dimmed by a share that changes with the position (a
+own centroid, offset and width; light moved to both sides of the focus is a wider focus, an
+aberration, instead), or foci dimmed by a share that changes with the position (a
 transmission loss that no constant per-lenslet transmission explains), or neither.
 """
 
@@ -179,25 +180,38 @@ def _shape(residual: np.ndarray, energy: np.ndarray, model: np.ndarray, pixel_um
     is named when it explains :data:`GHOST_EXPLAINS` of R and :data:`GHOST_GAIN` more than a·M
     alone (a change of energy), and when it is a copy rather than the focus itself displaced (a
     copy of more than :data:`DISPLACED_SHARE` of the energy within one pixel's offset is the
-    focus moved). None otherwise."""
+    focus moved). A pair of copies at ± d that explains more than the best single copy (and as
+    much as a copy must) is light moved out to both sides: a wider focus. None otherwise."""
     relative = residual.sum(axis=0) / energy.sum()
     focus = model.sum(axis=0) / energy.sum()
     total = float(np.sum(relative**2))
     if total <= 0:
         return None
     alone = float(np.sum(relative * focus)) ** 2 / max(float(np.sum(focus**2)), 1e-30)
-    best = (0.0, 0.0, (0, 0))
+    best, wider = (0.0, 0.0, (0, 0)), (0.0, 0.0, (0, 0))
     reach = min(GHOST_REACH_PX, relative.shape[0] // 2)
     for dr in range(-reach, reach + 1):
         for dc in range(-reach, reach + 1):
             if (dr, dc) == (0, 0):
                 continue
             moved = _moved(focus, dr, dc)
-            basis = np.stack([focus.ravel(), moved.ravel()], axis=1)
-            coefficients, *_ = np.linalg.lstsq(basis, relative.ravel(), rcond=None)
-            explained = total - float(np.sum((relative.ravel() - basis @ coefficients) ** 2))
-            if coefficients[1] > 0 and explained > best[0]:
-                best = (explained, float(coefficients[1]), (dr, dc))
+            for kind, shape in (("copy", moved), ("both", moved + _moved(focus, -dr, -dc))):
+                basis = np.stack([focus.ravel(), shape.ravel()], axis=1)
+                coefficients, *_ = np.linalg.lstsq(basis, relative.ravel(), rcond=None)
+                explained = total - float(np.sum((relative.ravel() - basis @ coefficients) ** 2))
+                found = (explained, float(coefficients[1]), (dr, dc))
+                if kind == "copy" and coefficients[1] > 0 and explained > best[0]:
+                    best = found
+                if kind == "both" and coefficients[1] > 0 and explained > wider[0]:
+                    wider = found
+    if wider[0] > best[0] and wider[0] >= GHOST_EXPLAINS * total and wider[0] - alone >= GHOST_GAIN * total:
+        explained, share, (dr, dc) = wider  # light moved out to both sides: a wider focus, not a copy
+        return (
+            f"foci wider than the model's along ({dr:+d}, {dc:+d}) px (row, col): {share:.1%} of each focus's "
+            f"energy moved out to ± {np.hypot(dr, dc):.0f} px ({np.hypot(dr, dc) * pixel_um:.0f} µm) on both sides, "
+            f"explaining {explained / total:.0%} of the mean residual: a blur or aberration of the lenslet "
+            f"(astigmatism, defocus) that the design's parameters do not reach, not a ghost"
+        )
     explained, share, (dr, dc) = best
     if (
         explained < GHOST_EXPLAINS * total
