@@ -1,11 +1,12 @@
 """Defective sensor pixels (hot, dead or stuck: single pixels, clusters, columns) found in a scan's own frames.
 
-The foci move across the sensor during a scan, so most pixels are dark in most of its frames: a
-pixel's median over the frames is the dark level plus whatever the sensor adds there. A pixel
-whose median stands out from the median of its 5 × 5 neighbours by more than
-:data:`DEFECT_SIGMA` robust standard deviations of that difference, where the model's median
-light is negligible, is a defect of the sensor, not of the optics (a hot pixel, a dead column
-reading 0, a saturated cluster). Defects take no part in any fit (registration, noise, χ²) and
+The foci move across the sensor during a scan, so most pixels are dark in most of its frames. A
+pixel's departure from the median of its 5 × 5 neighbours is taken frame by frame (a background
+that changes from frame to frame, light that scales with the exposure, cancels there), then its
+median over the frames: where the model's median light is negligible and that median exceeds
+:data:`DEFECT_SIGMA` robust standard deviations (of the departures over the sensor, or locally
+where a background makes them larger), the pixel is a defect of the sensor, not of the optics (a
+hot pixel, a dead column reading 0, a saturated cluster). Defects take no part in any fit (registration, noise, χ²) and
 are filled, frame by frame, with the mean of their good neighbours for the focus measurements;
 without this a hot pixel saturated in every frame left every frame out as "saturated".
 """
@@ -29,24 +30,31 @@ MIN_SIGMA_COUNTS = 1.0
 MODEL_LIT = 1e-3
 #: Neighbourhood of the median a pixel is compared with, px.
 NEIGHBOURHOOD_PX = 5
+#: Neighbourhood whose median absolute departure gives the local noise, px.
+NOISE_NEIGHBOURHOOD_PX = 15
 #: σ of the Gaussian weights of the good neighbours that fill a defect, px.
 FILL_SIGMA_PX = 1.5
 #: Frames filled at a time.
 FILL_BLOCK = 16
 
 
-def defective_pixels(counts: np.ndarray, model_rate: np.ndarray) -> np.ndarray:
+def defective_pixels(counts: np.ndarray, model_rate: np.ndarray, exposure_ms: np.ndarray) -> np.ndarray:
     """(y, x) bool: the defects of the sensor (module docstring) in frames ``counts`` (N, y, x)
-    raw counts, against the model's images ``model_rate`` (N, y, x) of the same positions (any
-    scale: only where it is dark matters)."""
-    median = np.median(np.asarray(counts, np.float32), axis=0)
-    departure = median - median_filter(median, size=NEIGHBOURHOOD_PX, mode="nearest")
-    model = np.median(np.asarray(model_rate, np.float32), axis=0)
-    dark = model <= MODEL_LIT * max(float(np.max(model_rate)), 1e-30)
+    raw counts, against the model's images ``model_rate`` (N, y, x) per ms of the same positions
+    (any flux scale: only where it is dark matters) taken with ``exposure_ms`` (N,)."""
+    frames = np.asarray(counts, np.float32)
+    local = median_filter(frames, size=(1, NEIGHBOURHOOD_PX, NEIGHBOURHOOD_PX), mode="nearest")
+    departure = np.median(frames - local, axis=0)  # each frame against its own neighbourhood first
+    expected = np.asarray(model_rate, np.float32) * np.asarray(exposure_ms, np.float32)[:, None, None]
+    model = np.median(expected, axis=0)
+    dark = model <= MODEL_LIT * max(float(np.max(expected)), 1e-30)
     if not dark.any():
-        return np.zeros(median.shape, bool)
+        return np.zeros(departure.shape, bool)
     sigma = max(robust_sigma(departure[dark]), MIN_SIGMA_COUNTS)
-    return dark & (np.abs(departure) > DEFECT_SIGMA * sigma)
+    # where a background raises the level (room light on long exposures) its shot noise does too:
+    # the departure is judged against its local spread as well (a defect is too rare to set it)
+    local = 1.4826 * median_filter(np.abs(departure), size=NOISE_NEIGHBOURHOOD_PX, mode="nearest")
+    return dark & (np.abs(departure) > DEFECT_SIGMA * np.maximum(local, sigma))
 
 
 def fill_defects(counts: np.ndarray, defects: np.ndarray) -> np.ndarray:

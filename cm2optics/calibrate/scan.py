@@ -135,7 +135,9 @@ def _usable_subset(data: ScanData, simulator: TracerSimulator, subset: np.ndarra
 def _without_defects(data: ScanData, simulator: TracerSimulator, subset: np.ndarray) -> tuple[ScanData, list[str]]:
     """``data`` with the sensor's defective pixels (:mod:`.defects`, found on the frames of
     ``subset`` against the nominal model there) marked and filled, and a warning naming them."""
-    defects = defective_pixels(data.counts[subset], simulator.rates(data.positions_mm[subset], {}))
+    defects = defective_pixels(
+        data.counts[subset], simulator.rates(data.positions_mm[subset], {}), data.exposure_ms[subset]
+    )
     if not defects.any():
         return data, []
     found = describe_defects(defects)
