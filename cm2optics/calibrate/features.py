@@ -81,6 +81,43 @@ def focus_features(signal: np.ndarray, centres: np.ndarray, radius_px: np.ndarra
     return window_features(values, rows, cols, complete)
 
 
+#: Width of the ring at each window's edge that gives the window's own background, px.
+RING_PX = 1.5
+#: Frames whose windows are held at once by :func:`local_centroids`.
+CENTROID_BLOCK = 16
+
+
+def local_centroids(signal: np.ndarray, centres: np.ndarray, radius_px: np.ndarray) -> np.ndarray:
+    """(N, J, 2) centroids (row, col) px of the foci of ``signal`` (N, y, x) in the windows of
+    :func:`focus_features`, each window's own background removed first: a plane fitted to its
+    outermost :data:`RING_PX` (a background that changes across the sensor, room light or a
+    gradient, pulls the plain centroid of a dim focus towards its bright side); NaN where
+    :func:`focus_features` has none."""
+    if len(signal) > CENTROID_BLOCK:  # a block of frames at a time: the windows' memory
+        return np.concatenate(
+            [
+                local_centroids(
+                    signal[b : b + CENTROID_BLOCK], centres[b : b + CENTROID_BLOCK], radius_px[b : b + CENTROID_BLOCK]
+                )
+                for b in range(0, len(signal), CENTROID_BLOCK)
+            ]
+        )
+    rows, cols, weight, complete = circular_windows(signal.shape[-2:], centres, radius_px)
+    image_index = np.arange(len(centres))[:, None, None, None]
+    values = signal[image_index, rows, cols].astype(np.float64)
+    dr = np.broadcast_to(rows - centres[..., 0, None, None], values.shape)
+    dc = np.broadcast_to(cols - centres[..., 1, None, None], values.shape)
+    ring = (weight & (np.hypot(dr, dc) > radius_px[..., None, None] - RING_PX)).astype(np.float64)
+    basis = np.stack([np.ones_like(dr), dr, dc], axis=-1)  # (N, J, w, w, 3): a + b·Δrow + c·Δcol
+    gram = np.einsum("...yxi,...yxk,...yx->...ik", basis, basis, ring)
+    rhs = np.einsum("...yxi,...yx->...i", basis, ring * values)
+    solvable = np.linalg.det(gram) > 1e-9
+    gram[~solvable] = np.eye(3)
+    plane = np.linalg.solve(gram, np.where(solvable[..., None], rhs, 0.0)[..., None])[..., 0]
+    values = np.where(weight, values - np.einsum("...yxi,...i->...yx", basis, plane), 0.0)
+    return window_features(values, rows, cols, complete).centroid_px
+
+
 def window_features(values: np.ndarray, rows: np.ndarray, cols: np.ndarray, complete: np.ndarray) -> FocusFeatures:
     """The features of :func:`focus_features` from the window pixels themselves: ``values``
     (N, J, w, w) signal above dark, 0 outside each circle; ``rows`` (N, J, w, 1), ``cols``

@@ -22,7 +22,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from cm2optics.calibrate.features import FocusFeatures, away_from_foci, focus_features, focus_windows
+from cm2optics.calibrate.features import (
+    FocusFeatures,
+    away_from_foci,
+    focus_features,
+    focus_windows,
+    local_centroids,
+)
 from cm2optics.calibrate.noise import SensorNoise, estimate_noise, quantisation_step
 from cm2optics.calibrate.register import Registration, register
 from cm2optics.errors import UserError
@@ -40,13 +46,30 @@ class CalibrationError(UserError):
 
 @dataclass(frozen=True)
 class ScanData:
-    """Frames to compare: raw counts (N, y, x), exposures (N,) ms, positions (N, 3) mm, names."""
+    """Frames to compare: raw counts (N, y, x), exposures (N,) ms, positions (N, 3) mm, names;
+    ``defects`` (y, x): the sensor's defective pixels, left out of every fit (None: none known)."""
 
     counts: np.ndarray
     exposure_ms: np.ndarray
     positions_mm: np.ndarray
     files: tuple[str, ...]
     bit_depth: int
+    defects: np.ndarray | None = None
+
+    def good_pixels(self) -> np.ndarray:
+        """(y, x) bool: the pixels that are not defects."""
+        return np.ones(self.counts.shape[-2:], bool) if self.defects is None else ~self.defects
+
+    def subset(self, index: np.ndarray) -> ScanData:
+        """The frames ``index`` (same defects)."""
+        return ScanData(
+            self.counts[index],
+            self.exposure_ms[index],
+            self.positions_mm[index],
+            tuple(self.files[i] for i in index),
+            self.bit_depth,
+            self.defects,
+        )
 
 
 @dataclass(frozen=True)
@@ -146,9 +169,11 @@ def analyse_scan(
     _check_inputs(data, model_rate, model_positions_mm)
     counts = data.counts.astype(np.float32)
     used, flags = _usable_frames(data, model_rate)
-    valid = used[:, None, None] & np.isfinite(counts)
+    valid = used[:, None, None] & np.isfinite(counts) & data.good_pixels()[None]
     registration, model_counts = register(counts, data.exposure_ms, model_rate, valid)
     model_counts = model_counts.astype(np.float32)
+    if data.defects is not None:  # defective pixels hold no information: the model's value, a zero residual
+        counts = np.where(data.defects[None], model_counts, counts)
 
     signal = counts - registration.dark_level
     model_signal = model_counts - registration.dark_level
@@ -164,8 +189,8 @@ def analyse_scan(
     nmse, chi2 = _per_image_misfit(residual, signal, noise.variance(model_signal), valid, used)
 
     centres, radii = focus_windows(model_signal, centres_px + np.asarray(registration.offset_px), pitch_px)
-    data_features = focus_features(signal, centres, radii)
-    model_features = focus_features(model_signal, centres, radii)
+    data_features = _with_local_centroids(focus_features(signal, centres, radii), signal, centres, radii)
+    model_features = _with_local_centroids(focus_features(model_signal, centres, radii), model_signal, centres, radii)
 
     error = np.linalg.norm(data_features.centroid_px - model_features.centroid_px, axis=-1)
     misplaced = used & (
@@ -198,10 +223,18 @@ def analyse_scan(
     )
 
 
+def _with_local_centroids(
+    features: FocusFeatures, signal: np.ndarray, centres: np.ndarray, radii: np.ndarray
+) -> FocusFeatures:
+    """``features`` with centroids measured above each window's own background
+    (:func:`~cm2optics.calibrate.features.local_centroids`; energies and widths unchanged)."""
+    return FocusFeatures(features.energy, local_centroids(signal, centres, radii), features.width_px)
+
+
 def _usable_frames(data: ScanData, model_rate: np.ndarray) -> tuple[np.ndarray, dict[str, list[str]]]:
     """(N,) frames that take part, and the flags of those left out: saturated frames and frames
     without light; an error when none is left."""
-    saturated = (data.counts >= 2**data.bit_depth - 1).any(axis=(-2, -1))
+    saturated = ((data.counts >= 2**data.bit_depth - 1) & data.good_pixels()[None]).any(axis=(-2, -1))
     flags: dict[str, list[str]] = {"saturated": [data.files[i] for i in np.flatnonzero(saturated)]}
     light = model_rate.reshape(len(model_rate), -1).max(axis=1) > 0
     used = ~saturated & light

@@ -31,7 +31,9 @@ from warnings import catch_warnings, simplefilter
 
 import numpy as np
 
+from cm2optics.calibrate.acquisition import flux_drift, stage_errors
 from cm2optics.calibrate.attribute import Attribution, Problem, attribute
+from cm2optics.calibrate.defects import defective_pixels, describe_defects, fill_defects
 from cm2optics.calibrate.effects import apply_image_effects, library, split_key
 from cm2optics.calibrate.lowrank_correction import LowRankCorrection, fit_correction, held_out_error
 from cm2optics.calibrate.residual import CalibrationError, ResidualAnalysis, ScanData, analyse_scan, check_frames
@@ -121,19 +123,40 @@ def _usable_subset(data: ScanData, simulator: TracerSimulator, subset: np.ndarra
     from an analysis of their frames alone against the nominal model (traced here; the
     attribution re-uses the trace); a scan taken on another design is refused here, before the
     attribution, and again on the whole scan."""
-    frames = ScanData(
-        data.counts[subset],
-        data.exposure_ms[subset],
-        data.positions_mm[subset],
-        tuple(data.files[i] for i in subset),
-        data.bit_depth,
-    )
+    frames = data.subset(subset)
     positions = data.positions_mm[subset]
     rate = simulator.rates(positions, {})
     centres = simulator.focus_centres_px(positions)
     analysis = analyse_scan(frames, rate, positions, centres, simulator.pitch_px(), counts_per_electron=gain)
     _check_magnification(analysis)
     return subset[analysis.used]
+
+
+def _without_defects(data: ScanData, simulator: TracerSimulator, subset: np.ndarray) -> tuple[ScanData, list[str]]:
+    """``data`` with the sensor's defective pixels (:mod:`.defects`, found on the frames of
+    ``subset`` against the nominal model there) marked and filled, and a warning naming them."""
+    defects = defective_pixels(
+        data.counts[subset], simulator.rates(data.positions_mm[subset], {}), data.exposure_ms[subset]
+    )
+    if not defects.any():
+        return data, []
+    found = describe_defects(defects)
+    counts = fill_defects(data.counts, defects)
+    where = ", ".join(
+        part
+        for part in (
+            f"columns {found['columns']}" if found["columns"] else "",
+            f"rows {found['rows']}" if found["rows"] else "",
+            f"pixels (row, col) {found['other_pixels']}" if found["other_pixels"] else "",
+        )
+        if part
+    )
+    warning = (
+        f"{found['pixels']} defective sensor pixels (hot, dead or stuck; {where}) are left out of the fit and "
+        f"filled from their neighbours: a defect of the sensor, not of the optics"
+    )
+    filled = ScanData(counts, data.exposure_ms, data.positions_mm, data.files, data.bit_depth, defects)
+    return filled, [warning]
 
 
 def _with_image_effects(rate: np.ndarray, simulator: TracerSimulator, attribution: Attribution) -> np.ndarray:
@@ -179,7 +202,12 @@ def effects_document(attribution: Attribution) -> list[dict[str, Any]]:
 
 
 def _summary(
-    before: ResidualAnalysis, after: ResidualAnalysis, attribution: Attribution, problem: Problem, pixel_um: float
+    before: ResidualAnalysis,
+    after: ResidualAnalysis,
+    attribution: Attribution,
+    problem: Problem,
+    pixel_um: float,
+    drifted: bool = False,
 ) -> dict[str, Any]:
     """The report's headline keys: effects, NMSE and χ² before and after, what stays unexplained."""
     return {
@@ -188,7 +216,7 @@ def _summary(
         "nmse_after": round(after.nmse_total, 6),
         "chi2_before": round(before.chi2_total, 4),
         "chi2_after": round(after.chi2_total, 4),
-        "unexplained": describe_unexplained(after, pixel_um),
+        "unexplained": describe_unexplained(after, pixel_um, per_frame=drifted),
         "noise_model": "camera gain from scan.yaml" if problem.noise_known else "gain estimated from the data",
     }
 
@@ -281,12 +309,16 @@ def calibrate_scan(
     with tracing_pool(workers) as pool:
         say(f"tracing the nominal design at {len(positions)} positions")
         nominal_job = submit_rates(pool, simulator, positions, {}, with_centres=True, here=subset)
+        data, defect_warning = _without_defects(data, simulator, subset)
+        for warning in defect_warning:
+            say(f"warning: {warning}")
+        warnings += defect_warning
         subset = _usable_subset(data, simulator, subset, gain)
         say(f"attributing the residual on {len(subset)} positions")
-        valid = scan.images[subset] < 2**scan.meta.bit_depth - 1
+        valid = (data.counts[subset] < 2**scan.meta.bit_depth - 1) & data.good_pixels()[None]
         problem = Problem(
             simulator,
-            scan.images[subset],
+            data.counts[subset],
             scan.exposure_ms[subset],
             positions[subset],
             valid,
@@ -303,6 +335,11 @@ def calibrate_scan(
         _check_magnification(before)
         rate = _with_image_effects(corrected_job()[0], simulator, attribution)
     after = analyse_scan(data, rate, positions, centres, pitch, counts_per_electron=gain)
+    drift, stage = flux_drift(after), stage_errors(after, simulator.pixel_um)
+    for warning in (drift, stage):
+        if warning is not None:
+            say(f"warning: {warning}")
+            warnings.append(warning)
     corrected = corrected_design(design, attribution)
     document = {
         "scan": str(scan_dir),
@@ -310,12 +347,19 @@ def calibrate_scan(
         "design_hash": design.parameter_hash(),
         "source": source.describe(),
         "warnings": warnings,
+        "sensor_defects": describe_defects(~data.good_pixels()),
         "corrected_design_hash": corrected.parameter_hash(),
-        **_summary(before, after, attribution, problem, simulator.pixel_um),
+        **_summary(before, after, attribution, problem, simulator.pixel_um, drift is not None),
         "fit": _fit_record(subset, attribution, problem),
         "before": before.to_dict(),
         "after": after.to_dict(),
     }
+    if stage is not None:  # the foci of whole frames moved: every residual of those frames shows it
+        for entry in document["unexplained"]:
+            entry["description"] += (
+                "; frames whose foci are displaced as a whole were found (a stage error, see warnings): "
+                "part or all of this residual may be theirs"
+            )
     correction = None
     if document["unexplained"]:
         say("fitting the low-rank correction to the unexplained residual (and on held-out positions)")

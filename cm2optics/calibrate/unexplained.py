@@ -16,13 +16,15 @@ to all foci (one entry); otherwise each flagged lenslet is one entry. Each entry
 how much (``energy_fraction``: Σ|residual| over its flagged patches / the model's signal in
 those patches) and what shape (``description``), read from the entry's mean residual patch
 relative to its foci's energy: a displaced copy of the foci (light outside the focus with its
-own centroid, offset and width), or foci dimmed by a share that changes with the position (a
+own centroid, offset and width; light moved to both sides of the focus is a wider focus, an
+aberration, instead), or foci dimmed by a share that changes with the position (a
 transmission loss that no constant per-lenslet transmission explains), or neither.
 """
 
 from __future__ import annotations
 
 from typing import Any
+from warnings import catch_warnings, simplefilter
 
 import numpy as np
 
@@ -57,9 +59,12 @@ GHOST_EXPLAINS = 0.6
 GHOST_GAIN = 0.3
 
 
-def flagged_foci(after: ResidualAnalysis, half: int = PATCH_HALF_PX) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def flagged_foci(
+    after: ResidualAnalysis, half: int = PATCH_HALF_PX, per_frame: bool = False
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(N, J) flagged foci (module docstring), and the residual (against the model at the foci's
-    common energy ratio) and model-signal patches (N, J, 2·half + 1, 2·half + 1) in counts."""
+    common energy ratio; with ``per_frame``, at each frame's own, for a scan whose source drifted)
+    and model-signal patches (N, J, 2·half + 1, 2·half + 1) in counts."""
     model_signal = after.model_counts - after.registration.dark_level
     centres = after.model.centroid_px
     residual, inside = focus_patches(after.residual_counts, centres, half)
@@ -68,7 +73,13 @@ def flagged_foci(after: ResidualAnalysis, half: int = PATCH_HALF_PX) -> tuple[np
     energy = model.sum(axis=(-2, -1))
     bright = after.used[:, None] & inside & (energy >= COMMON_FOCI * np.max(energy, axis=1, keepdims=True))
     if bright.any():  # the residual against the model at the foci's common energy ratio
-        ratio = np.median(1.0 + residual.sum(axis=(-2, -1))[bright] / np.maximum(energy[bright], 1e-30))
+        ratios = 1.0 + residual.sum(axis=(-2, -1)) / np.maximum(energy, 1e-30)
+        ratio = np.median(ratios[bright])
+        if per_frame:  # each frame's own ratio (its common ratio where it has no bright focus)
+            with np.errstate(invalid="ignore"), catch_warnings():
+                simplefilter("ignore", RuntimeWarning)
+                own = np.nanmedian(np.where(bright, ratios, np.nan), axis=1)
+            ratio = np.where(np.isfinite(own), own, ratio)[:, None, None, None]
         residual = residual - (ratio - 1.0) * model
     pixels = float((2 * half + 1) ** 2)
     chi2 = np.sum(residual**2 / variance, axis=(-2, -1))
@@ -77,11 +88,14 @@ def flagged_foci(after: ResidualAnalysis, half: int = PATCH_HALF_PX) -> tuple[np
     return flagged, residual, model
 
 
-def describe_unexplained(after: ResidualAnalysis, pixel_um: float, half: int = PATCH_HALF_PX) -> list[dict[str, Any]]:
+def describe_unexplained(
+    after: ResidualAnalysis, pixel_um: float, half: int = PATCH_HALF_PX, per_frame: bool = False
+) -> list[dict[str, Any]]:
     """The entries ``{lenslets, field_mm, depths_mm, energy_fraction, description}`` of what
     remains above the noise after the fit (empty when no focus is flagged); ``pixel_um`` is the
-    binned pixel pitch, µm."""
-    flagged, residual, model = flagged_foci(after, half)
+    binned pixel pitch, µm; ``per_frame``: each frame's flux is its own (a source that drifted
+    during the scan, :mod:`.acquisition`), so that only what departs from it is described."""
+    flagged, residual, model = flagged_foci(after, half, per_frame)
     if not flagged.any():
         return []
     repeated = flagged.sum(axis=0) >= MIN_FOCI
@@ -129,11 +143,13 @@ def _entry(
             f"parameters do not reach"
         )
     elif shape is None:
+        kind = "a loss" if high < 0 else "a gain" if low > 0 else "a gain or loss"
         description = (
             f"the foci of lenslet{'s' if len(lenslets) > 1 else ''} {[int(j) for j in lenslets]} change in "
-            f"energy by {low:+.1%} to {high:+.1%} ({count}) while the other positions match: a loss that "
-            f"depends on the source position (e.g. a scratch or dust on a filter in front of the array), "
-            f"not a constant lenslet transmission"
+            f"energy by {low:+.1%} to {high:+.1%} ({count}) while the other positions match: {kind} that "
+            f"depends on the source position or on where the foci land on the sensor (e.g. a scratch or dust "
+            f"on a filter in front of the array, a sensor gain that varies over the sensor), not a constant "
+            f"lenslet transmission"
         )
     else:
         description = f"{shape} ({count})"
@@ -164,25 +180,38 @@ def _shape(residual: np.ndarray, energy: np.ndarray, model: np.ndarray, pixel_um
     is named when it explains :data:`GHOST_EXPLAINS` of R and :data:`GHOST_GAIN` more than a·M
     alone (a change of energy), and when it is a copy rather than the focus itself displaced (a
     copy of more than :data:`DISPLACED_SHARE` of the energy within one pixel's offset is the
-    focus moved). None otherwise."""
+    focus moved). A pair of copies at ± d that explains more than the best single copy (and as
+    much as a copy must) is light moved out to both sides: a wider focus. None otherwise."""
     relative = residual.sum(axis=0) / energy.sum()
     focus = model.sum(axis=0) / energy.sum()
     total = float(np.sum(relative**2))
     if total <= 0:
         return None
     alone = float(np.sum(relative * focus)) ** 2 / max(float(np.sum(focus**2)), 1e-30)
-    best = (0.0, 0.0, (0, 0))
+    best, wider = (0.0, 0.0, (0, 0)), (0.0, 0.0, (0, 0))
     reach = min(GHOST_REACH_PX, relative.shape[0] // 2)
     for dr in range(-reach, reach + 1):
         for dc in range(-reach, reach + 1):
             if (dr, dc) == (0, 0):
                 continue
             moved = _moved(focus, dr, dc)
-            basis = np.stack([focus.ravel(), moved.ravel()], axis=1)
-            coefficients, *_ = np.linalg.lstsq(basis, relative.ravel(), rcond=None)
-            explained = total - float(np.sum((relative.ravel() - basis @ coefficients) ** 2))
-            if coefficients[1] > 0 and explained > best[0]:
-                best = (explained, float(coefficients[1]), (dr, dc))
+            for kind, shape in (("copy", moved), ("both", moved + _moved(focus, -dr, -dc))):
+                basis = np.stack([focus.ravel(), shape.ravel()], axis=1)
+                coefficients, *_ = np.linalg.lstsq(basis, relative.ravel(), rcond=None)
+                explained = total - float(np.sum((relative.ravel() - basis @ coefficients) ** 2))
+                found = (explained, float(coefficients[1]), (dr, dc))
+                if kind == "copy" and coefficients[1] > 0 and explained > best[0]:
+                    best = found
+                if kind == "both" and coefficients[1] > 0 and explained > wider[0]:
+                    wider = found
+    if wider[0] > best[0] and wider[0] >= GHOST_EXPLAINS * total and wider[0] - alone >= GHOST_GAIN * total:
+        explained, share, (dr, dc) = wider  # light moved out to both sides: a wider focus, not a copy
+        return (
+            f"foci wider than the model's along ({dr:+d}, {dc:+d}) px (row, col): {share:.1%} of each focus's "
+            f"energy moved out to ± {np.hypot(dr, dc):.0f} px ({np.hypot(dr, dc) * pixel_um:.0f} µm) on both sides, "
+            f"explaining {explained / total:.0%} of the mean residual: a blur or aberration of the lenslet "
+            f"(astigmatism, defocus) that the design's parameters do not reach, not a ghost"
+        )
     explained, share, (dr, dc) = best
     if (
         explained < GHOST_EXPLAINS * total
