@@ -144,7 +144,9 @@ def reconstruct_command(
         return
     if weights is not None or emitters_out is not None or field_mm is not None:
         raise UserError("--weights, --emitters-out and --field-mm go with --method net")
-    _check_device(device)
+    from cm2optics.recon.reconstruct import check_device
+
+    check_device(device)
     if model is None:
         raise UserError(f"--method {method}: give the forward model with --model (an LSV model or a PSF stack)")
     for path in (out, out.with_suffix(".json")):
@@ -234,24 +236,6 @@ def _reconstruct_net(
         f"[green]{out}[/]: CM²Net, {record['n_emitters']} emitters at threshold {record['threshold']:g}, "
         f"{record['seconds']['total']:.1f} s"
     )
-
-
-def _check_device(device: str) -> None:
-    """A UserError unless ``device`` names the CPU or a CUDA device this machine has."""
-    import torch
-
-    try:
-        parsed = torch.device(device)
-    except RuntimeError:
-        raise UserError(f"--device {device}: give cpu or cuda[:N]") from None
-    if parsed.type not in ("cpu", "cuda"):
-        raise UserError(f"--device {device}: give cpu or cuda[:N]")
-    if parsed.type == "cuda":
-        count = torch.cuda.device_count()
-        if count == 0:
-            raise UserError(f"--device {device}: no CUDA device on this machine")
-        if parsed.index is not None and parsed.index >= count:
-            raise UserError(f"--device {device}: this machine has {count} CUDA device(s)")
 
 
 def _grid_option(grid_shape: str | None, voxel_um: str | None) -> Any:

@@ -30,7 +30,15 @@ from cm2optics.formats.operator import VolumeOperator
 from cm2optics.lsv.lsi import DepthwiseConvOperator
 from cm2optics.recon.solvers import Progress, SolverResult, Stopping, admm, admm_lsi, fista, richardson_lucy
 
-__all__ = ["METHODS", "ReconOptions", "check_memory", "memory_estimate", "reconstruct", "reconstruct_file"]
+__all__ = [
+    "METHODS",
+    "ReconOptions",
+    "check_device",
+    "check_memory",
+    "memory_estimate",
+    "reconstruct",
+    "reconstruct_file",
+]
 
 METHODS = ("fista", "admm", "rl")
 #: Volume-sized float32 arrays each method keeps (without TV, extra with TV).
@@ -290,3 +298,19 @@ def reconstruct_file(
     )
     write_json_atomic(out_path.with_suffix(".json"), record)
     return record
+
+
+def check_device(device: str) -> None:
+    """A UserError unless ``device`` names the CPU or a CUDA device this machine has."""
+    try:
+        parsed = torch.device(device)
+    except RuntimeError:
+        raise UserError(f"--device {device}: give cpu or cuda[:N]") from None
+    if parsed.type not in ("cpu", "cuda"):
+        raise UserError(f"--device {device}: give cpu or cuda[:N]")
+    if parsed.type == "cuda":
+        count = torch.cuda.device_count()
+        if count == 0:
+            raise UserError(f"--device {device}: no CUDA device on this machine")
+        if parsed.index is not None and parsed.index >= count:
+            raise UserError(f"--device {device}: this machine has {count} CUDA device(s)")
