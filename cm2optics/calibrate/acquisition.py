@@ -24,9 +24,10 @@ from scipy.stats import spearmanr
 
 from cm2optics.calibrate.residual import ResidualAnalysis
 
-__all__ = ["flux_drift", "frame_flux", "frame_shifts", "stage_errors"]
+__all__ = ["bright_foci", "flux_drift", "frame_flux", "frame_shifts", "stage_errors"]
 
-#: Foci at least this share of their image's brightest (model) focus give the frame's flux.
+#: Foci at least this share of their image's brightest (model) focus give the frame's flux and
+#: shift, and the scan's magnification check: dimmer data centroids at the field's edge are mostly noise.
 BRIGHT_FOCUS = 0.1
 #: A trend along the acquisition order whose rank correlation is at least this…
 DRIFT_RANK = 0.8
@@ -41,7 +42,7 @@ STAGE_SHIFT_PX = 0.3
 MIN_SHIFTED = 2
 
 
-def _bright(analysis: ResidualAnalysis) -> np.ndarray:
+def bright_foci(analysis: ResidualAnalysis) -> np.ndarray:
     """(N, J) the foci of used frames at least :data:`BRIGHT_FOCUS` of their frame's brightest (model)."""
     energy = analysis.model.energy
     with np.errstate(invalid="ignore"):
@@ -51,7 +52,7 @@ def _bright(analysis: ResidualAnalysis) -> np.ndarray:
 def frame_flux(analysis: ResidualAnalysis) -> np.ndarray:
     """(N,) each frame's flux relative to the model's: the median data/model energy ratio of its
     bright foci (NaN for frames left out or without a bright focus)."""
-    ratio = np.where(_bright(analysis), analysis.energy_ratio, np.nan)
+    ratio = np.where(bright_foci(analysis), analysis.energy_ratio, np.nan)
     out = np.full(len(ratio), np.nan)
     has = np.isfinite(ratio).any(axis=1)
     out[has] = np.nanmedian(ratio[has], axis=1)
@@ -83,7 +84,7 @@ def flux_drift(analysis: ResidualAnalysis) -> str | None:
 def frame_shifts(analysis: ResidualAnalysis) -> np.ndarray:
     """(N, 2) each frame's common displacement of its foci from the model's (row, col) px: the
     median centroid error of its bright foci (NaN for frames left out or without one)."""
-    error = np.where(_bright(analysis)[..., None], analysis.centroid_error_px, np.nan)
+    error = np.where(bright_foci(analysis)[..., None], analysis.centroid_error_px, np.nan)
     out = np.full((len(error), 2), np.nan)
     has = np.isfinite(error).all(axis=-1).any(axis=1)
     out[has] = np.nanmedian(error[has], axis=1)

@@ -31,7 +31,7 @@ from warnings import catch_warnings, simplefilter
 
 import numpy as np
 
-from cm2optics.calibrate.acquisition import flux_drift, stage_errors
+from cm2optics.calibrate.acquisition import bright_foci, flux_drift, stage_errors
 from cm2optics.calibrate.attribute import Attribution, Problem, attribute
 from cm2optics.calibrate.defects import defective_pixels, describe_defects, fill_defects
 from cm2optics.calibrate.effects import apply_image_effects, library, split_key
@@ -82,17 +82,10 @@ def _spread_px(centroids: np.ndarray) -> float:
         return float(np.nanmedian(np.linalg.norm(centroids - mean, axis=-1)))
 
 
-#: Foci dimmer than this share of their image's brightest (model) focus take no part in the
-#: magnification check: at the field's edge their data centroids are mostly noise.
-BRIGHT_FOCUS = 0.1
-
-
 def _check_magnification(before: ResidualAnalysis) -> None:
     """The foci's spread in the data against the model's, over the bright foci of the frames
     used: beyond 10 %, another design."""
-    energy = before.model.energy[before.used]
-    with np.errstate(invalid="ignore"):
-        bright = energy >= BRIGHT_FOCUS * np.nanmax(energy, axis=1, keepdims=True)
+    bright = bright_foci(before)[before.used]
     data = np.where(bright[..., None], before.data.centroid_px[before.used], np.nan)
     model = np.where(bright[..., None], before.model.centroid_px[before.used], np.nan)
     ratio = _spread_px(data) / max(_spread_px(model), 1e-9)
