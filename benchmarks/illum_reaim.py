@@ -28,6 +28,7 @@ from pathlib import Path
 
 from cm2optics.design import load_preset
 from cm2optics.emission.sbr import signal_and_background
+from cm2optics.formats.outputs import OutputError, check_output
 from cm2optics.illumination.compare import setup_from_options, stl_collimator
 from cm2optics.illumination.geometry import build_scene, collimator_from_design
 from cm2optics.illumination.metrics import figures_of_merit
@@ -76,6 +77,11 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", default=None, help="JSON file for the table")
     args = parser.parse_args()
+    if args.out:  # never over one of its own inputs (an existing table is replaced)
+        try:
+            check_output(args.out, command="illum_reaim", inputs=(args.design, args.stl), overwrite=True)
+        except OutputError as error:
+            parser.error(str(error))
 
     design = load_preset(args.design)
     if args.stl or args.design == "cm2-v2":

@@ -32,6 +32,7 @@ import numpy as np
 from illum_ray_families import AUTHORS_CAVITY_RADIUS_MM, FAMILIES, first_surfaces, reference_inputs
 
 from cm2optics.design import load_preset
+from cm2optics.formats.outputs import OutputError, check_output
 from cm2optics.illumination.geometry import (
     BOARD_Z_MM,
     Absorber,
@@ -143,6 +144,11 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", default=None, help="JSON file for the table")
     args = parser.parse_args()
+    if args.out:  # never over one of its own inputs (an existing table is replaced)
+        try:
+            check_output(args.out, command="illum_unit_losses", inputs=args.design, overwrite=True)
+        except OutputError as error:
+            parser.error(str(error))
 
     v2 = load_preset("cm2-v2")
     setup, authors = reference_inputs(v2)
