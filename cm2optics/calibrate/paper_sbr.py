@@ -147,13 +147,20 @@ def _traced(design: SystemDesign) -> dict[str, Any]:
 
     sample = Sample(diffuse_reflectance=1.0)
     result = signal_and_background(design, sample)
+    per_field_photon = 1.0 / result.excitation_in_field  # the result is per LED photon
     return {
         "field_mm": design.volume.field_mm,
         "pixels": design.sensor.width_px * design.sensor.height_px,
-        "signal_per_absorbed": {c: float(v.sum()) / sample.absorbed_fraction for c, v in result.signal.items()},
+        "signal_per_absorbed": {
+            c: float(v.sum()) * per_field_photon / sample.absorbed_fraction for c, v in result.signal.items()
+        },
         "yield_times_overlap": sample.quantum_yield * result.excitation_overlap,
-        "leakage_per_reflectance": {c: float(v.sum()) for c, v in result.background_by_path["diffuse"].items()},
-        "leakage_specular": {c: float(v.sum()) for c, v in result.background_by_path["specular"].items()},
+        "leakage_per_reflectance": {
+            c: float(v.sum()) * per_field_photon for c, v in result.background_by_path["diffuse"].items()
+        },
+        "leakage_specular": {
+            c: float(v.sum()) * per_field_photon for c, v in result.background_by_path["specular"].items()
+        },
         "bead": _bead_light(design, PAPER["bead_diameter_um"]["value"], PAPER["phantom_thickness_mm"]["value"]),
     }
 
