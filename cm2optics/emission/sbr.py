@@ -267,6 +267,8 @@ def signal_and_background(
         raise ValueError(f"bin_deg = {bin_deg!r}: must lie within 0.5–10°")
     if not (math.isfinite(field_step_mm) and 0.01 <= field_step_mm <= 2.0):
         raise ValueError(f"field_step_mm = {field_step_mm!r}: must lie within 0.01–2 mm")
+    if not (isinstance(max_specular_rays, int) and max_specular_rays >= 1):
+        raise ValueError(f"max_specular_rays = {max_specular_rays!r}: must be an integer ≥ 1")
     excitation = model_excitation(design, beam_samples) if excitation is None else excitation
     hits, directions, power = excitation.hits_mm, excitation.directions, excitation.power
     entering = power * fresnel_transmittance(np.arccos(np.clip(np.abs(directions[:, 2]), 0, 1)), sample.surface_index)
@@ -291,8 +293,7 @@ def signal_and_background(
     background_scale = {"diffuse": sample.diffuse_reflectance * glow_power, "specular": 1.0}
 
     wavelength = DEFAULT_WAVELENGTH_NM
-    excitation = excitation_spectrum(design)
-    excitation_photons = excitation.values * wavelength
+    excitation_photons = excitation_spectrum(design).values * wavelength
     excitation_photons = excitation_photons / np.trapezoid(excitation_photons, wavelength)
     overlap = float(np.trapezoid(excitation_photons * load_spectrum("gfp-excitation")(wavelength), wavelength))
     emission_photons = load_spectrum("gfp-emission")(wavelength) * wavelength
