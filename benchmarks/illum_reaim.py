@@ -2,9 +2,10 @@
 whose units clear the imaging tower, with the authors' LED profile, spectrum and excitation
 coating table, and retrace the brightest placement with CV ≤ --max-cv at --final-rays.
 
-Each placement's SBR is computed from its traced beam (``illumination.traced_sbr``: the glow and
-the specular reflection of the rays that land; interference-only and hybrid chains) beside the
-emission model's (its model beams at the same placement); ``--min-sbr-interference`` and
+Each placement's SBR is computed from its traced beam (``illumination.traced_sbr``, per photon the
+LEDs emit: the fluorescence excited where rays land in the field against the glow and the specular
+reflection of all that land; interference-only and hybrid chains) beside the emission model's (its
+model beams at the same placement); ``--min-sbr-interference`` and
 ``--min-sbr-hybrid`` keep only placements whose traced SBR reaches them, so a brighter aim does
 not buy its light with excitation mirrored into the lenslets.
 

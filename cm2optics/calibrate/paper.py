@@ -210,20 +210,33 @@ def _surface_factor(scene: Any, setup: Any, nominal_fraction: float, samples: in
     )
 
 
-def excitation_power_chain(
-    design: SystemDesign, *, rays: int = 400_000, seed: int = 0, surface_samples: int = 3
-) -> dict[str, Any]:
-    """Part (a): the traced excitation power, the chain of factors towards the paper's 75 mW and
-    what remains unexplained (see the module docstring). ``design`` must have a collimator."""
+def trace_design(design: SystemDesign, *, rays: int = 400_000, seed: int = 0) -> tuple[Any, Any, Any]:
+    """The design's as-built illumination traced with its own LED and filter models: (scene, setup,
+    record). ``design`` must have a collimator."""
     from cm2optics.illumination.as_built import as_built_scene
     from cm2optics.illumination.compare import setup_from_options
     from cm2optics.illumination.geometry import build_scene, collimator_from_design
-    from cm2optics.illumination.metrics import figures_of_merit
     from cm2optics.illumination.tracer import trace
 
     setup = setup_from_options(design, rays=rays, seed=seed)
     scene = as_built_scene(build_scene(design, collimator_from_design(design)))
-    record = trace(scene, setup.source, rays, transmission=setup.transmission, seed=seed)
+    return scene, setup, trace(scene, setup.source, rays, transmission=setup.transmission, seed=seed)
+
+
+def excitation_power_chain(
+    design: SystemDesign,
+    *,
+    rays: int = 400_000,
+    seed: int = 0,
+    surface_samples: int = 3,
+    traced: tuple[Any, Any, Any] | None = None,
+) -> dict[str, Any]:
+    """Part (a): the traced excitation power, the chain of factors towards the paper's 75 mW and
+    what remains unexplained (see the module docstring). ``design`` must have a collimator;
+    ``traced``: its :func:`trace_design` (traced here with ``rays`` and ``seed`` when None)."""
+    from cm2optics.illumination.metrics import figures_of_merit
+
+    scene, setup, record = trace_design(design, rays=rays, seed=seed) if traced is None else traced
     figures = figures_of_merit(record, scene)
     predicted = figures.power_mw
     factors = [

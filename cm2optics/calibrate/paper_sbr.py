@@ -13,8 +13,9 @@ bead in the paper's Fig. 2e: its peak pixel over the level beside it):
   chain's field-averaged collection, all from :func:`~cm2optics.emission.sbr.signal_and_background`)
   × the fraction of its detected light in its brightest pixel (the emission model's 9 foci of a
   10-µm isotropic bead at the focal plane, unbinned pixels);
-* (i) leakage: the excitation light scattered back by the sample through each chain
-  (:func:`signal_and_background`, scaled by ``DIFFUSE_REFLECTANCE``), spread evenly over the sensor;
+* (i) leakage: the excitation light scattered back (``DIFFUSE_REFLECTANCE``) and mirrored by the
+  sample through each chain (:func:`signal_and_background` of the design's traced beam, the trace
+  of part (a), per photon in the field), spread evenly over the sensor;
 * (ii) the beads' own light: every bead of the phantom (density × area, the paper's numbers)
   puts the share of its light that lies in its foci's wings (pixels below ``wing_level`` of the
   focus's peak; the lenslets' aberrated foci, averaged over depths across the phantom) evenly
@@ -141,27 +142,37 @@ def _gain(terms: dict[str, dict[str, float]], included: tuple[str, ...]) -> floa
     return sbr["hybrid"] / sbr["interference_only"]
 
 
-def _traced(design: SystemDesign) -> dict[str, Any]:
-    """The design's numbers the phantom model needs: one emission SBR trace and one bead PSF."""
+def _traced(design: SystemDesign, excitation: Any = None) -> dict[str, Any]:
+    """The design's numbers the phantom model needs: one emission SBR trace (of ``excitation``, an
+    :class:`~cm2optics.emission.filter_angles.Excitation`; the model beams when None) and one bead PSF."""
     from cm2optics.emission.sbr import Sample, signal_and_background
 
     sample = Sample(diffuse_reflectance=1.0)
-    result = signal_and_background(design, sample)
+    result = signal_and_background(design, sample, excitation)
+    per_field_photon = 1.0 / result.excitation_in_field  # the result is per LED photon
     return {
         "field_mm": design.volume.field_mm,
         "pixels": design.sensor.width_px * design.sensor.height_px,
-        "signal_per_absorbed": {c: float(v.sum()) / sample.absorbed_fraction for c, v in result.signal.items()},
+        "signal_per_absorbed": {
+            c: float(v.sum()) * per_field_photon / sample.absorbed_fraction for c, v in result.signal.items()
+        },
         "yield_times_overlap": sample.quantum_yield * result.excitation_overlap,
-        "leakage_per_reflectance": {c: float(v.sum()) for c, v in result.background_by_path["diffuse"].items()},
-        "leakage_specular": {c: float(v.sum()) for c, v in result.background_by_path["specular"].items()},
+        "leakage_per_reflectance": {
+            c: float(v.sum()) * per_field_photon for c, v in result.background_by_path["diffuse"].items()
+        },
+        "leakage_specular": {
+            c: float(v.sum()) * per_field_photon for c, v in result.background_by_path["specular"].items()
+        },
         "bead": _bead_light(design, PAPER["bead_diameter_um"]["value"], PAPER["phantom_thickness_mm"]["value"]),
     }
 
 
-def phantom_sbr(design: SystemDesign) -> dict[str, Any]:
+def phantom_sbr(design: SystemDesign, excitation: Any = None) -> dict[str, Any]:
     """Part (b): SBR of the bead phantom with and without the hybrid film, per background term,
-    against the paper's > 5× (see the module docstring). ``design`` must have an absorption film."""
-    return sbr_summary(_traced(design))
+    against the paper's > 5× (see the module docstring). ``design`` must have an absorption film;
+    ``excitation``: the light on the sample (:func:`cm2optics.illumination.traced_sbr.traced_excitation`
+    of a trace; the emission model's beams when None)."""
+    return sbr_summary(_traced(design, excitation))
 
 
 def sbr_summary(traced: dict[str, Any]) -> dict[str, Any]:

@@ -324,7 +324,7 @@ def paper(
     mla_to_sensor_for_paper_mm, description), edge_drop (relative_energy_*,
     source_profile_half_angle_deg, description).
     """
-    from cm2optics.calibrate.paper import excitation_power_chain
+    from cm2optics.calibrate.paper import excitation_power_chain, trace_design
     from cm2optics.calibrate.paper_field import field_residuals
     from cm2optics.calibrate.paper_sbr import phantom_sbr
     from cm2optics.design import load_preset
@@ -340,9 +340,12 @@ def paper(
     if rays < 10_000:
         raise UserError(f"--rays = {rays}: must be ≥ 10000")
     check_output(out, command="calibrate paper", kind="folder", inputs=[preset], overwrite=overwrite)
+    from cm2optics.illumination.traced_sbr import traced_excitation
+
+    traced = trace_design(design, rays=rays, seed=seed)  # (a) and (b) read the same traced beam
     document = {
-        "excitation_power": excitation_power_chain(design, rays=rays, seed=seed),
-        "sbr_gain": phantom_sbr(design),
+        "excitation_power": excitation_power_chain(design, rays=rays, seed=seed, traced=traced),
+        "sbr_gain": phantom_sbr(design, traced_excitation(traced[2])),
         **field_residuals(design),
     }
     claim_folder(out, "calibrate paper")

@@ -60,7 +60,7 @@ def report(
     if as_json:
         print(json.dumps(figures, indent=2, ensure_ascii=False))
         return
-    table = Table(title=f"{design.name}: emission path, per excitation photon (photoelectrons over the sensor)")
+    table = Table(title=f"{design.name}: emission path, per photon the LEDs emit (photoelectrons over the sensor)")
     for column in ("chain", "signal", "background", "SBR"):
         table.add_column(column, justify="right")
     for chain in ("interference_only", "hybrid"):

@@ -42,13 +42,16 @@ from cm2optics.spectra.chain import excitation_half_angle_rad
 __all__ = [
     "EmissionRays",
     "Emitter",
+    "Excitation",
     "Sources",
+    "binned_sources",
     "excitation_beams",
     "excitation_footprint",
     "excitation_half_angle_rad",
     "field_sources",
-    "footprint_from_hits",
+    "glow_from_hits",
     "mirror_on_sample",
+    "model_excitation",
     "specular_rays",
     "trace_from_sources",
     "trace_rays",
@@ -112,6 +115,33 @@ class Sources:
         return float(r[order][min(int(np.searchsorted(cumulative, fraction - 1e-12)), r.size - 1)])
 
 
+@dataclass(frozen=True, eq=False)
+class Excitation:
+    """Excitation light landing on the object plane, ray by ray.
+
+    hits_mm: (N, 2) x, y where each ray lands (device frame), mm.
+    directions: (N, 3) unit directions of travel, towards the sample (+z) where known (a traced ray
+        that left its unit heading down and landed after a later bounce has z ≤ 0: such rays
+        excite and glow but are not mirrored).
+    power: (N,) each ray's share of the photons the LEDs emit; their sum is the share that lands
+        (1 for the model beams, which lose nothing in the units; a trace's landed fraction).
+    """
+
+    hits_mm: np.ndarray
+    directions: np.ndarray
+    power: np.ndarray
+
+    def __post_init__(self) -> None:
+        n = len(self.power)
+        if self.hits_mm.shape != (n, 2) or self.directions.shape != (n, 3) or n == 0:
+            raise ValueError("an excitation needs (N, 2) hits, (N, 3) directions and (N,) powers, N ≥ 1")
+        finite = (
+            np.isfinite(self.hits_mm).all() and np.isfinite(self.directions).all() and np.isfinite(self.power).all()
+        )
+        if not finite or np.any(self.power < 0):
+            raise ValueError("excitation rays must be finite and carry power ≥ 0")
+
+
 # ----------------------------------------------------------------------------- sources
 
 
@@ -168,42 +198,57 @@ def excitation_beams(design: SystemDesign, samples: int = 8) -> tuple[np.ndarray
     return origins[up], directions[up], power[up]
 
 
-def _beam_hits(design: SystemDesign, samples: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def model_excitation(design: SystemDesign, samples: int = 8) -> Excitation:
+    """The model beams (:func:`excitation_beams`, ``samples``) where they land on the object plane;
+    every photon leaving the units lands, so the powers sum to 1."""
     origins, directions, power = excitation_beams(design, samples)
     t = (first_order.object_plane_z_mm(design) - origins[:, 2]) / directions[:, 2]
-    return origins + directions * t[:, None], directions, power
+    hits = origins + directions * t[:, None]
+    return Excitation(hits[:, :2], directions, power / power.sum())
+
+
+def binned_sources(points_mm: np.ndarray, power: np.ndarray, step_mm: float) -> Sources:
+    """Points ((N, 2), mm) carrying ``power`` counted on a square grid of ``step_mm`` (mm): one
+    source per occupied cell at its centre, with its share of the power."""
+    if not (math.isfinite(step_mm) and 0.01 <= step_mm <= 5.0):
+        raise ValueError(f"step_mm = {step_mm!r}: must lie within 0.01–5 mm")
+    cells = np.rint(np.asarray(points_mm, dtype=float) / step_mm).astype(int)
+    unique, inverse = np.unique(cells, axis=0, return_inverse=True)
+    weights = np.bincount(inverse.ravel(), weights=power)
+    return Sources(unique * step_mm, weights / weights.sum())
 
 
 def excitation_footprint(design: SystemDesign, step_mm: float = 0.5, samples: int = 8) -> Sources:
-    """Where the LED beams (:func:`excitation_beams`) land on the object plane, counted on a grid of
-    ``step_mm`` (mm): the glow of diffusely scattered excitation light. Hits so far out that
-    nothing from there can reach the sensor (more than 75° off the axis, seen from the mask)
-    are dropped."""
-    hits, _, power = _beam_hits(design, samples)
-    return footprint_from_hits(design, hits[:, :2], power, step_mm)
+    """Where the model beams (:func:`model_excitation`) land, counted on a grid of ``step_mm`` (mm):
+    the glow of diffusely scattered excitation light (:func:`glow_from_hits`)."""
+    excitation = model_excitation(design, samples)
+    return glow_from_hits(design, excitation.hits_mm, excitation.power, step_mm)[0]
 
 
-def footprint_from_hits(design: SystemDesign, hits_mm: np.ndarray, power: np.ndarray, step_mm: float = 0.5) -> Sources:
-    """The glow of :func:`excitation_footprint` from given excitation hits on the object plane
-    ((N, 2) x, y, mm; power shares): counted on a grid of ``step_mm`` (mm), hits beyond the
-    sensor's reach (more than 75° off the axis, seen from the mask) dropped."""
+def glow_from_hits(
+    design: SystemDesign, hits_mm: np.ndarray, power: np.ndarray, step_mm: float = 0.5
+) -> tuple[Sources, float]:
+    """The glow of excitation hits on the object plane ((N, 2) x, y, mm; powers): the hits within
+    the sensor's reach (at most 75° off the axis, seen from the mask) counted on a grid of
+    ``step_mm`` (mm), and the power they carry (what lands farther out can reach no pixel)."""
     if not (math.isfinite(step_mm) and 0.05 <= step_mm <= 5.0):
         raise ValueError(f"step_mm = {step_mm!r}: must lie within 0.05–5 mm")
     hits = np.asarray(hits_mm, dtype=float)
     reach = (first_order.object_plane_z_mm(design) - design.mask_z_mm) * math.tan(math.radians(75.0))
     keep = np.hypot(hits[:, 0], hits[:, 1]) <= reach + design.aperture_mask.opening_mm
-    cells = np.rint(hits[keep, :2] / step_mm).astype(int)
-    unique, inverse = np.unique(cells, axis=0, return_inverse=True)
-    weights = np.bincount(inverse.ravel(), weights=power[keep])
-    return Sources(unique * step_mm, weights / weights.sum())
+    return binned_sources(hits[keep], power[keep], step_mm), float(power[keep].sum())
 
 
 def specular_rays(design: SystemDesign, surface_index: float, samples: int = 24) -> tuple[np.ndarray, ...]:
-    """The LED beams mirrored by a flat sample surface of index ``surface_index`` (≥ 1) in the object
-    plane: (origins_mm, directions, power), power = share of the beam × unpolarised Fresnel
-    reflectance at the beam ray's angle. Trace them with :func:`trace_rays`."""
-    hits, directions, power = _beam_hits(design, samples)
-    return mirror_on_sample(hits, directions, power, surface_index)
+    """The model beams (:func:`model_excitation`) mirrored by a flat sample surface of index
+    ``surface_index`` (≥ 1) in the object plane: (origins_mm, directions, power), power = share of
+    the beam × unpolarised Fresnel reflectance at the beam ray's angle. Trace them with
+    :func:`trace_rays`."""
+    excitation = model_excitation(design, samples)
+    origins = np.column_stack(
+        [excitation.hits_mm, np.full(len(excitation.power), first_order.object_plane_z_mm(design))]
+    )
+    return mirror_on_sample(origins, excitation.directions, excitation.power, surface_index)
 
 
 def mirror_on_sample(

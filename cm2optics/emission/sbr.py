@@ -1,21 +1,33 @@
 """Signal and background at the sensor, and their ratio (SBR), for the two emission chains.
 
-Per excitation photon delivered to the sample, in photoelectrons summed over the sensor:
+Both per photon the LEDs emit (:class:`~cm2optics.emission.filter_angles.Excitation`: where
+each excitation ray lands on the sample plane, its direction and its share of those photons),
+in photoelectrons summed over the sensor:
 
-* signal: the fluorophore absorbs ``absorbed_fraction`` × (its relative excitation spectrum
-  averaged over the excitation light) and re-emits with ``quantum_yield``, isotropically,
-  from points spread evenly over the imaged field (``volume.field_mm``). Each ray carries
-  its share to the sensor through the interference filter at its angle, the film at its own
-  angle, and the sensor's quantum efficiency.
-* background: the excitation light itself, along two paths. (1) Scattered back by the sample
-  (``diffuse_reflectance``) as a Lambertian glow wherever the LED beams land
-  (:func:`~cm2optics.emission.filter_angles.excitation_footprint`: four tilted beams of finite width
-  and étendue-limited spread reach beyond the imaged field). (2) Reflected specularly by the
-  sample's flat surface (Fresnel, index ``surface_index``;
-  :func:`~cm2optics.emission.filter_angles.specular_rays`): the shallow edge of each 45° beam
-  bounces back across the axis into the mask opening. Both meet the filter far more
-  obliquely than the fluorescence (up to ≈ 45° against ≈ 27°), where its passband has slid
+* signal: the fluorescence of the imaged field (``volume.field_mm``), excited by the light that
+  lands in it, where it lands: each landing ray's power enters the sample (Fresnel
+  transmittance at its angle, index ``surface_index``) and the fluorophore absorbs
+  ``absorbed_fraction`` × (its relative excitation spectrum averaged over the excitation light)
+  and re-emits with ``quantum_yield``, isotropically. Each fluorescence ray carries its share to
+  the sensor through the interference filter at its angle, the film at its own angle, and the
+  sensor's quantum efficiency. Light that lands outside the field excites nothing that is
+  imaged, but it adds to the background.
+* background: the excitation light itself, along two paths, from every ray that lands.
+  (1) Scattered back by the sample (``diffuse_reflectance``) as a Lambertian glow where it lands
+  (:func:`~cm2optics.emission.filter_angles.glow_from_hits`: tilted beams of finite width and
+  spread reach beyond the imaged field). (2) Reflected specularly by the sample's flat surface
+  (Fresnel, :func:`~cm2optics.emission.filter_angles.mirror_on_sample`): the shallow side of
+  each tilted beam bounces back across the axis into the mask opening. Both meet the filter far
+  more obliquely than the fluorescence (up to ≈ 45° against ≈ 27°), where its passband has slid
   onto the excitation band: that is the leakage the hybrid filter exists to stop.
+
+Signal and background share one photon budget, so a beam that spends light outside the field
+pays for it in SBR (counting the signal per *landed* photon instead would rank a bare LED, whose
+wide beam lands mostly beyond the sensor's reach, above a collimated one). The excitation is
+the design's model beams (:func:`~cm2optics.emission.filter_angles.model_excitation`: uniform
+hard-edged cones of the étendue half-angle, no losses) unless a traced one is given
+(:func:`cm2optics.illumination.traced_sbr.traced_sbr`): the model is for the spectra report;
+a design decision takes the traced beam, whose tails and aim the model does not see.
 
 Both are computed from one ray trace per source distribution
 (:func:`~cm2optics.emission.filter_angles.trace_emission_rays`), binned by angle of incidence at
@@ -23,8 +35,9 @@ the filter and at the film, with spectra on 380–780 nm (photon units: power ×
 
 The absolute SBR depends on the sample (absorption, yield, scattering); the gain of the
 hybrid over the interference-only chain does not — the sample's numbers cancel in it.
-Backgrounds that no filter removes (out-of-focus fluorescence, autofluorescence of the
-sample or the printed housing) are not modelled; they cap the gain a measurement can show.
+Backgrounds that no filter removes (fluorescence from outside the field or out of focus,
+autofluorescence of the sample or the printed housing) are not modelled; they cap the gain a
+measurement can show.
 """
 
 from __future__ import annotations
@@ -39,13 +52,16 @@ from cm2optics.design import SystemDesign
 from cm2optics.emission.filter_angles import (
     EmissionRays,
     Emitter,
-    Sources,
-    excitation_footprint,
-    field_sources,
-    specular_rays,
+    Excitation,
+    binned_sources,
+    glow_from_hits,
+    mirror_on_sample,
+    model_excitation,
     trace_from_sources,
     trace_rays,
 )
+from cm2optics.optics import first_order
+from cm2optics.spectra.absorption import fresnel_transmittance
 from cm2optics.spectra.chain import EmissionChain, emission_chain, excitation_spectrum
 from cm2optics.spectra.library import load_spectrum
 from cm2optics.spectra.spectrum import DEFAULT_WAVELENGTH_NM
@@ -93,10 +109,12 @@ class SBRResult:
     """Signal and background per angle-of-incidence bin at the interference filter.
 
     aoi_bin_edges_deg: bin edges, degrees.
-    signal: per chain key (:data:`CHAINS`), photoelectrons per excitation photon in each bin.
+    signal: per chain key (:data:`CHAINS`), photoelectrons per photon the LEDs emit in each bin.
     background_by_path: per path (``diffuse``, ``specular``), then per chain key, the same.
     field_radius_mm: radius of the fluorescent field, mm.
-    glow_radius_mm: radius holding 95 % of the scattered excitation glow, mm.
+    glow_radius_mm: radius holding 95 % of the scattered excitation glow (within the sensor's reach), mm.
+    excitation_landed: share of the LEDs' photons that land on the sample plane.
+    excitation_in_field: share that enters the sample inside the field (after the surface's Fresnel loss).
     sample: the sample model. film_from_design: whether the hybrid film is the design's own
         (False: the library's default film was added to a design that has none).
     excitation_overlap: the fluorophore's relative excitation averaged over the excitation light.
@@ -107,6 +125,8 @@ class SBRResult:
     background_by_path: dict[str, dict[str, np.ndarray]]
     field_radius_mm: float
     glow_radius_mm: float
+    excitation_landed: float
+    excitation_in_field: float
     sample: Sample
     film_from_design: bool
     excitation_overlap: float
@@ -163,6 +183,8 @@ class SBRResult:
             ),
             "field_radius_mm": round(self.field_radius_mm, 3),
             "glow_radius_mm": round(self.glow_radius_mm, 3),
+            "excitation_landed": sig(self.excitation_landed),
+            "excitation_in_field": sig(self.excitation_in_field),
             "film_from_design": self.film_from_design,
             "excitation_overlap": round(self.excitation_overlap, 4),
             "sample": {
@@ -219,46 +241,65 @@ def _detected(
 def signal_and_background(
     design: SystemDesign,
     sample: Sample = Sample(),
-    glow: Sources | None = None,
-    specular: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+    excitation: Excitation | None = None,
     field_step_mm: float = 0.4,
     pupil_samples: int = 24,
     beam_samples: int = 16,
+    glow_step_mm: float = 0.5,
+    max_specular_rays: int = 200_000,
+    seed: int = 0,
     bin_deg: float = 2.5,
 ) -> SBRResult:
-    """Signal and background at the sensor for the interference-only and hybrid chains.
+    """Signal and background at the sensor for the interference-only and hybrid chains, per photon
+    the LEDs emit.
 
-    glow: where the diffusely scattered excitation light comes from (default:
-        :func:`excitation_footprint`).
-    specular: the excitation mirrored by the sample's surface, (origins_mm, directions, power)
-        as :func:`specular_rays` gives them (default: the model beams' own, ``beam_samples``;
-        a traced illumination's: :func:`cm2optics.illumination.traced_sbr.traced_background`).
-    field_step_mm: spacing of the fluorescent source points, mm; pupil_samples: directions per
+    excitation: the light landing on the sample plane (default: the model beams,
+        :func:`model_excitation` with ``beam_samples``; a trace's:
+        :func:`cm2optics.illumination.traced_sbr.traced_excitation`).
+    field_step_mm: grid of the fluorescent field's irradiance, mm; pupil_samples: directions per
         source along each side of the mask opening (see :func:`trace_from_sources`);
-        beam_samples: sampling of each LED beam for the specular reflection (:func:`specular_rays`).
+        glow_step_mm: grid of the scattered glow, mm; max_specular_rays: landed rays mirrored by
+        the surface at most (drawn with ``seed``, their power scaled to the landed total).
     bin_deg: width of the reported angle-of-incidence bins, degrees (0.5–10).
+    Raises ValueError when no excitation enters the field (no signal).
     """
     if not (math.isfinite(bin_deg) and 0.5 <= bin_deg <= 10):
         raise ValueError(f"bin_deg = {bin_deg!r}: must lie within 0.5–10°")
-    glow = excitation_footprint(design) if glow is None else glow
-    signal_rays = trace_from_sources(design, field_sources(design, field_step_mm), Emitter.ISOTROPIC, pupil_samples)
+    if not (math.isfinite(field_step_mm) and 0.01 <= field_step_mm <= 2.0):
+        raise ValueError(f"field_step_mm = {field_step_mm!r}: must lie within 0.01–2 mm")
+    if not (isinstance(max_specular_rays, int) and max_specular_rays >= 1):
+        raise ValueError(f"max_specular_rays = {max_specular_rays!r}: must be an integer ≥ 1")
+    excitation = model_excitation(design, beam_samples) if excitation is None else excitation
+    hits, directions, power = excitation.hits_mm, excitation.directions, excitation.power
+    entering = power * fresnel_transmittance(np.arccos(np.clip(np.abs(directions[:, 2]), 0, 1)), sample.surface_index)
+    inside = np.hypot(hits[:, 0], hits[:, 1]) <= design.volume.field_mm / 2
+    in_field = float(entering[inside].sum())
+    if not in_field > 0:
+        raise ValueError("no excitation light lands in the imaged field: no signal to compute an SBR from")
+    glow, glow_power = glow_from_hits(design, hits, power, glow_step_mm)
+    heading = np.flatnonzero(directions[:, 2] > 0)  # directions known at landing
+    pick = heading[np.random.default_rng(seed).permutation(heading.size)[:max_specular_rays]]
+    origins = np.column_stack([hits[pick], np.full(pick.size, first_order.object_plane_z_mm(design))])
+    scale = power[heading].sum() / power[pick].sum() if pick.size else 0.0
+    mirrored = mirror_on_sample(origins, directions[pick], power[pick] * scale, sample.surface_index)
+
+    signal_rays = trace_from_sources(
+        design, binned_sources(hits[inside], entering[inside], field_step_mm), Emitter.ISOTROPIC, pupil_samples
+    )
     background_rays = {
         "diffuse": trace_from_sources(design, glow, Emitter.LAMBERTIAN, pupil_samples),
-        "specular": trace_rays(
-            design, *(specular if specular is not None else specular_rays(design, sample.surface_index, beam_samples))
-        ),
+        "specular": trace_rays(design, *mirrored),
     }
-    background_scale = {"diffuse": sample.diffuse_reflectance, "specular": 1.0}
+    background_scale = {"diffuse": sample.diffuse_reflectance * glow_power, "specular": 1.0}
 
     wavelength = DEFAULT_WAVELENGTH_NM
-    excitation = excitation_spectrum(design)
-    excitation_photons = excitation.values * wavelength
+    excitation_photons = excitation_spectrum(design).values * wavelength
     excitation_photons = excitation_photons / np.trapezoid(excitation_photons, wavelength)
     overlap = float(np.trapezoid(excitation_photons * load_spectrum("gfp-excitation")(wavelength), wavelength))
     emission_photons = load_spectrum("gfp-emission")(wavelength) * wavelength
     emission_photons = emission_photons / np.trapezoid(emission_photons, wavelength)
     qe = load_spectrum("imx178-qe")(wavelength)
-    fluorescence_per_photon = sample.absorbed_fraction * overlap * sample.quantum_yield
+    fluorescence_per_photon = in_field * sample.absorbed_fraction * overlap * sample.quantum_yield
 
     top = 90.0
     filter_edges = np.arange(0.0, top + _FINE_FILTER_DEG / 2, _FINE_FILTER_DEG)
@@ -295,6 +336,8 @@ def signal_and_background(
         background_by_path=background,
         field_radius_mm=design.volume.field_mm / 2,
         glow_radius_mm=glow.radius_mm(0.95),
+        excitation_landed=float(power.sum()),
+        excitation_in_field=in_field,
         sample=sample,
         film_from_design=design.absorption_filter is not None,
         excitation_overlap=overlap,

@@ -211,10 +211,12 @@ def add_spectra_section(
     figures = spectra_report(design, Path(out_dir) / "spectra")
     report.heading(title)
     report.paragraph(
-        "Fluorescence (isotropic, from the imaged field) and excitation light (scattered by the sample "
-        "wherever the LED beams land, and reflected by its surface) are traced through the emission "
-        "filter, the mask and the lenslets to the sensor; each ray meets the interference filter and the "
-        "film at its own angle. Per excitation photon, in photoelectrons over the whole sensor:"
+        "Fluorescence (isotropic, from the imaged field, excited where the model LED beams land in it) "
+        "and excitation light (scattered by the sample wherever the beams land, and reflected by its "
+        "surface) are traced through the emission filter, the mask and the lenslets to the sensor; each "
+        "ray meets the interference filter and the film at its own angle. Per photon the LEDs emit "
+        "(the model beams: uniform cones of the étendue half-angle, no losses), in photoelectrons over "
+        "the whole sensor:"
     )
     report.table(
         ["chain", "signal", "background", "SBR"],

@@ -140,7 +140,7 @@ def test_yaml_round_trip_and_hash(v2: SystemDesign, tmp_path):
 def test_default_aim_stays_out_of_the_yaml_and_a_new_aim_round_trips(v2: SystemDesign, v2_collimating, tmp_path):
     centred = v2_collimating
     assert centred.led_array.aim_mm == 0.0 and "aim_mm" not in centred.to_dict()["led_array"]
-    assert v2.to_dict()["led_array"]["aim_mm"] == 0.2058  # the shipped design aims short of the centre
+    assert v2.to_dict()["led_array"]["aim_mm"] == 1.5  # the shipped design aims short of the centre
     aimed = centred.with_changes({"led_array.aim_mm": -1.5})
     assert aimed.to_dict()["led_array"]["aim_mm"] == -1.5 and aimed.parameter_hash() != centred.parameter_hash()
     aimed.save(tmp_path / "aimed.yaml")
@@ -180,7 +180,7 @@ def test_misspelled_field_suggests_the_right_one(v2):
         ("sensor.bit_depth", 11, "one of 8, 10, 12"),
         ("mechanics.clearance_mm", 0.5, "0.05–0.2"),
         ("imaging.film_to_sensor_mm", 3.2, "must lie below the MLA"),
-        ("led_array.aim_mm", 8.2, "within ±offset_mm"),  # offset_mm = 8.12363
+        ("led_array.aim_mm", 8.2, "within ±offset_mm"),  # offset_mm = 7.5
         ("led_array.aim_mm", -8.5, "within ±offset_mm"),
     ],
 )
