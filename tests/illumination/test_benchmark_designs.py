@@ -1,0 +1,34 @@
+"""The candidate designs kept under ``benchmarks/designs`` (issue 16; their figures in BENCHMARKS.md)
+stay buildable as the collimator code changes: each loads, its collimator profile is computed
+inside its footprint and below its flange, its excitation filter rests on the part's exit face,
+and its units clear the imaging tower and the base plate."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import pytest
+
+from cm2optics.design import load_preset
+from cm2optics.optics.collimator import collimator_profile
+from cm2optics.optics.layout import unit_clashes
+
+DESIGNS = sorted((Path(__file__).resolve().parents[2] / "benchmarks" / "designs").glob("*.yaml"))
+
+
+def test_the_designs_folder_is_found():
+    assert len(DESIGNS) >= 3
+
+
+@pytest.mark.parametrize("path", DESIGNS, ids=lambda p: p.stem)
+def test_kept_designs_build_and_clear_the_housing(path):
+    design = load_preset(str(path))
+    collimator = design.collimator
+    profile = collimator_profile(design)  # a DesignError when the wall leaves the footprint or the height
+    assert profile.tir_r_mm.max() < collimator.footprint_mm / 2
+    assert profile.tir_z_mm.max() <= profile.flange_bottom_z_mm + 1e-9
+    assert design.led_array.excitation_gap_mm == pytest.approx(collimator.led_gap_mm + collimator.height_mm)
+    assert unit_clashes(design) == []
+    if collimator.led_gap_mm == 0.0:  # the LED at the cavity's mouth: its die must fit inside the cavity
+        assert collimator.cavity_radius_mm > design.led.emitter_mm / math.sqrt(2)
