@@ -25,6 +25,7 @@ material, their node coefficients are refitted to the scan by the low-rank build
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 
@@ -62,9 +63,13 @@ PUPIL_UNIT = 0.1
 DIRECTIONS = np.array([[np.cos(t), np.sin(t)] for t in np.arange(8) * np.pi / 4])
 #: Share of a PSF's peak above which its 'core' lies (the centroid that places it).
 CORE_LEVEL = 0.2
-#: Pupil samples per unit in the render, and its half-width (units).
+#: Pupil samples per unit in the render (at least), and its half-width (units).
 RENDER_SAMPLES_PER_UNIT = 60
 RENDER_HALF_WIDTH = 1.25
+#: The render's period λ/ΔL over its window, at least.
+PERIOD_MARGIN = 1.1
+#: Largest image-plane sample of the render's Debye sum, mm (the diffraction core is ≈ 2.5 µm wide).
+MAX_SUBSAMPLE_MM = 1.25e-3
 #: Pupil powers (a, b) of the wavefront's terms (p·p)^a (h·p)^b: 2a + b ≤ 4 without piston and tilt.
 PUPIL_TERMS = tuple((a, b) for a in range(3) for b in range(5) if 2 * a + b <= 4 and not (a == 0 and b <= 1))
 #: Highest power c of (h·h)^c in the wavefront's terms.
@@ -79,7 +84,8 @@ Progress = Callable[[str, int, int], None]
 class PupilSamples:
     """One traced pupil of one lenslet: source ``position_mm`` (x, y, z), passed samples at
     aperture-referenced coordinates ``p`` (n, 2) (pupil units), ``wavefront_waves`` (n,),
-    ``amplitude`` (n,), the grid ``spacing`` (pupil units) and ``wavelength_mm``."""
+    ``amplitude`` (n,), the grid ``spacing`` (pupil units) and ``wavelength_mm``; ``extents``
+    (8,): those of the whole passed region where ``p`` is a subsample of it (default: of ``p``)."""
 
     position_mm: tuple[float, float, float]
     p: np.ndarray
@@ -87,6 +93,11 @@ class PupilSamples:
     amplitude: np.ndarray
     spacing: float
     wavelength_mm: float
+    extents: np.ndarray | None = None
+
+    def passed_extents(self) -> np.ndarray:
+        """(8,) extents of the passed region along :data:`DIRECTIONS` (:func:`pupil_extents`)."""
+        return self.extents if self.extents is not None else pupil_extents(self.p, self.spacing)
 
 
 def nodal_terms(p: np.ndarray, h: np.ndarray, z: float | np.ndarray, depth_degree: int = 2) -> np.ndarray:
@@ -344,8 +355,15 @@ class LensletModel:
 
     def render(self, position_mm: Sequence[float], offset_mm: Sequence[float] = (0.0, 0.0)) -> np.ndarray:
         """The unit-amplitude PSF (pixel-integrated, fine grid) at a source position, its
-        reference point at ``offset_mm`` from the grid's centre sample; zeros where nothing passes."""
-        axis = np.arange(-RENDER_HALF_WIDTH, RENDER_HALF_WIDTH + 1e-9, 1.0 / RENDER_SAMPLES_PER_UNIT)
+        reference point at ``offset_mm`` from the grid's centre sample; zeros where nothing passes.
+        The Debye sum is taken on q sub-samples per fine sample (each ≤ :data:`MAX_SUBSAMPLE_MM`,
+        so that the diffraction core is resolved), integrated over one pixel, then every q-th kept;
+        the pupil is sampled finely enough that the sum's period λ/ΔL exceeds the window by
+        :data:`PERIOD_MARGIN`."""
+        q = max(1, math.ceil(self.sample_mm / MAX_SUBSAMPLE_MM - 1e-9))
+        window_mm = max(self.shape) * self.sample_mm
+        per_unit = max(RENDER_SAMPLES_PER_UNIT, math.ceil(PERIOD_MARGIN * window_mm * PUPIL_UNIT / self.wavelength_mm))
+        axis = np.arange(-RENDER_HALF_WIDTH, RENDER_HALF_WIDTH + 1e-9, 1.0 / per_unit)
         px, py = np.meshgrid(axis, axis)
         grid = np.stack([px, py], -1)
         inside = self.aperture.mask(grid, position_mm)
@@ -353,8 +371,7 @@ class LensletModel:
             return np.zeros(self.shape)
         field = np.zeros(px.shape, complex)
         field[inside] = np.exp(2j * np.pi * self.wavefront(grid[inside], position_mm))
-        ys, xs = ((np.arange(n) - n // 2) * self.sample_mm for n in self.shape)
-        spacing = PUPIL_UNIT / RENDER_SAMPLES_PER_UNIT
+        ys, xs = ((np.arange(n * q) - (n // 2) * q) * (self.sample_mm / q) for n in self.shape)
         image = mft(
             field,
             axis * PUPIL_UNIT,
@@ -362,9 +379,9 @@ class LensletModel:
             xs - offset_mm[0],
             ys - offset_mm[1],
             self.wavelength_mm,
-            spacing,
+            PUPIL_UNIT / per_unit,
         )
-        return pixel_integrate(image, self.oversample)
+        return pixel_integrate(image, self.oversample * q)[::q, ::q]
 
     def predict(self, position_mm: Sequence[float]) -> np.ndarray:
         """The PSF at a source position: rendered at the fitted offset, scaled to the fitted flux
@@ -421,45 +438,46 @@ def fit_lenslet_model(
     fitted); the aperture's clip tolerance: two pupil samples."""
     wavefront = fit_wavefront(pupils, axis_mm)
     positions = np.array([pupil.position_mm for pupil in pupils])
-    extents = np.array([pupil_extents(pupil.p, pupil.spacing) for pupil in pupils])
+    extents = np.array([pupil.passed_extents() for pupil in pupils])
     tolerance = 2 * float(np.median([pupil.spacing for pupil in pupils]))
     aperture = fit_aperture(positions, extents, axis_mm, tolerance)
     return LensletModel(wavefront, aperture, pupils[0].wavelength_mm, shape, sample_mm, oversample)
 
 
 def trace_pupils(
-    emission, lenslet: int, positions_mm: np.ndarray, stride: int = 2, progress: Progress | None = None
-) -> list[PupilSamples]:
-    """The design's traced pupils (middle band) of ``lenslet`` at ``positions_mm`` (N, 3) by an
-    :class:`~cm2optics.emission.psf.EmissionModel`, every ``stride``-th sample each way; the
-    pupil coordinate referenced to the lenslet's exit-pupil centre as seen from each pupil's
-    reference point. Positions where the lenslet passes nothing are left out."""
+    emission, positions_mm: np.ndarray, stride: int = 2, seed: int = 0, progress: Progress | None = None
+) -> dict[int, list[PupilSamples]]:
+    """The design's traced pupils (middle band) of every lenslet at ``positions_mm`` (N, 3) by an
+    :class:`~cm2optics.emission.psf.EmissionModel`, by lenslet: every ``stride``-th sample each
+    way, ≤ :data:`FIT_SAMPLES_PER_NODE` of them kept (seeded) with the extents of all; the pupil
+    coordinate referenced to the lenslet's exit-pupil centre seen from each pupil's reference
+    point. A lenslet that passes nothing from a position has no pupil there."""
+    rng = np.random.default_rng(seed)
     band = emission._mid_band  # the design's middle band, as emission.analysis takes it
-    centre = emission._exit_pupil(lenslet, band)
-    out = []
+    out: dict[int, list[PupilSamples]] = {}
     for i, position in enumerate(np.asarray(positions_mm, float)):
-        traced = emission.pupils(tuple(position), lenslets=[lenslet], bands=[band])
-        if progress is not None:
-            progress(f"pupils of lenslet {lenslet}", i + 1, len(positions_mm))
-        if not traced:
-            continue
-        pupil = traced[0]
-        L, M = np.meshgrid(pupil.l_axis, pupil.m_axis)
-        passed = pupil.amplitude > 0
-        kept = np.zeros_like(passed)
-        kept[::stride, ::stride] = True
-        passed &= kept
-        d = np.array([centre[0] - pupil.x_ref_mm, centre[1] - pupil.y_ref_mm, centre[2]])
-        L0, M0 = -d[:2] / np.linalg.norm(d)
-        p = np.column_stack([(L[passed] - L0) / PUPIL_UNIT, (M[passed] - M0) / PUPIL_UNIT])
-        out.append(
-            PupilSamples(
+        for pupil in emission.pupils(tuple(position), bands=[band]):
+            centre = emission._exit_pupil(pupil.lenslet, band)
+            L, M = np.meshgrid(pupil.l_axis, pupil.m_axis)
+            passed = pupil.amplitude > 0
+            kept = np.zeros_like(passed)
+            kept[::stride, ::stride] = True
+            passed &= kept
+            d = np.array([centre[0] - pupil.x_ref_mm, centre[1] - pupil.y_ref_mm, centre[2]])
+            L0, M0 = -d[:2] / np.linalg.norm(d)
+            p = np.column_stack([(L[passed] - L0) / PUPIL_UNIT, (M[passed] - M0) / PUPIL_UNIT])
+            spacing = pupil.spacing * stride / PUPIL_UNIT
+            pick = rng.choice(len(p), size=min(FIT_SAMPLES_PER_NODE, len(p)), replace=False)
+            samples = PupilSamples(
                 tuple(float(v) for v in position),
-                p,
-                pupil.wavefront_mm[passed] / pupil.wavelength_mm,
-                pupil.amplitude[passed],
-                pupil.spacing * stride / PUPIL_UNIT,
+                p[pick],
+                pupil.wavefront_mm[passed][pick] / pupil.wavelength_mm,
+                pupil.amplitude[passed][pick],
+                spacing,
                 pupil.wavelength_mm,
+                pupil_extents(p, spacing),
             )
-        )
+            out.setdefault(pupil.lenslet, []).append(samples)
+        if progress is not None:
+            progress("design pupils", i + 1, len(positions_mm))
     return out

@@ -29,7 +29,7 @@ from cm2optics.design import SystemDesign, default_design
 from cm2optics.formats.scan import ScanError, ScanIndex, open_scan
 from cm2optics.formats.volume import VolumeGrid
 from cm2optics.lsv.crop_store import DEFAULT_MEMORY_BYTES, CropStore, position_chunks
-from cm2optics.lsv.decompose import Decomposition, decompose, numerical_rank, trim_window
+from cm2optics.lsv.decompose import Decomposition, decompose, numerical_rank, project, trim_window
 from cm2optics.lsv.epsf_validate import turn_check
 from cm2optics.lsv.focal_surface import FocalSurface, estimate_focal_surface
 from cm2optics.lsv.model import LSVModel
@@ -425,6 +425,7 @@ def build_model(
     rotate: bool | None = None,
     warp: bool | None = None,
     memory_bytes: int = DEFAULT_MEMORY_BYTES,
+    aberration_model: int = 0,
 ) -> BuildResult:
     """Build an LSV model from the scan folder ``scan_dir`` (see the module docstring).
 
@@ -459,7 +460,11 @@ def build_model(
     memory_bytes: crops larger than this are kept in a temporary file and read in chunks of
         positions (:mod:`cm2optics.lsv.crop_store`), their SVD randomized and streamed
         (:func:`~cm2optics.lsv.decompose.streamed_decompose`); smaller ones are held in memory
-        and decomposed exactly."""
+        and decomposed exactly.
+    aberration_model: > 0: the node PSFs and the basis from the nodal-aberration model
+        (:mod:`cm2optics.lsv.aberration_build`: ``design``'s pupils, the placement fitted to the
+        scan's crops), the basis decomposed from its PSFs at this many seeded random positions;
+        needs ``design`` and fine crops (an ePSF scan). 0: from the scan's crops."""
     axial_um = _check_build_options(oversample, rank, lateral_um, axial_um, design, refine)
     seconds: dict[str, float] = {}
     start = time.perf_counter()
@@ -475,8 +480,34 @@ def build_model(
     crops = _scan_crops(index, geometry, patch, oversample, epsf_info, estimate_options, progress, memory_bytes)
     seconds["crops"] = time.perf_counter() - start
 
-    start = time.perf_counter()
     gi = index.grid_index()
+    basis_psfs, aberration_info = None, None
+    if aberration_model:
+        from cm2optics.lsv.aberration_build import aberration_psfs
+
+        start = time.perf_counter()
+        if design is None:
+            raise ScanError("the aberration model needs the design (its pupils are traced)")
+        if crops.shape[-1] == patch:
+            raise ScanError(
+                "--aberration-model needs the scan's fine ePSF crops (epsf.h5, from cm2 psf simulate --oversample)"
+            )
+        scan_crops = crops
+        crops, basis_psfs, aberration_info = aberration_psfs(
+            design,
+            crops,
+            gi,
+            index.grid_axes_mm(),
+            geometry,
+            oversample,
+            index.meta.pixel_um,
+            dense=aberration_model,
+            progress=progress,
+            memory_bytes=memory_bytes,
+        )
+        seconds["aberration_model"] = time.perf_counter() - start
+
+    start = time.perf_counter()
     surface, surface_info = _focal_surface(crops, gi, index.grid_axes_mm(), refine) if focal_surface else (None, None)
     options = dict(rank=rank, patch_px=patch, trim=trim, lateral_um=lateral_um, axial_um=axial_um, degree=degree)
     options |= {"design": design.name if design is not None else None, "oversample": oversample}
@@ -484,7 +515,10 @@ def build_model(
     options |= {"rotate": {None: "data decides", True: "on", False: "off"}[rotate]}
     options |= {"warp": {None: "data decides", True: "on", False: "off"}[warp]}
     options |= {"svd": "exact (crops in memory)" if isinstance(crops, np.ndarray) else "streamed (crops on disk)"}
+    options |= {"aberration_model": aberration_model}
     provenance = _build_provenance(index, fit, alignment, options, epsf_info) | {"focal_surface": surface_info}
+    if aberration_info is not None:
+        provenance["aberration_model"] = aberration_info
     fine = crops.shape[-1] != patch  # fine crops (synthetic or dithered), else an ePSF basis fitted to the frames
     model, decomposition = model_from_crops(
         crops,
@@ -503,7 +537,11 @@ def build_model(
         focal_surface=surface,
         refine=refine,
         progress=progress,
+        basis_psfs=basis_psfs,
     )
+    if aberration_info is not None:  # the model's error at the nodes against the scan's own crops
+        scan_error = node_nmse(decomposition, _trim_like(scan_crops, decomposition))
+        model.provenance["aberration_model"]["nmse_nodes_vs_scan"] = scan_error[0] if scan_error else None
     seconds["svd"] = time.perf_counter() - start
     start = time.perf_counter()
     if (rotate is False and warp is False) or refine < 2:
@@ -570,6 +608,14 @@ def node_nmse(decomposition: Decomposition, crops: np.ndarray | CropStore) -> tu
     total = float(norms.sum())
     per_psf = float(np.mean(errors[valid] / norms[valid])) if valid.any() else 0.0
     return (float(errors.sum()) / total if total > 0 else 0.0), per_psf
+
+
+def _trim_like(crops: np.ndarray | CropStore, decomposition: Decomposition) -> np.ndarray | CropStore:
+    """``crops`` cut to the basis's window: centred on the chief ray's sample (h // 2), as
+    :func:`_trim` cuts fine crops (whole pixels about it)."""
+    (h, w), (hb, wb) = crops.shape[2:], decomposition.basis.shape[2:]
+    rows, cols = slice(h // 2 - hb // 2, h // 2 - hb // 2 + hb), slice(w // 2 - wb // 2, w // 2 - wb // 2 + wb)
+    return crops[:, :, rows, cols] if isinstance(crops, np.ndarray) else crops.windowed(rows, cols)
 
 
 def _whole_pixels(window: slice, n: int, S: int) -> slice:
@@ -671,14 +717,22 @@ def model_from_crops(
     focal_surface: FocalSurface | None = None,
     refine: int = 1,
     progress: Progress | None = None,
+    basis_psfs: np.ndarray | CropStore | None = None,
 ) -> tuple[LSVModel, Decomposition]:
     """Truncated SVD of registered ``crops`` (N, J, h, w) at grid positions ``grid_index`` (N, 3) as
     (ix, iy, iz) of ``axes`` (x, y, z mm), scaled so that the in-focus on-axis image of a unit source
     sums to 1, with a default grid spanning the axes (``axial_um`` None: the cm2-v2 preset's). ``trim``:
-    drop dark margins holding less than this share of the energy (None: keep the full crops)."""
+    drop dark margins holding less than this share of the energy (None: keep the full crops).
+    ``basis_psfs`` (M, J, h, w): PSFs to decompose instead of the crops (the aberration model's
+    at positions between the nodes); the crops' coefficients are then their projections on that
+    basis, and the decomposition's errors against K are those of ``basis_psfs``."""
     xs, ys, zs = axes
     S = int(oversample)
-    decomposition = decompose(crops, rank, progress=progress)
+    if basis_psfs is None:
+        decomposition = decompose(crops, rank, progress=progress)
+    else:
+        decomposition = decompose(basis_psfs, rank, progress=progress)
+        decomposition = replace(decomposition, coefficients=project(crops, decomposition.basis))
     K = decomposition.rank
     crop_shape = crops.shape[2:]
     if trim:

@@ -138,3 +138,12 @@ def test_predicted_nodes_nmse_is_zero_for_the_frames_own_psf_and_a_flux_error_sq
     basis = np.linalg.qr(psf.reshape(3, -1).T)[0].T.reshape(psf.shape)  # spans the three PSFs
     result = predicted_nodes_nmse(psf, targets, eps, held, S, basis=basis[:3])
     assert result["rank"] == pytest.approx(0.0, abs=1e-20) and result["K"] == 3
+
+
+def test_render_on_coarse_pixels_is_the_fine_epsf_taken_every_fourth_sample():
+    coefficients = np.zeros(63)
+    coefficients[3] = 0.4  # (p·p)(h·h): field-dependent defocus
+    wavefront, aperture = NodalWavefront(coefficients, AXIS), _open_aperture()
+    coarse = LensletModel(wavefront, aperture, 5e-4, (24, 24), 4.8e-3, 4).render((1.0, 0.5, 0.1), (2e-3, 1e-3))
+    fine = LensletModel(wavefront, aperture, 5e-4, (96, 96), 1.2e-3, 16).render((1.0, 0.5, 0.1), (2e-3, 1e-3))
+    np.testing.assert_allclose(coarse, fine[::4, ::4], rtol=1e-6, atol=1e-9 * fine.max())
