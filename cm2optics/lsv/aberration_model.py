@@ -220,6 +220,10 @@ def _upper_envelope(
     coefficients: least squares on the unclipped nodes that the ceiling (a diagonal's corner of
     the axis extents) does not explain, starting from the upper half of the extents."""
     free = np.ones(len(extents), bool) if ceiling is None else extents < ceiling - tolerance
+    if free.sum() < features.shape[1]:  # the ceiling explains (nearly) every node: a flat cell above it
+        coefficients = np.zeros(features.shape[1])
+        coefficients[0] = extents.max() + tolerance
+        return np.ones(len(extents), bool), coefficients
     use = extents >= np.median(extents[free])
     coefficients = np.linalg.lstsq(features[use & free], extents[use & free], rcond=None)[0]
     for _ in range(20):
