@@ -7,6 +7,7 @@ The work is :func:`cm2optics.lsv.build.build_model`, :func:`cm2optics.lsv.valida
 
 from __future__ import annotations
 
+import functools
 import json
 from contextlib import contextmanager
 from pathlib import Path
@@ -244,7 +245,7 @@ def build(
             rotate=turn,
             warp=warping,
             memory_bytes=int(memory_gb * 1024**3),
-            aberration_model=aberration_model,
+            node_psfs=_aberration_model(design, aberration_model),
         )
     summary = _save_build(result, model_path, None if no_report else folder, oversample)
     if as_json:
@@ -253,6 +254,15 @@ def build(
     _out.print(_build_table(model_path, summary))
     if "report" in summary:
         _out.print(f"report: {summary['report']}")
+
+
+def _aberration_model(design: Any, dense: int) -> Any:
+    """``build_model``'s node-PSF model for --aberration-model N (None for 0): the design's nodal-aberration model."""
+    if not dense:
+        return None
+    from cm2optics.calibrate.aberration_build import aberration_psfs
+
+    return functools.partial(aberration_psfs, design, dense=dense)
 
 
 def _build_paths(

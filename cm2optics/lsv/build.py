@@ -47,6 +47,8 @@ __all__ = [
 ]
 
 Progress = Callable[[str, int, int], None]
+#: A model of the node PSFs (``build_model``'s ``node_psfs``): (node PSFs, basis PSFs, record).
+NodePSFs = Callable[..., tuple[Any, Any, dict[str, Any]]]
 #: Crop side at full resolution (the paper's 160 × 160 px per focus).
 FULL_RESOLUTION_PATCH_PX = 160
 #: Stage/sensor cross-coupling that moves no point of the scanned field by 0.1 px is set to zero.
@@ -425,7 +427,7 @@ def build_model(
     rotate: bool | None = None,
     warp: bool | None = None,
     memory_bytes: int = DEFAULT_MEMORY_BYTES,
-    aberration_model: int = 0,
+    node_psfs: NodePSFs | None = None,
 ) -> BuildResult:
     """Build an LSV model from the scan folder ``scan_dir`` (see the module docstring).
 
@@ -461,10 +463,11 @@ def build_model(
         positions (:mod:`cm2optics.lsv.crop_store`), their SVD randomized and streamed
         (:func:`~cm2optics.lsv.decompose.streamed_decompose`); smaller ones are held in memory
         and decomposed exactly.
-    aberration_model: > 0: the node PSFs and the basis from the nodal-aberration model
-        (:mod:`cm2optics.lsv.aberration_build`: ``design``'s pupils, the placement fitted to the
-        scan's crops), the basis decomposed from its PSFs at this many seeded random positions;
-        needs ``design`` and fine crops (an ePSF scan). 0: from the scan's crops."""
+    node_psfs: a model of the node PSFs that replaces the crops (e.g. the nodal-aberration model of
+        :mod:`cm2optics.calibrate.aberration_build`, which the CLI passes with the design): called
+        as ``node_psfs(crops, grid_index, axes_mm, geometry, oversample, pixel_um, progress=,
+        memory_bytes=)`` on the scan's fine crops, it returns the PSFs at the nodes, the PSFs the
+        basis is decomposed from and a record for the provenance; None: the crops themselves."""
     axial_um = _check_build_options(oversample, rank, lateral_um, axial_um, design, refine)
     seconds: dict[str, float] = {}
     start = time.perf_counter()
@@ -481,31 +484,25 @@ def build_model(
     seconds["crops"] = time.perf_counter() - start
 
     gi = index.grid_index()
-    basis_psfs, aberration_info = None, None
-    if aberration_model:
-        from cm2optics.lsv.aberration_build import aberration_psfs
-
+    basis_psfs, node_model = None, None
+    if node_psfs is not None:
         start = time.perf_counter()
-        if design is None:
-            raise ScanError("the aberration model needs the design (its pupils are traced)")
         if crops.shape[-1] == patch:
             raise ScanError(
-                "--aberration-model needs the scan's fine ePSF crops (epsf.h5, from cm2 psf simulate --oversample)"
+                "a model of the node PSFs needs the scan's fine ePSF crops (epsf.h5, cm2 psf simulate --oversample)"
             )
         scan_crops = crops
-        crops, basis_psfs, aberration_info = aberration_psfs(
-            design,
+        crops, basis_psfs, node_model = node_psfs(
             crops,
             gi,
             index.grid_axes_mm(),
             geometry,
             oversample,
             index.meta.pixel_um,
-            dense=aberration_model,
             progress=progress,
             memory_bytes=memory_bytes,
         )
-        seconds["aberration_model"] = time.perf_counter() - start
+        seconds["node_psfs"] = time.perf_counter() - start
 
     start = time.perf_counter()
     surface, surface_info = _focal_surface(crops, gi, index.grid_axes_mm(), refine) if focal_surface else (None, None)
@@ -515,10 +512,9 @@ def build_model(
     options |= {"rotate": {None: "data decides", True: "on", False: "off"}[rotate]}
     options |= {"warp": {None: "data decides", True: "on", False: "off"}[warp]}
     options |= {"svd": "exact (crops in memory)" if isinstance(crops, np.ndarray) else "streamed (crops on disk)"}
-    options |= {"aberration_model": aberration_model}
     provenance = _build_provenance(index, fit, alignment, options, epsf_info) | {"focal_surface": surface_info}
-    if aberration_info is not None:
-        provenance["aberration_model"] = aberration_info
+    if node_model is not None:
+        provenance["node_psfs"] = node_model
     fine = crops.shape[-1] != patch  # fine crops (synthetic or dithered), else an ePSF basis fitted to the frames
     model, decomposition = model_from_crops(
         crops,
@@ -539,9 +535,9 @@ def build_model(
         progress=progress,
         basis_psfs=basis_psfs,
     )
-    if aberration_info is not None:  # the model's error at the nodes against the scan's own crops
+    if node_model is not None:  # the model's error at the nodes against the scan's own crops
         scan_error = node_nmse(decomposition, _trim_like(scan_crops, decomposition))
-        model.provenance["aberration_model"]["nmse_nodes_vs_scan"] = scan_error[0] if scan_error else None
+        model.provenance["node_psfs"]["nmse_nodes_vs_scan"] = scan_error[0] if scan_error else None
     seconds["svd"] = time.perf_counter() - start
     start = time.perf_counter()
     if (rotate is False and warp is False) or refine < 2:

@@ -1,11 +1,13 @@
 """``cm2 lsv build --aberration-model``: node PSFs and basis material from the nodal-aberration model.
 
-Steps (:mod:`cm2optics.lsv.aberration_model` for the model): the design's pupils traced at every
+Steps (:mod:`cm2optics.emission.aberration_model` for the model): the design's pupils traced at every
 node of the scan (all lenslets, the middle band); per lenslet the wavefront and aperture fitted
 to them, and the placement (each PSF's offset and flux) fitted to the scan's own crops at the
 nodes within :data:`PLACEMENT_FIELD_SHARE` of the scanned half-width; then the model's PSFs
 rendered at every node (they replace the crops) and at ``dense`` seeded random positions over
 the scanned volume (the basis is decomposed from those, :func:`~cm2optics.lsv.build.model_from_crops`).
+:func:`aberration_psfs` is the ``node_psfs`` model that :func:`~cm2optics.lsv.build.build_model`
+calls (the build itself traces nothing: the CLI passes it with the design).
 
 The scan's positions are taken as the design's object coordinates (x, y from the central
 lenslet's axis, z from the nominal focal plane, mm), as a synthetic scan's are. The crops must
@@ -19,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from cm2optics.lsv.aberration_model import fit_lenslet_model, fit_placement, placement_features, trace_pupils
+from cm2optics.emission.aberration_model import fit_lenslet_model, fit_placement, placement_features, trace_pupils
 from cm2optics.lsv.crop_store import CropStore, crop_array
 from cm2optics.lsv.preprocess import Geometry
 from cm2optics.lsv.rotation import lenslet_axes

@@ -1,4 +1,4 @@
-"""The nodal-aberration model of each lenslet's PSF, whose own PSFs make the low-rank basis.
+"""The nodal-aberration model of each lenslet's PSF (its PSFs can make a 3D-LSV model's low-rank basis).
 
 A basis made from the calibration nodes' crops cannot express the PSF's shape between the nodes
 (aberrations and vignetting change faster than a linear blend of neighbours follows). This model
@@ -66,8 +66,10 @@ CORE_LEVEL = 0.2
 #: Pupil samples per unit in the render (at least), and its half-width (units).
 RENDER_SAMPLES_PER_UNIT = 60
 RENDER_HALF_WIDTH = 1.25
-#: The render's period λ/ΔL over its window, at least.
-PERIOD_MARGIN = 1.1
+#: The render's period λ/ΔL over its window, at least: an aberrated PSF's far side must not wrap
+#: into the window (on the 9×9×11 binning-2 scan 1.1 → 1.75 took the held-out node error from
+#: 0.072 to 0.067, the central lenslet's from 0.085 to 0.067; BENCHMARKS.md).
+PERIOD_MARGIN = 1.75
 #: Largest image-plane sample of the render's Debye sum, mm (the diffraction core is ≈ 2.5 µm wide).
 MAX_SUBSAMPLE_MM = 1.25e-3
 #: Pupil powers (a, b) of the wavefront's terms (p·p)^a (h·p)^b: 2a + b ≤ 4 without piston and tilt.
