@@ -400,11 +400,10 @@ def _better(candidate: float | None, reference: float | None) -> bool:
     return candidate is not None and reference is not None and candidate < (1.0 - TURN_GAIN) * reference
 
 
-def _warn_rank(rank: int, n_positions: int, model_rank: int) -> None:
-    """Warn (at build_model's caller) that the scan's positions allow fewer basis PSFs than asked."""
+def _warn_rank(rank: int, positions: str, model_rank: int) -> None:
+    """Warn (at build_model's caller) that the ``positions`` (e.g. "the scan's 147 positions") allow fewer basis PSFs than asked."""
     warnings.warn(
-        f"--rank {rank}: the scan's {n_positions} positions allow only {model_rank} basis PSFs; "
-        f"the model has rank {model_rank}",
+        f"--rank {rank}: {positions} allow only {model_rank} basis PSFs; the model has rank {model_rank}",
         stacklevel=3,
     )
 
@@ -549,7 +548,10 @@ def build_model(
     model.provenance["rotation"] = turn_info
     seconds["rotation"] = time.perf_counter() - start
     if model.rank < rank:
-        _warn_rank(rank, len(index), model.rank)
+        source = f"the scan's {len(index)} positions"
+        if basis_psfs is not None:
+            source = f"the {len(basis_psfs)} positions the basis is decomposed from"
+        _warn_rank(rank, source, model.rank)
     model.provenance["seconds"] = {k: round(v, 3) for k, v in seconds.items()}
     return BuildResult(model, decomposition, replace(fit, geometry=geometry), crops, gi, seconds)
 
