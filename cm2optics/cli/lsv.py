@@ -179,8 +179,8 @@ def build(
             "--aberration-model",
             help="N > 0: node PSFs from the nodal-aberration model (the preset's pupils traced at every node, its "
             "wavefront and vignetting fitted to them, each PSF's offset and flux fitted to the scan's crops) and the "
-            "basis from its PSFs at N seeded random positions between the nodes; needs an ePSF scan (--oversample "
-            "even ≥ 2). 0: node PSFs and basis from the scan's crops.",
+            "basis from its PSFs at N seeded random positions between the nodes (the rank is at most N); needs an "
+            "ePSF scan (--oversample even ≥ 2). 0: node PSFs and basis from the scan's crops.",
         ),
     ] = 0,
     preset: PresetOption = "cm2-v2",
