@@ -7,6 +7,7 @@ The work is :func:`cm2optics.lsv.build.build_model`, :func:`cm2optics.lsv.valida
 
 from __future__ import annotations
 
+import functools
 import json
 from contextlib import contextmanager
 from pathlib import Path
@@ -172,6 +173,16 @@ def build(
             "and decomposed exactly.",
         ),
     ] = 4.0,
+    aberration_model: Annotated[
+        int,
+        typer.Option(
+            "--aberration-model",
+            help="N > 0: node PSFs from the nodal-aberration model (the preset's pupils traced at every node, its "
+            "wavefront and vignetting fitted to them, each PSF's offset and flux fitted to the scan's crops) and the "
+            "basis from its PSFs at N seeded random positions between the nodes (the rank is at most N); needs an "
+            "ePSF scan (--oversample even ≥ 2). 0: node PSFs and basis from the scan's crops.",
+        ),
+    ] = 0,
     preset: PresetOption = "cm2-v2",
     overwrite: OverwriteOption = False,
     as_json: JsonOption = False,
@@ -199,6 +210,12 @@ def build(
         raise UserError(f"--refine = {refine}: must lie within 1–64")
     if not memory_gb > 0:
         raise UserError(f"--memory-gb = {memory_gb}: must be > 0")
+    if aberration_model < 0:
+        raise UserError(f"--aberration-model = {aberration_model}: must be ≥ 0")
+    if aberration_model and (oversample < 2 or oversample % 2):
+        raise UserError(
+            f"--aberration-model needs an ePSF basis (--oversample even ≥ 2), not --oversample {oversample}"
+        )
     turn = {"auto": None, "on": True, "off": False}.get(rotate, "bad")
     if turn == "bad":
         raise UserError(f"--rotate = {rotate!r}: must be auto, on or off")
@@ -228,6 +245,7 @@ def build(
             rotate=turn,
             warp=warping,
             memory_bytes=int(memory_gb * 1024**3),
+            node_psfs=_aberration_model(design, aberration_model),
         )
     summary = _save_build(result, model_path, None if no_report else folder, oversample)
     if as_json:
@@ -236,6 +254,15 @@ def build(
     _out.print(_build_table(model_path, summary))
     if "report" in summary:
         _out.print(f"report: {summary['report']}")
+
+
+def _aberration_model(design: Any, dense: int) -> Any:
+    """``build_model``'s node-PSF model for --aberration-model N (None for 0): the design's nodal-aberration model."""
+    if not dense:
+        return None
+    from cm2optics.calibrate.aberration_build import aberration_psfs
+
+    return functools.partial(aberration_psfs, design, dense=dense)
 
 
 def _build_paths(

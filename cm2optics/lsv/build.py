@@ -29,7 +29,7 @@ from cm2optics.design import SystemDesign, default_design
 from cm2optics.formats.scan import ScanError, ScanIndex, open_scan
 from cm2optics.formats.volume import VolumeGrid
 from cm2optics.lsv.crop_store import DEFAULT_MEMORY_BYTES, CropStore, position_chunks
-from cm2optics.lsv.decompose import Decomposition, decompose, numerical_rank, trim_window
+from cm2optics.lsv.decompose import Decomposition, decompose, numerical_rank, project, trim_window
 from cm2optics.lsv.epsf_validate import turn_check
 from cm2optics.lsv.focal_surface import FocalSurface, estimate_focal_surface
 from cm2optics.lsv.model import LSVModel
@@ -47,6 +47,8 @@ __all__ = [
 ]
 
 Progress = Callable[[str, int, int], None]
+#: A model of the node PSFs (``build_model``'s ``node_psfs``): (node PSFs, basis PSFs, record).
+NodePSFs = Callable[..., tuple[Any, Any, dict[str, Any]]]
 #: Crop side at full resolution (the paper's 160 × 160 px per focus).
 FULL_RESOLUTION_PATCH_PX = 160
 #: Stage/sensor cross-coupling that moves no point of the scanned field by 0.1 px is set to zero.
@@ -398,11 +400,10 @@ def _better(candidate: float | None, reference: float | None) -> bool:
     return candidate is not None and reference is not None and candidate < (1.0 - TURN_GAIN) * reference
 
 
-def _warn_rank(rank: int, n_positions: int, model_rank: int) -> None:
-    """Warn (at build_model's caller) that the scan's positions allow fewer basis PSFs than asked."""
+def _warn_rank(rank: int, positions: str, model_rank: int) -> None:
+    """Warn (at build_model's caller) that the ``positions`` (e.g. "the scan's 147 positions") allow fewer basis PSFs than asked."""
     warnings.warn(
-        f"--rank {rank}: the scan's {n_positions} positions allow only {model_rank} basis PSFs; "
-        f"the model has rank {model_rank}",
+        f"--rank {rank}: {positions} allow only {model_rank} basis PSFs; the model has rank {model_rank}",
         stacklevel=3,
     )
 
@@ -425,6 +426,7 @@ def build_model(
     rotate: bool | None = None,
     warp: bool | None = None,
     memory_bytes: int = DEFAULT_MEMORY_BYTES,
+    node_psfs: NodePSFs | None = None,
 ) -> BuildResult:
     """Build an LSV model from the scan folder ``scan_dir`` (see the module docstring).
 
@@ -459,7 +461,12 @@ def build_model(
     memory_bytes: crops larger than this are kept in a temporary file and read in chunks of
         positions (:mod:`cm2optics.lsv.crop_store`), their SVD randomized and streamed
         (:func:`~cm2optics.lsv.decompose.streamed_decompose`); smaller ones are held in memory
-        and decomposed exactly."""
+        and decomposed exactly.
+    node_psfs: a model of the node PSFs that replaces the crops (e.g. the nodal-aberration model of
+        :mod:`cm2optics.calibrate.aberration_build`, which the CLI passes with the design): called
+        as ``node_psfs(crops, grid_index, axes_mm, geometry, oversample, pixel_um, progress=,
+        memory_bytes=)`` on the scan's fine crops, it returns the PSFs at the nodes, the PSFs the
+        basis is decomposed from and a record for the provenance; None: the crops themselves."""
     axial_um = _check_build_options(oversample, rank, lateral_um, axial_um, design, refine)
     seconds: dict[str, float] = {}
     start = time.perf_counter()
@@ -475,8 +482,28 @@ def build_model(
     crops = _scan_crops(index, geometry, patch, oversample, epsf_info, estimate_options, progress, memory_bytes)
     seconds["crops"] = time.perf_counter() - start
 
-    start = time.perf_counter()
     gi = index.grid_index()
+    basis_psfs, node_model = None, None
+    if node_psfs is not None:
+        start = time.perf_counter()
+        if crops.shape[-1] == patch:
+            raise ScanError(
+                "a model of the node PSFs needs the scan's fine ePSF crops (epsf.h5, cm2 psf simulate --oversample)"
+            )
+        scan_crops = crops
+        crops, basis_psfs, node_model = node_psfs(
+            crops,
+            gi,
+            index.grid_axes_mm(),
+            geometry,
+            oversample,
+            index.meta.pixel_um,
+            progress=progress,
+            memory_bytes=memory_bytes,
+        )
+        seconds["node_psfs"] = time.perf_counter() - start
+
+    start = time.perf_counter()
     surface, surface_info = _focal_surface(crops, gi, index.grid_axes_mm(), refine) if focal_surface else (None, None)
     options = dict(rank=rank, patch_px=patch, trim=trim, lateral_um=lateral_um, axial_um=axial_um, degree=degree)
     options |= {"design": design.name if design is not None else None, "oversample": oversample}
@@ -485,6 +512,8 @@ def build_model(
     options |= {"warp": {None: "data decides", True: "on", False: "off"}[warp]}
     options |= {"svd": "exact (crops in memory)" if isinstance(crops, np.ndarray) else "streamed (crops on disk)"}
     provenance = _build_provenance(index, fit, alignment, options, epsf_info) | {"focal_surface": surface_info}
+    if node_model is not None:
+        provenance["node_psfs"] = node_model
     fine = crops.shape[-1] != patch  # fine crops (synthetic or dithered), else an ePSF basis fitted to the frames
     model, decomposition = model_from_crops(
         crops,
@@ -503,7 +532,11 @@ def build_model(
         focal_surface=surface,
         refine=refine,
         progress=progress,
+        basis_psfs=basis_psfs,
     )
+    if node_model is not None:  # the model's error at the nodes against the scan's own crops
+        scan_error = node_nmse(decomposition, _trim_like(scan_crops, decomposition))
+        model.provenance["node_psfs"]["nmse_nodes_vs_scan"] = scan_error[0] if scan_error else None
     seconds["svd"] = time.perf_counter() - start
     start = time.perf_counter()
     if (rotate is False and warp is False) or refine < 2:
@@ -515,7 +548,10 @@ def build_model(
     model.provenance["rotation"] = turn_info
     seconds["rotation"] = time.perf_counter() - start
     if model.rank < rank:
-        _warn_rank(rank, len(index), model.rank)
+        source = f"the scan's {len(index)} positions"
+        if basis_psfs is not None:
+            source = f"the {len(basis_psfs)} positions the basis is decomposed from"
+        _warn_rank(rank, source, model.rank)
     model.provenance["seconds"] = {k: round(v, 3) for k, v in seconds.items()}
     return BuildResult(model, decomposition, replace(fit, geometry=geometry), crops, gi, seconds)
 
@@ -570,6 +606,14 @@ def node_nmse(decomposition: Decomposition, crops: np.ndarray | CropStore) -> tu
     total = float(norms.sum())
     per_psf = float(np.mean(errors[valid] / norms[valid])) if valid.any() else 0.0
     return (float(errors.sum()) / total if total > 0 else 0.0), per_psf
+
+
+def _trim_like(crops: np.ndarray | CropStore, decomposition: Decomposition) -> np.ndarray | CropStore:
+    """``crops`` cut to the basis's window: centred on the chief ray's sample (h // 2), as
+    :func:`_trim` cuts fine crops (whole pixels about it)."""
+    (h, w), (hb, wb) = crops.shape[2:], decomposition.basis.shape[2:]
+    rows, cols = slice(h // 2 - hb // 2, h // 2 - hb // 2 + hb), slice(w // 2 - wb // 2, w // 2 - wb // 2 + wb)
+    return crops[:, :, rows, cols] if isinstance(crops, np.ndarray) else crops.windowed(rows, cols)
 
 
 def _whole_pixels(window: slice, n: int, S: int) -> slice:
@@ -671,14 +715,22 @@ def model_from_crops(
     focal_surface: FocalSurface | None = None,
     refine: int = 1,
     progress: Progress | None = None,
+    basis_psfs: np.ndarray | CropStore | None = None,
 ) -> tuple[LSVModel, Decomposition]:
     """Truncated SVD of registered ``crops`` (N, J, h, w) at grid positions ``grid_index`` (N, 3) as
     (ix, iy, iz) of ``axes`` (x, y, z mm), scaled so that the in-focus on-axis image of a unit source
     sums to 1, with a default grid spanning the axes (``axial_um`` None: the cm2-v2 preset's). ``trim``:
-    drop dark margins holding less than this share of the energy (None: keep the full crops)."""
+    drop dark margins holding less than this share of the energy (None: keep the full crops).
+    ``basis_psfs`` (M, J, h, w): PSFs to decompose instead of the crops (the aberration model's
+    at positions between the nodes); the crops' coefficients are then their projections on that
+    basis, and the decomposition's errors against K are those of ``basis_psfs``."""
     xs, ys, zs = axes
     S = int(oversample)
-    decomposition = decompose(crops, rank, progress=progress)
+    if basis_psfs is None:
+        decomposition = decompose(crops, rank, progress=progress)
+    else:
+        decomposition = decompose(basis_psfs, rank, progress=progress)
+        decomposition = replace(decomposition, coefficients=project(crops, decomposition.basis))
     K = decomposition.rank
     crop_shape = crops.shape[2:]
     if trim:

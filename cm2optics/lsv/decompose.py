@@ -27,7 +27,7 @@ from cm2optics.lsv.crop_store import CropStore, position_chunks
 
 Progress = Callable[[str, int, int], None]
 
-__all__ = ["Decomposition", "decompose", "numerical_rank", "streamed_decompose", "trim_window"]
+__all__ = ["Decomposition", "decompose", "numerical_rank", "project", "streamed_decompose", "trim_window"]
 
 
 @dataclass(frozen=True)
@@ -80,6 +80,19 @@ def decompose(crops: np.ndarray | CropStore, rank: int, progress: Progress | Non
     for start in range(0, X.shape[1], 16384):
         basis[:, start : start + 16384] = projector @ X[:, start : start + 16384].astype(np.float64)
     return _decomposition(basis.reshape((K,) + shape), vectors * singular, singular, np.diag(G))
+
+
+def project(crops: np.ndarray | CropStore, basis: np.ndarray) -> np.ndarray:
+    """(N, K) coefficients of ``crops`` (N, J, h, w) on an orthonormal ``basis`` (K, J, h, w), in float64 sums."""
+    B = basis.reshape(len(basis), -1).astype(np.float64)
+    coefficients = np.zeros((len(crops), len(basis)))
+    for first, block in position_chunks(crops):
+        for start in range(0, len(block), 32):
+            rows = block[start : start + 32]
+            coefficients[first + start : first + start + len(rows)] = (
+                rows.reshape(len(rows), -1).astype(np.float64) @ B.T
+            )
+    return coefficients.astype(np.float32)
 
 
 def _kept_rank(singular: np.ndarray, rank: int, N: int) -> int:

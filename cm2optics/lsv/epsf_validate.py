@@ -33,7 +33,7 @@ from cm2optics.lsv.interpolate import axis_coordinate, tent_pairs
 from cm2optics.lsv.rotation import AzimuthTurn
 from cm2optics.lsv.warp import displacement_blend
 
-__all__ = ["heldout_nodes", "leave_one_out_pixels", "turn_check", "undithered_axis"]
+__all__ = ["heldout_nodes", "leave_one_out_pixels", "predicted_nodes_nmse", "turn_check", "undithered_axis"]
 
 
 def undithered_axis(values_mm: np.ndarray, px_per_mm: float, within_px: float) -> np.ndarray:
@@ -64,6 +64,36 @@ def _place(patch: np.ndarray, eps: np.ndarray, S: int) -> np.ndarray:
     from cm2optics.lsv.sparse import _shift_patch
 
     return place_epsf(patch, (eps[0], eps[1]), S) if S > 1 else _shift_patch(patch, (eps[0], eps[1]))
+
+
+def _frame_nmse(prediction: np.ndarray, frame: np.ndarray, eps: np.ndarray, S: int) -> float:
+    """Σ_j ‖p_j − y_j‖² / Σ_j ‖y_j‖² of the PSFs ``prediction`` (J, h·S, w·S) placed at the foci's
+    sub-pixel fractions ``eps`` (J, 2) against the node's ``frame`` (J, h+3, w+3)."""
+    placed = np.stack([_place(prediction[j], eps[j], S) for j in range(len(prediction))])
+    y = np.asarray(frame, np.float64)
+    return float(((placed - y) ** 2).sum() / max((y**2).sum(), 1e-300))
+
+
+def predicted_nodes_nmse(
+    predictions: np.ndarray,
+    targets: np.ndarray,
+    eps: np.ndarray,
+    held: np.ndarray,
+    oversample: int,
+    basis: np.ndarray | None = None,
+) -> dict[str, Any]:
+    """Held-out NMSE, as :func:`leave_one_out_pixels` measures it, of node PSFs predicted by a
+    model fitted without them: ``predictions`` (H, J, h·S, w·S) of the nodes ``held`` (H,),
+    registered as the crops, against ``targets``/``eps`` (N, …) as there; with ``basis`` (K, J,
+    h·S, w·S, orthonormal) also projected on it first (``rank``). Per node and the means."""
+    full = [_frame_nmse(p, targets[n], eps[n], oversample) for p, n in zip(predictions, held, strict=True)]
+    out: dict[str, Any] = {"full": float(np.mean(full)), "full_per_node": full, "n_heldout": len(full)}
+    if basis is not None:
+        B = basis.reshape(len(basis), -1).astype(np.float64)
+        projected = [(B.T @ (B @ p.reshape(-1).astype(np.float64))).reshape(p.shape) for p in predictions]
+        rank = [_frame_nmse(p, targets[n], eps[n], oversample) for p, n in zip(projected, held, strict=True)]
+        out |= {"rank": float(np.mean(rank)), "rank_per_node": rank, "K": int(len(basis))}
+    return out
 
 
 class _Stacks:
@@ -184,9 +214,7 @@ def leave_one_out_pixels(
     per_axis: dict[str, list[float]] = {"x": [], "y": [], "z": []}
 
     def nmse(prediction: np.ndarray, n: int) -> float:
-        placed = np.stack([_place(prediction[j], eps[n, j], S) for j in range(J)])
-        y = targets[n].astype(np.float64)
-        return float(((placed - y) ** 2).sum() / max((y**2).sum(), 1e-300))
+        return _frame_nmse(prediction, targets[n], eps[n], S)
 
     stacks = _Stacks(crops, row_of, keep, np.asarray(axes[2], float))
     for n in held:

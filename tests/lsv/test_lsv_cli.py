@@ -241,6 +241,8 @@ def test_simulate_volume_per_lenslet_and_lsi(model, tmp_path):
         (["lsv", "build", "{scan}", "--warp", "maybe"], "--warp = 'maybe'"),
         (["lsv", "build", "{scan}", "--warp", "on", "--refine", "1"], "--warp on needs --refine ≥ 2"),
         (["lsv", "build", "{scan}", "--memory-gb", "0"], "--memory-gb = 0.0: must be > 0"),
+        (["lsv", "build", "{scan}", "--aberration-model", "-1"], "--aberration-model = -1: must be ≥ 0"),
+        (["lsv", "build", "{scan}", "--aberration-model", "100"], "--aberration-model needs an ePSF basis"),
         (["lsv", "validate", "/no/model.h5", "{scan}"], "no such model file"),
         (["lsv", "validate", "{model}", "{scan}", "--ranks", "a,b"], "--ranks"),
         (["simulate", "--model", "{model}", "--out", "x.tif"], "exactly one of --volume and --emitters"),

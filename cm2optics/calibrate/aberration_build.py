@@ -1,0 +1,95 @@
+"""``cm2 lsv build --aberration-model``: node PSFs and basis material from the nodal-aberration model.
+
+Steps (:mod:`cm2optics.emission.aberration_model` for the model): the design's pupils traced at every
+node of the scan (all lenslets, the middle band); per lenslet the wavefront and aperture fitted
+to them, and the placement (each PSF's offset and flux) fitted to the scan's own crops at the
+nodes within :data:`PLACEMENT_FIELD_SHARE` of the scanned half-width; then the model's PSFs
+rendered at every node (they replace the crops) and at ``dense`` seeded random positions over
+the scanned volume (the basis is decomposed from those, :func:`~cm2optics.lsv.build.model_from_crops`).
+:func:`aberration_psfs` is the ``node_psfs`` model that :func:`~cm2optics.lsv.build.build_model`
+calls (the build itself traces nothing: the CLI passes it with the design).
+
+The scan's positions are taken as the design's object coordinates (x, y from the central
+lenslet's axis, z from the nominal focal plane, mm), as a synthetic scan's are. The crops must
+be fine (an ePSF scan, even oversample ≥ 2): the render is integrated over one pixel.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from cm2optics.emission.aberration_model import fit_lenslet_model, fit_placement, placement_features, trace_pupils
+from cm2optics.lsv.crop_store import CropStore, crop_array
+from cm2optics.lsv.preprocess import Geometry
+from cm2optics.lsv.rotation import lenslet_axes
+
+__all__ = ["PLACEMENT_FIELD_SHARE", "aberration_psfs"]
+
+Progress = Callable[[str, int, int], None]
+#: Share of the scanned half-width within which the placement is fitted to the crops (the
+#: cubic polynomials are poorest at the field's edge, where the foci leave the sensor).
+PLACEMENT_FIELD_SHARE = 0.75
+
+
+def _node_positions(grid_index: np.ndarray, axes: tuple[np.ndarray, np.ndarray, np.ndarray]) -> np.ndarray:
+    """(N, 3) source positions (mm) of the nodes ``grid_index`` (N, 3) of ``axes``."""
+    gi = np.asarray(grid_index)
+    return np.stack([np.asarray(axes[k], float)[gi[:, k]] for k in range(3)], -1)
+
+
+def aberration_psfs(
+    design: Any,
+    crops: np.ndarray | CropStore,
+    grid_index: np.ndarray,
+    axes: tuple[np.ndarray, np.ndarray, np.ndarray],
+    geometry: Geometry,
+    oversample: int,
+    pixel_um: float,
+    *,
+    dense: int = 1000,
+    seed: int = 0,
+    progress: Progress | None = None,
+    memory_bytes: int,
+) -> tuple[np.ndarray | CropStore, np.ndarray | CropStore, dict[str, Any]]:
+    """The model's PSFs at the nodes (N, J, h, w) and at ``dense`` random positions (dense, J, h,
+    w), on the fine grid of ``crops`` (``pixel_um`` / ``oversample`` per sample), and a record of
+    the fit. ``design``: the :class:`~cm2optics.design.SystemDesign` whose pupils are traced."""
+    from cm2optics.emission.psf import EmissionModel
+    from cm2optics.emission.source import calibration_pinhole
+
+    if oversample < 2 or oversample % 2:
+        raise ValueError(f"--aberration-model needs fine crops (an ePSF scan, even --oversample ≥ 2), not {oversample}")
+    positions = _node_positions(grid_index, axes)
+    N, J = crops.shape[:2]
+    shape = crops.shape[2:]
+    sample_mm = pixel_um / oversample / 1000.0
+    pupils = trace_pupils(EmissionModel(design, calibration_pinhole()), positions, seed=seed, progress=progress)
+    half_width = np.abs(positions[:, :2]).max(axis=0)
+    near = np.all(np.abs(positions[:, :2]) <= PLACEMENT_FIELD_SHARE * half_width + 1e-9, axis=1)
+    rng = np.random.default_rng(seed)
+    low, high = positions.min(axis=0), positions.max(axis=0)
+    dense_positions = rng.uniform(low, high, (dense, 3))
+    node_psfs = crop_array((N, J, *shape), memory_bytes)
+    dense_psfs = crop_array((dense, J, *shape), memory_bytes)
+    axes_mm = lenslet_axes(geometry, np.asarray(axes[2], float))
+    need = 2 * placement_features(np.zeros(3)).size
+    record: dict[str, Any] = {"dense_positions": dense, "seed": seed, "lenslets": {}}
+    for j in range(J):
+        own = pupils.get(j, [])
+        lit = [n for n in np.flatnonzero(near) if crops[(int(n), j)].sum() > 0]
+        if len(own) < need or len(lit) < need:  # too few lit nodes to fit: the lenslet's PSFs stay zero
+            record["lenslets"][j] = {"pupils": len(own), "placement_nodes": len(lit), "fitted": False}
+            continue
+        model = fit_lenslet_model(own, tuple(axes_mm[j]), shape, sample_mm, oversample)
+        model = fit_placement(model, [crops[(int(n), j)] for n in lit], positions[lit])
+        for n in range(N):
+            node_psfs[n, j] = model.predict(positions[n])
+        for m in range(dense):
+            dense_psfs[m, j] = model.predict(dense_positions[m])
+        record["lenslets"][j] = {"pupils": len(own), "placement_nodes": len(lit), "fitted": True}
+        if progress is not None:
+            progress("aberration model (lenslets)", j + 1, J)
+    return node_psfs, dense_psfs, record
