@@ -93,6 +93,8 @@ def test_registered_views_bring_one_source_to_the_same_pixel_in_every_view():
         assert registered[j].sum() == pytest.approx(1.0)
     with pytest.raises(ValueError, match="registration map"):
         register_views(views[:2], positions)
+    with pytest.raises(ValueError, match="needs a 3D-LSV model"):
+        registration_map(object(), V)
 
 
 def test_register_views_stays_out_of_the_hash_when_false():

@@ -228,7 +228,10 @@ def reconstruct_with_net(
     if registration is None and config.register_views:
         from cm2optics.recon.net.register import registration_map
 
-        registration = registration_map(model, V)
+        try:
+            registration = registration_map(model, V)
+        except ValueError as error:
+            raise GeometryMismatchError(f"{loaded.folder}: trained on registered views; {error}") from None
     if registration is not None:
         from cm2optics.recon.net.register import register_views
 

@@ -71,6 +71,8 @@ def _filled(values: np.ndarray, valid: np.ndarray) -> np.ndarray:
 def registration_map(model, view_px: int, step_mm: float = 0.125, z_mm: float = 0.0) -> np.ndarray:
     """(J, 2, V, V) float32 sensor-relative sampling positions (row, col) for each view's pixels:
     view j's registered pixel p is its pixel ``p + δ_j`` (see the module docstring); V = view_px."""
+    if not all(hasattr(model, name) for name in ("basis", "coefficients_at", "geometry")):
+        raise ValueError(f"{type(model).__name__}: registering the views needs a 3D-LSV model (its focus patches)")
     g = model.geometry
     A_inv = np.linalg.inv(g.A(z_mm))
     V = int(view_px)
