@@ -81,6 +81,9 @@ class NetConfig:
     interleave_volumes: consecutive batches cycle over groups of this many volumes, each batch
     from one volume (1: a volume's batches in a row) — with as many DataLoader ``workers``, each
     worker renders only its own volume of the group instead of every one;
+    register_views: resample each view onto the model's affine geometry before the network
+    (:mod:`~cm2optics.recon.net.register`: the lenslets' distortion differs, so off axis the nine
+    views disagree by up to tens of pixels), in training and at inference alike;
     curriculum_epochs: epochs over which the density grows linearly from
     curriculum_start_density (per mm²) to ``synth.density_per_mm2`` (0: no curriculum);
     target: ``occupancy`` (fraction of each voxel inside an emitter, the paper's binned balls)
@@ -117,6 +120,7 @@ class NetConfig:
     val_volumes: int = 4
     fresh_volumes: bool = True
     interleave_volumes: int = 1
+    register_views: bool = False
     curriculum_epochs: int = 0
     curriculum_start_density: tuple[float, float] = (5.0, 20.0)
     target: str = "occupancy"
@@ -167,6 +171,8 @@ class NetConfig:
         if not isinstance(self.fresh_volumes, bool):
             raise ConfigError(f"fresh_volumes = {self.fresh_volumes!r}: must be true or false")
         _int("interleave_volumes", self.interleave_volumes, 1, 10_000_000)
+        if not isinstance(self.register_views, bool):
+            raise ConfigError(f"register_views = {self.register_views!r}: must be true or false")
         _int("curriculum_epochs", self.curriculum_epochs, 0, 100_000)
         try:
             lo, hi = (float(v) for v in self.curriculum_start_density)
@@ -242,8 +248,8 @@ class NetConfig:
 
     def hash(self) -> str:
         """SHA-256 (hex) of the fields that change the weights (not :data:`RUNTIME_FIELDS`; nor
-        ``ablation`` when ``none`` nor an empty ``init_weights`` nor ``interleave_volumes`` of 1, so
-        that configs written before they existed keep their hash)."""
+        ``ablation`` when ``none`` nor an empty ``init_weights`` nor ``interleave_volumes`` of 1 nor
+        ``register_views`` when false, so that configs written before they existed keep their hash)."""
         data = {k: v for k, v in self.to_dict().items() if k not in RUNTIME_FIELDS}
         if data["ablation"] == "none":
             del data["ablation"]
@@ -251,6 +257,8 @@ class NetConfig:
             del data["init_weights"]
         if data["interleave_volumes"] == 1:
             del data["interleave_volumes"]
+        if not data["register_views"]:
+            del data["register_views"]
         return hashlib.sha256(json.dumps(data, sort_keys=True, default=str).encode()).hexdigest()
 
     def with_changes(self, **changes: Any) -> NetConfig:

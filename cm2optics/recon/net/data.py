@@ -9,7 +9,8 @@ block of voxels imaged onto the patch at the focal plane, in the views' orientat
 moved to its centre) rather than on the whole grid — the same voxels, without making a
 full-field volume per sample. The block's lateral pitch is the model's object-side pixel
 (:func:`pixel_voxel_um`; the config's voxel within 2 %), so the targets stay aligned with the
-views across the whole field.
+views across the whole field. With ``register_views`` the views and demixed views are first
+registered onto the model's geometry (:mod:`~cm2optics.recon.net.register`), as at inference.
 
 Order: per epoch the volumes are shuffled and each volume's patches shuffled (generator
 ``(seed, epoch)``), and consecutive patches share a volume (one synthesis serves them). The global
@@ -206,6 +207,11 @@ class PatchSource:
         self.config = config
         self.imaging = forward_imaging(config)
         self.scale = np.asarray(self.imaging.pixels_per_voxel(), float)
+        self.registration = None
+        if config.register_views:
+            from cm2optics.recon.net.register import registration_map
+
+            self.registration = registration_map(self.imaging.source, config.synth.view_px)
         self._cache: OrderedDict[tuple, dict[str, Any]] = OrderedDict()
         self._size = cache
 
@@ -242,9 +248,14 @@ class PatchSource:
             block_grid = VolumeGrid((grid.shape[0], q, q), pixel_voxel_um(c, self.scale))
             block = rasterize_balls(local, block_grid, supersample=synth.supersample, kind=kind)
             volumes.append(np.clip(block, 0.0, 1.0))
+        views, demixed = sample.views, sample.demixed
+        if self.registration is not None:
+            from cm2optics.recon.net.register import register_views
+
+            views, demixed = register_views(views, self.registration), register_views(demixed, self.registration)
         return {
-            "views": np.stack([sample.views[:, r : r + p, s : s + p] for r, s in origins]).astype(np.float32),
-            "demixed": np.stack([sample.demixed[:, r : r + p, s : s + p] for r, s in origins]).astype(np.float32),
+            "views": np.stack([views[:, r : r + p, s : s + p] for r, s in origins]).astype(np.float32),
+            "demixed": np.stack([demixed[:, r : r + p, s : s + p] for r, s in origins]).astype(np.float32),
             "volume": np.stack(volumes).astype(np.float32),
             "origins": origins,
             "emitters": sample.draw.emitters,

@@ -5,7 +5,8 @@
    ``histogram`` (match its histogram to the training views' quantiles stored with the weights —
    the paper's preprocessing of measured frames);
 3. crop the nine views at the chief rays of the model's geometry (zeros beyond the sensor, as in
-   training), ``view_px`` on a side (default: the training views');
+   training), ``view_px`` on a side (default: the training views'), registered onto the model's
+   geometry if the weights were trained so (:mod:`~cm2optics.recon.net.register`);
 4. run the network on the whole view stack (fully convolutional, batch norms folded into the
    convolutions, channels-last memory layout), σ → [0, 1];
 5. resample the output from the views' orientation into the volume's (the image through a
@@ -188,6 +189,7 @@ def reconstruct_with_net(
     name: str = "measurement",
     lateral: LateralCorrection | None = None,
     grid: VolumeGrid | None = None,
+    registration: np.ndarray | None = None,
 ) -> NetResult:
     """The volume of one measurement (see the module docstring).
 
@@ -201,7 +203,10 @@ def reconstruct_with_net(
     lateral: the output planes' lateral correction (default: the one stored with the weights,
     none if they carry none; :mod:`~cm2optics.recon.net.lateral`). grid: the output grid, centred
     on the axis (default: the views' size at the model's object-side pixel; its planes must be the
-    network's), e.g. a test set's, onto which the planes are resampled."""
+    network's), e.g. a test set's, onto which the planes are resampled. registration: (J, 2, V, V)
+    sampling positions that register the views onto the model's geometry
+    (:func:`~cm2optics.recon.net.register.registration_map`; None: the model's own if the weights
+    were trained on registered views, else the views as cropped)."""
     t0 = time.perf_counter()
     if preprocess not in PREPROCESS:
         raise ValueError(f"preprocess = {preprocess!r}: must be one of {', '.join(PREPROCESS)}")
@@ -220,6 +225,17 @@ def reconstruct_with_net(
         image = histogram_match(image, loaded.histogram)
     V = int(view_px or config.synth.view_px)
     views = views_from_measurement(image, model, V)
+    if registration is None and config.register_views:
+        from cm2optics.recon.net.register import registration_map
+
+        try:
+            registration = registration_map(model, V)
+        except ValueError as error:
+            raise GeometryMismatchError(f"{loaded.folder}: trained on registered views; {error}") from None
+    if registration is not None:
+        from cm2optics.recon.net.register import register_views
+
+        views = register_views(views, registration)
     t1 = time.perf_counter()
     # channels-last: 0.58× the time of the default layout at full field on this CPU; batch norms
     # folded into the convolutions: fewer passes over the feature maps (BENCHMARKS.md)
