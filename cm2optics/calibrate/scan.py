@@ -31,7 +31,7 @@ from warnings import catch_warnings, simplefilter
 
 import numpy as np
 
-from cm2optics.calibrate.acquisition import bright_foci, flux_drift, stage_errors
+from cm2optics.calibrate.acquisition import bright_foci, flux_drift, spread_rate_per_mm, stage_errors, stage_z_scale
 from cm2optics.calibrate.attribute import Attribution, Problem, attribute
 from cm2optics.calibrate.defects import defective_pixels, describe_defects, fill_defects
 from cm2optics.calibrate.effects import apply_image_effects, library, split_key
@@ -329,7 +329,8 @@ def calibrate_scan(
         rate = _with_image_effects(corrected_job()[0], simulator, attribution)
     after = analyse_scan(data, rate, positions, centres, pitch, counts_per_electron=gain)
     drift, stage = flux_drift(after), stage_errors(after, simulator.pixel_um)
-    for warning in (drift, stage):
+    z_scale = stage_z_scale(after, spread_rate_per_mm(design, positions[:, 2]))
+    for warning in (drift, stage, z_scale):
         if warning is not None:
             say(f"warning: {warning}")
             warnings.append(warning)
@@ -347,11 +348,11 @@ def calibrate_scan(
         "before": before.to_dict(),
         "after": after.to_dict(),
     }
-    if stage is not None:  # the foci of whole frames moved: every residual of those frames shows it
+    if stage is not None or z_scale is not None:  # the source was elsewhere: every residual of those frames shows it
         for entry in document["unexplained"]:
             entry["description"] += (
-                "; frames whose foci are displaced as a whole were found (a stage error, see warnings): "
-                "part or all of this residual may be theirs"
+                f"; {'frames whose foci are displaced as a whole' if stage else 'a z scale error of the stage'} "
+                "was found (see warnings): part or all of this residual may be the stage's"
             )
     correction = None
     if document["unexplained"]:
