@@ -37,6 +37,7 @@ from cm2optics.calibrate.defects import defective_pixels, describe_defects, fill
 from cm2optics.calibrate.effects import apply_image_effects, library, split_key
 from cm2optics.calibrate.lowrank_correction import LowRankCorrection, fit_correction, held_out_error
 from cm2optics.calibrate.residual import CalibrationError, ResidualAnalysis, ScanData, analyse_scan, check_frames
+from cm2optics.calibrate.sensor_gain import describe_sensor_gain, sensor_gain
 from cm2optics.calibrate.tracer import TracerSimulator, design_with, submit_rates, tracing_pool
 from cm2optics.calibrate.unexplained import describe_unexplained
 from cm2optics.design import SystemDesign
@@ -330,7 +331,9 @@ def calibrate_scan(
     after = analyse_scan(data, rate, positions, centres, pitch, counts_per_electron=gain)
     drift, stage = flux_drift(after), stage_errors(after, simulator.pixel_um)
     z_scale = stage_z_scale(after, spread_rate_per_mm(design, positions[:, 2]))
-    for warning in (drift, stage, z_scale):
+    gain_map = sensor_gain(after, simulator.lenslet_vertices_px(), per_frame=drift is not None)
+    gain_warning = None if gain_map is None else describe_sensor_gain(gain_map, scan.meta.binning)
+    for warning in (drift, stage, z_scale, gain_warning):
         if warning is not None:
             say(f"warning: {warning}")
             warnings.append(warning)
@@ -342,6 +345,7 @@ def calibrate_scan(
         "source": source.describe(),
         "warnings": warnings,
         "sensor_defects": describe_defects(~data.good_pixels()),
+        "sensor_gain": gain_map,
         "corrected_design_hash": corrected.parameter_hash(),
         **_summary(before, after, attribution, problem, simulator.pixel_um, drift is not None),
         "fit": _fit_record(subset, attribution, problem),
@@ -353,6 +357,12 @@ def calibrate_scan(
             entry["description"] += (
                 f"; {'frames whose foci are displaced as a whole' if stage else 'a z scale error of the stage'} "
                 "was found (see warnings): part or all of this residual may be the stage's"
+            )
+    if gain_map is not None:  # the foci's energies follow the sensor's gain: residuals of energy show it
+        for entry in document["unexplained"]:
+            entry["description"] += (
+                "; the foci's energies follow one smooth gain pattern over the sensor (see warnings, "
+                "sensor_gain): part or all of this residual may be the sensor's"
             )
     correction = None
     if document["unexplained"]:

@@ -329,6 +329,18 @@ class TracerSimulator:
                     out[i, lenslet.row * cols + lenslet.col] = self.grid.row(cy), self.grid.col(cx)
         return out
 
+    def lenslet_vertices_px(self) -> np.ndarray:
+        """(J, 2) (row, col) px below each full lenslet's vertex: where its focus lands for a
+        source straight in front of it (any depth)."""
+        out = np.full((self.lenslets, 2), np.nan)
+        for cell in lens_cells(self.design.mla, self.design.as_built):
+            if not cell.partial:
+                out[cell.row * self.design.mla.cols + cell.col] = (
+                    self.grid.row(cell.vertex_y),
+                    self.grid.col(cell.vertex_x),
+                )
+        return out
+
     # -- helpers -----------------------------------------------------------------------------
     def _in_design(self, model: EmissionModel, position: np.ndarray) -> np.ndarray:
         """A position (object space of the nominal design, mm) in ``model``'s design's object space."""

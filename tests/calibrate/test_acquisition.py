@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from lattice_scans import lattice_analysis
 
 from cm2optics.calibrate.acquisition import (
     bright_foci,
@@ -95,41 +96,12 @@ def test_a_background_gradient_does_not_pull_the_centroids():
     assert local < 0.25 * np.nanmax(np.abs(plain - CENTRES[:, None, :]))
 
 
-LATTICE = np.array([[r, c] for r in (-36.0, 0.0, 36.0) for c in (-36.0, 0.0, 36.0)])  # 3 × 3 foci, px
-
-
-def _lattice_analysis(
-    peak: float, background: float, seed: int, shift_px: np.ndarray | None = None, spread: np.ndarray | None = None
-):
-    """12 frames of a 3 × 3 lattice of Gaussian foci (σ 1.2 px) at z = ±0.5 mm, moving with the
-    source; frame i's data displaced by ``shift_px[i]`` columns and spread ``spread[i]`` × the
-    model's, above a ramp of 0 → ``background`` counts across the frame."""
-    shape = (180, 180)
-    positions = np.array([[x, y, z] for x in (-1.0, 0.0, 1.0) for y in (-1.0, 1.0) for z in (-0.5, 0.5)])
-    n = len(positions)
-    centres = 90.0 + LATTICE[None] + 8.0 * positions[:, None, 1::-1]  # (N, 9, 2) (row, col)
-    shift = np.zeros(n) if shift_px is None else shift_px
-    factor = np.ones(n) if spread is None else spread
-    moved = 90.0 + LATTICE[None] * factor[:, None, None] + 8.0 * positions[:, None, 1::-1]
-    moved[..., 1] += shift[:, None]
-    rows, cols = np.mgrid[0 : shape[0], 0 : shape[1]]
-
-    def image(c: np.ndarray) -> np.ndarray:
-        d2 = (rows[None, None] - c[:, :, None, None, 0]) ** 2 + (cols[None, None] - c[:, :, None, None, 1]) ** 2
-        return np.exp(-d2 / 2.88).sum(axis=1)
-
-    ramp = np.linspace(0.0, background, shape[1])[None, None, :]
-    counts = raw_frames(100.0 + peak * image(moved) + ramp, 100.0, GAIN, 2.0, 12, np.random.default_rng(seed))
-    data = ScanData(counts, np.ones(n), positions, tuple(f"{i}.tif" for i in range(n)), 12)
-    return analyse_scan(data, image(centres).astype(np.float32), positions, centres, 36.0, counts_per_electron=GAIN)
-
-
 @pytest.mark.parametrize("seed", [0, 1])
 def test_dim_foci_over_a_heavy_background_are_no_stage_error(seed):
     """Foci of 100-count peaks over a ramp of up to 600 counts: their centroids scatter by
     ≈ 0.5 px, which the scatter within each frame shows; the median shifts of some frames pass
     0.3 px (what session 10's check read: a false warning on the background-gradient scan)."""
-    analysis = _lattice_analysis(100.0, 600.0, seed)
+    analysis = lattice_analysis(100.0, 600.0, seed)
     bright = np.where(bright_foci(analysis)[..., None], analysis.centroid_error_px, np.nan)
     plain = np.nanmedian(bright, axis=1)
     assert np.nanmax(np.linalg.norm(plain - np.nanmedian(plain, axis=0), axis=1)) > 0.3
@@ -139,7 +111,7 @@ def test_dim_foci_over_a_heavy_background_are_no_stage_error(seed):
 
 def test_a_backlash_over_the_same_background_is_still_named():
     backlash = np.where(np.arange(12) % 4 >= 2, 0.8, 0.0)  # alternate y rows
-    analysis = _lattice_analysis(1500.0, 600.0, 2, shift_px=backlash)
+    analysis = lattice_analysis(1500.0, 600.0, 2, shift_px=backlash)
     warning = stage_errors(analysis, 19.2)
     assert warning is not None and "stage" in warning
     assert stage_z_scale(analysis, np.full(12, 0.2)) is None
@@ -150,12 +122,12 @@ def test_a_z_scale_error_of_the_stage_is_named_with_its_size(scale, rate):
     """The foci spread by 1 + rate·δz with δz = scale·z: the warning gives the scale, the
     frames' common offset (none here) no stage error."""
     positions_z = np.tile([-0.5, 0.5], 6)
-    analysis = _lattice_analysis(1500.0, 0.0, 3, spread=1.0 + rate * scale * positions_z)
+    analysis = lattice_analysis(1500.0, 0.0, 3, spread=1.0 + rate * scale * positions_z)
     warning = stage_z_scale(analysis, np.full(12, rate))
     assert warning is not None and "z scale error" in warning
     assert float(warning.split("were ")[1].split(" ±")[0]) == pytest.approx(1.0 + scale, abs=0.03)
     assert stage_errors(analysis, 19.2) is None
-    assert stage_z_scale(_lattice_analysis(1500.0, 0.0, 3), np.full(12, rate)) is None
+    assert stage_z_scale(lattice_analysis(1500.0, 0.0, 3), np.full(12, rate)) is None
 
 
 def test_the_foci_spread_with_the_depth_as_the_chief_ray_magnification_says():
