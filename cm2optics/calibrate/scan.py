@@ -33,6 +33,7 @@ import numpy as np
 
 from cm2optics.calibrate.acquisition import bright_foci, flux_drift, spread_rate_per_mm, stage_errors, stage_z_scale
 from cm2optics.calibrate.attribute import Attribution, Problem, attribute
+from cm2optics.calibrate.background import BackgroundStructure, background_entry, background_structure
 from cm2optics.calibrate.defects import defective_pixels, describe_defects, fill_defects
 from cm2optics.calibrate.effects import apply_image_effects, library, split_key
 from cm2optics.calibrate.lowrank_correction import LowRankCorrection, fit_correction, held_out_error
@@ -202,15 +203,22 @@ def _summary(
     problem: Problem,
     pixel_um: float,
     drifted: bool = False,
+    background: BackgroundStructure | None = None,
 ) -> dict[str, Any]:
-    """The report's headline keys: effects, NMSE and χ² before and after, what stays unexplained."""
+    """The report's headline keys: effects, NMSE and χ² before and after, what stays unexplained
+    (a background structure as its own entry, the foci read above it)."""
+    unexplained = describe_unexplained(
+        after, pixel_um, per_frame=drifted, background=None if background is None else background.surfaces
+    )
+    if background is not None:
+        unexplained.append(background_entry(background, after, after.model.energy.shape[1]))
     return {
         "effects": effects_document(attribution),
         "nmse_before": round(before.nmse_total, 6),
         "nmse_after": round(after.nmse_total, 6),
         "chi2_before": round(before.chi2_total, 4),
         "chi2_after": round(after.chi2_total, 4),
-        "unexplained": describe_unexplained(after, pixel_um, per_frame=drifted),
+        "unexplained": unexplained,
         "noise_model": "camera gain from scan.yaml" if problem.noise_known else "gain estimated from the data",
     }
 
@@ -331,6 +339,7 @@ def calibrate_scan(
     after = analyse_scan(data, rate, positions, centres, pitch, counts_per_electron=gain)
     drift, stage = flux_drift(after), stage_errors(after, simulator.pixel_um)
     z_scale = stage_z_scale(after, spread_rate_per_mm(design, positions[:, 2]))
+    background = background_structure(after, scan.exposure_ms)
     gain_map = sensor_gain(after, simulator.lenslet_vertices_px(), per_frame=drift is not None)
     gain_warning = None if gain_map is None else describe_sensor_gain(gain_map, scan.meta.binning)
     for warning in (drift, stage, z_scale, gain_warning):
@@ -347,7 +356,7 @@ def calibrate_scan(
         "sensor_defects": describe_defects(~data.good_pixels()),
         "sensor_gain": gain_map,
         "corrected_design_hash": corrected.parameter_hash(),
-        **_summary(before, after, attribution, problem, simulator.pixel_um, drift is not None),
+        **_summary(before, after, attribution, problem, simulator.pixel_um, drift is not None, background),
         "fit": _fit_record(subset, attribution, problem),
         "before": before.to_dict(),
         "after": after.to_dict(),

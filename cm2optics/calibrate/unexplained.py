@@ -60,14 +60,16 @@ GHOST_GAIN = 0.3
 
 
 def flagged_foci(
-    after: ResidualAnalysis, half: int = PATCH_HALF_PX, per_frame: bool = False
+    after: ResidualAnalysis, half: int = PATCH_HALF_PX, per_frame: bool = False, background: np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(N, J) flagged foci (module docstring), and the residual (against the model at the foci's
-    common energy ratio; with ``per_frame``, at each frame's own, for a scan whose source drifted)
-    and model-signal patches (N, J, 2·half + 1, 2·half + 1) in counts."""
+    common energy ratio; with ``per_frame``, at each frame's own, for a scan whose source drifted;
+    above ``background`` (N, y, x) counts, a structure of the background described apart,
+    :mod:`.background`) and model-signal patches (N, J, 2·half + 1, 2·half + 1) in counts."""
     model_signal = after.model_counts - after.registration.dark_level
     centres = after.model.centroid_px
-    residual, inside = focus_patches(after.residual_counts, centres, half)
+    above = after.residual_counts if background is None else after.residual_counts - background
+    residual, inside = focus_patches(above, centres, half)
     model, _ = focus_patches(model_signal, centres, half)
     variance = after.noise.variance(model)
     energy = model.sum(axis=(-2, -1))
@@ -89,13 +91,18 @@ def flagged_foci(
 
 
 def describe_unexplained(
-    after: ResidualAnalysis, pixel_um: float, half: int = PATCH_HALF_PX, per_frame: bool = False
+    after: ResidualAnalysis,
+    pixel_um: float,
+    half: int = PATCH_HALF_PX,
+    per_frame: bool = False,
+    background: np.ndarray | None = None,
 ) -> list[dict[str, Any]]:
     """The entries ``{lenslets, field_mm, depths_mm, energy_fraction, description}`` of what
     remains above the noise after the fit (empty when no focus is flagged); ``pixel_um`` is the
     binned pixel pitch, µm; ``per_frame``: each frame's flux is its own (a source that drifted
-    during the scan, :mod:`.acquisition`), so that only what departs from it is described."""
-    flagged, residual, model = flagged_foci(after, half, per_frame)
+    during the scan, :mod:`.acquisition`), so that only what departs from it is described;
+    ``background`` (N, y, x) counts: a background structure the foci are read above."""
+    flagged, residual, model = flagged_foci(after, half, per_frame, background)
     if not flagged.any():
         return []
     repeated = flagged.sum(axis=0) >= MIN_FOCI

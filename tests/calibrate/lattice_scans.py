@@ -32,13 +32,16 @@ def lattice_analysis(
     spread: np.ndarray | None = None,
     gain: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
     energy: np.ndarray | None = None,
+    exposure_ms: np.ndarray | None = None,
 ) -> ResidualAnalysis:
     """Frames of the lattice at ``positions`` (N, 3) mm, moving ``travel_px`` per mm of source x, y
     (rows follow y), with foci of ``peak`` counts above a ramp of 0 → ``background`` counts
     across the columns. The data depart from the model by: a displacement of frame i by
     ``shift_px[i]`` columns, a spread ``spread[i]`` × the model's, a sensor gain ``gain(rows,
-    cols)``, each focus's energy × ``energy`` (N, 9)."""
+    cols)``, each focus's energy × ``energy`` (N, 9). Foci and ramp scale with ``exposure_ms`` (N,)
+    (default 1 ms each)."""
     n = len(positions)
+    exposure = np.ones(n) if exposure_ms is None else np.asarray(exposure_ms, float)
     centres = VERTICES[None] + travel_px * positions[:, None, 1::-1]  # (N, 9, 2) (row, col)
     moved = 90.0 + LATTICE[None] * (np.ones(n) if spread is None else spread)[:, None, None]
     moved = moved + travel_px * positions[:, None, 1::-1]
@@ -54,8 +57,9 @@ def lattice_analysis(
     if gain is not None:
         signal = signal * gain(rows, cols)[None]
     ramp = np.linspace(0.0, background, SHAPE[1])[None, None, :]
-    counts = raw_frames(100.0 + signal + ramp, 100.0, GAIN, 2.0, 12, np.random.default_rng(seed))
-    data = ScanData(counts, np.ones(n), positions, tuple(f"{i}.tif" for i in range(n)), 12)
+    expected = 100.0 + (signal + ramp) * exposure[:, None, None]
+    counts = raw_frames(expected, 100.0, GAIN, 2.0, 12, np.random.default_rng(seed))
+    data = ScanData(counts, exposure, positions, tuple(f"{i}.tif" for i in range(n)), 12)
     return analyse_scan(
         data, image(centres, ones).astype(np.float32), positions, centres, 36.0, counts_per_electron=GAIN
     )
