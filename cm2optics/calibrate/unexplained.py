@@ -51,8 +51,9 @@ ENERGY_UNCHANGED = 0.02
 #: A "copy" holding more than this share of the energy one pixel from the focus is the focus
 #: itself displaced (sub-pixel shifts fit best as a copy at one pixel), not a ghost.
 DISPLACED_SHARE = 0.3
-#: Largest ghost offset sought, px.
-GHOST_REACH_PX = 8
+#: Largest ghost offset sought, px: the patch's half less 2 px, so that a copy's core lies in it
+#: (a ghost farther than this from its focus is not sought; session 10's 8 px missed one at 14 px).
+GHOST_REACH_PX = PATCH_HALF_PX - 2
 #: A displaced copy is named when it explains this share of the mean residual patch…
 GHOST_EXPLAINS = 0.6
 #: …and this much more than a change of the focus's energy alone.
