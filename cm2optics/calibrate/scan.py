@@ -39,7 +39,7 @@ from cm2optics.calibrate.effects import apply_image_effects, library, split_key
 from cm2optics.calibrate.lowrank_correction import LowRankCorrection, fit_correction, held_out_error
 from cm2optics.calibrate.residual import CalibrationError, ResidualAnalysis, ScanData, analyse_scan, check_frames
 from cm2optics.calibrate.sensor_gain import describe_sensor_gain, sensor_gain
-from cm2optics.calibrate.tracer import TracerSimulator, design_with, submit_rates, tracing_pool
+from cm2optics.calibrate.tracer import TracerSimulator, design_with, lenslet_vertices_px, submit_rates, tracing_pool
 from cm2optics.calibrate.unexplained import describe_unexplained
 from cm2optics.design import SystemDesign
 from cm2optics.emission.source import AngularProfile, PointSource
@@ -340,7 +340,7 @@ def calibrate_scan(
     drift, stage = flux_drift(after), stage_errors(after, simulator.pixel_um)
     z_scale = stage_z_scale(after, spread_rate_per_mm(design, positions[:, 2]))
     background = background_structure(after, scan.exposure_ms)
-    gain_map = sensor_gain(after, simulator.lenslet_vertices_px(), per_frame=drift is not None)
+    gain_map = sensor_gain(after, lenslet_vertices_px(design, scan.meta.binning), per_frame=drift is not None)
     gain_warning = None if gain_map is None else describe_sensor_gain(gain_map, scan.meta.binning)
     for warning in (drift, stage, z_scale, gain_warning):
         if warning is not None:
