@@ -36,16 +36,38 @@ FOLLOWS_EXPOSURE = 0.6
 
 @dataclass(frozen=True)
 class BackgroundStructure:
-    """The fitted surfaces (N, y, x) counts, each of mean zero over the frame (the level is the
-    registration's and the leakage's), NaN-free, zero for frames left out; their range at the
-    median exposure (counts), where they are highest and lowest (row, col) px, and the rank
-    correlation of the frames' ranges with their exposures."""
+    """The fitted surfaces, each of mean zero over the frame (the level is the registration's and
+    the leakage's): quadratic coefficients (N, 6) in counts on pixel coordinates scaled to
+    [−1, 1] over ``shape`` (zero for frames left out); their range at the median exposure
+    (counts), where they are highest and lowest (row, col) px, and the rank correlation of the
+    frames' ranges with their exposures."""
 
-    surfaces: np.ndarray
+    coefficients: np.ndarray
+    shape: tuple[int, int]
     range_counts: float
     highest_px: tuple[int, int]
     lowest_px: tuple[int, int]
     exposure_rank: float
+
+    def surface(self, frame: int) -> np.ndarray:
+        """(y, x) counts: frame ``frame``'s surface."""
+        rows, cols = np.mgrid[0 : self.shape[0], 0 : self.shape[1]]
+        return (_terms(rows.ravel(), cols.ravel(), self.shape) @ self.coefficients[frame]).reshape(self.shape)
+
+    def patches(self, centres: np.ndarray, half: int) -> np.ndarray:
+        """(N, J, 2·half + 1, 2·half + 1) counts: the surfaces on the square patches centred on the
+        pixel nearest each of ``centres`` (N, J, 2) (as :func:`~.features.focus_patches` cuts
+        them; zeros for a NaN centre)."""
+        known = np.isfinite(centres).all(axis=-1)
+        centre = np.rint(np.where(known[..., None], centres, 0.0))
+        offsets = np.arange(-half, half + 1, dtype=float)
+        rows = np.broadcast_to(
+            centre[..., 0, None, None] + offsets[:, None], (*centre.shape[:2], len(offsets), len(offsets))
+        )
+        cols = np.broadcast_to(centre[..., 1, None, None] + offsets[None, :], rows.shape)
+        terms = _terms(rows.ravel(), cols.ravel(), self.shape).reshape(*rows.shape, 6)
+        values = np.einsum("njpqk,nk->njpq", terms, self.coefficients)
+        return np.where(known[..., None, None], values, 0.0)
 
 
 def _terms(rows: np.ndarray, cols: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
@@ -60,8 +82,8 @@ def background_structure(analysis: ResidualAnalysis, exposure_ms: np.ndarray) ->
     model_signal = analysis.model_counts - analysis.registration.dark_level
     shape = model_signal.shape[-2:]
     grid_rows, grid_cols = np.mgrid[0 : shape[0] : SAMPLE, 0 : shape[1] : SAMPLE]
-    full = _terms(*np.mgrid[0 : shape[0], 0 : shape[1]].reshape(2, -1), shape)
-    surfaces = np.zeros(model_signal.shape, np.float32)
+    full = _terms(*np.mgrid[0 : shape[0], 0 : shape[1]].reshape(2, -1), shape)  # (y·x, 6)
+    coefficients = np.zeros((len(model_signal), 6))
     bic_constant = bic_surface = 0.0
     frames = np.flatnonzero(analysis.used)
     for i in frames:
@@ -76,24 +98,29 @@ def background_structure(analysis: ResidualAnalysis, exposure_ms: np.ndarray) ->
         rss_constant = max(float(np.sum((values - values.mean()) ** 2)), 1e-300)
         bic_surface += n * np.log(rss_surface / n) + 6 * np.log(n)
         bic_constant += n * np.log(rss_constant / n) + np.log(n)
-        surface = (full @ solution).reshape(shape)
-        surfaces[i] = surface - surface.mean()
+        coefficients[i] = solution
+        coefficients[i, 0] -= float((full @ solution).mean())  # mean zero over the frame
     if not frames.size or bic_surface > bic_constant - BIC_MARGIN:
         return None
     exposure = np.asarray(exposure_ms, float)
-    ranges = np.ptp(surfaces[frames].reshape(len(frames), -1), axis=1)
+    ranges = np.array([np.ptp(full @ coefficients[i]) for i in frames])  # frame by frame: (y·x) each
     rank = float(spearmanr(exposure[frames], ranges).statistic) if np.ptp(exposure[frames]) > 0 else float("nan")
     median = float(np.median(exposure[frames]))
     follows = np.isfinite(rank) and rank >= FOLLOWS_EXPOSURE
-    scaled = surfaces[frames] * (median / exposure[frames])[:, None, None] if follows else surfaces[frames]
-    typical = np.median(scaled, axis=0)
+    scaled = coefficients[frames] * (median / exposure[frames])[:, None] if follows else coefficients[frames]
+    typical = (full @ np.median(scaled, axis=0)).reshape(shape)
     span = float(np.ptp(typical))
     if span < MIN_RANGE_SIGMA * float(np.sqrt(analysis.noise.variance(np.zeros(1)))[0]):
         return None
     high = np.unravel_index(int(np.argmax(typical)), shape)
     low = np.unravel_index(int(np.argmin(typical)), shape)
     return BackgroundStructure(
-        surfaces, span, (int(high[0]), int(high[1])), (int(low[0]), int(low[1])), rank if np.isfinite(rank) else 0.0
+        coefficients,
+        (int(shape[0]), int(shape[1])),
+        span,
+        (int(high[0]), int(high[1])),
+        (int(low[0]), int(low[1])),
+        rank if np.isfinite(rank) else 0.0,
     )
 
 
@@ -102,7 +129,8 @@ def background_entry(found: BackgroundStructure, analysis: ResidualAnalysis, len
     every depth, the share of the model's signal it holds, and what it looks like."""
     used = analysis.used
     signal = np.abs(analysis.model_counts[used] - analysis.registration.dark_level).sum()
-    fraction = float(np.abs(found.surfaces[used]).sum() / max(float(signal), 1e-30))
+    background = sum(float(np.abs(found.surface(i)).sum()) for i in np.flatnonzero(used))
+    fraction = background / max(float(signal), 1e-30)
     field = np.hypot(analysis.positions_mm[used, 0], analysis.positions_mm[used, 1])
     source = (
         "it grows with the exposure (rank correlation "

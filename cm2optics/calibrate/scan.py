@@ -40,7 +40,7 @@ from cm2optics.calibrate.lowrank_correction import LowRankCorrection, fit_correc
 from cm2optics.calibrate.residual import CalibrationError, ResidualAnalysis, ScanData, analyse_scan, check_frames
 from cm2optics.calibrate.sensor_gain import describe_sensor_gain, sensor_gain
 from cm2optics.calibrate.tracer import TracerSimulator, design_with, lenslet_vertices_px, submit_rates, tracing_pool
-from cm2optics.calibrate.unexplained import describe_unexplained
+from cm2optics.calibrate.unexplained import PATCH_HALF_PX, describe_unexplained
 from cm2optics.design import SystemDesign
 from cm2optics.emission.source import AngularProfile, PointSource
 from cm2optics.formats.scan import PSFScan, grid_index, read_scan
@@ -208,7 +208,10 @@ def _summary(
     """The report's headline keys: effects, NMSE and χ² before and after, what stays unexplained
     (a background structure as its own entry, the foci read above it)."""
     unexplained = describe_unexplained(
-        after, pixel_um, per_frame=drifted, background=None if background is None else background.surfaces
+        after,
+        pixel_um,
+        per_frame=drifted,
+        background=None if background is None else background.patches(after.model.centroid_px, PATCH_HALF_PX),
     )
     if background is not None:
         unexplained.append(background_entry(background, after, after.model.energy.shape[1]))

@@ -65,12 +65,13 @@ def flagged_foci(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(N, J) flagged foci (module docstring), and the residual (against the model at the foci's
     common energy ratio; with ``per_frame``, at each frame's own, for a scan whose source drifted;
-    above ``background`` (N, y, x) counts, a structure of the background described apart,
-    :mod:`.background`) and model-signal patches (N, J, 2·half + 1, 2·half + 1) in counts."""
+    above ``background`` (N, J, 2·half + 1, 2·half + 1) counts on the same patches, a structure of
+    the background described apart, :mod:`.background`) and model-signal patches (N, J, 2·half + 1, 2·half + 1) in counts."""
     model_signal = after.model_counts - after.registration.dark_level
     centres = after.model.centroid_px
-    above = after.residual_counts if background is None else after.residual_counts - background
-    residual, inside = focus_patches(above, centres, half)
+    residual, inside = focus_patches(after.residual_counts, centres, half)
+    if background is not None:
+        residual = residual - background
     model, _ = focus_patches(model_signal, centres, half)
     variance = after.noise.variance(model)
     energy = model.sum(axis=(-2, -1))
@@ -102,7 +103,8 @@ def describe_unexplained(
     remains above the noise after the fit (empty when no focus is flagged); ``pixel_um`` is the
     binned pixel pitch, µm; ``per_frame``: each frame's flux is its own (a source that drifted
     during the scan, :mod:`.acquisition`), so that only what departs from it is described;
-    ``background`` (N, y, x) counts: a background structure the foci are read above."""
+    ``background`` (N, J, 2·half + 1, 2·half + 1) counts: a background structure on the foci's
+    patches, which they are read above."""
     flagged, residual, model = flagged_foci(after, half, per_frame, background)
     if not flagged.any():
         return []

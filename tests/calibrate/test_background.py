@@ -8,7 +8,7 @@ import numpy as np
 from lattice_scans import DEPTHS, lattice_analysis
 
 from cm2optics.calibrate.background import background_entry, background_structure
-from cm2optics.calibrate.unexplained import describe_unexplained
+from cm2optics.calibrate.unexplained import PATCH_HALF_PX, describe_unexplained
 
 EXPOSURES = np.linspace(0.5, 2.0, len(DEPTHS))[np.random.default_rng(7).permutation(len(DEPTHS))]
 
@@ -23,7 +23,9 @@ def test_a_ramp_of_light_across_the_sensor_is_background_structure_and_the_foci_
     entry = background_entry(found, analysis, 9)
     assert entry["lenslets"] == list(range(9)) and "grows with the exposure" in entry["description"]
     assert describe_unexplained(analysis, 19.2)  # read against the model alone, the foci look wrong
-    assert describe_unexplained(analysis, 19.2, background=found.surfaces) == []
+    assert (
+        describe_unexplained(analysis, 19.2, background=found.patches(analysis.model.centroid_px, PATCH_HALF_PX)) == []
+    )
 
 
 def test_clean_frames_hold_no_background_structure():
