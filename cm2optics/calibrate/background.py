@@ -2,7 +2,8 @@
 leak that falls on one side, a glow of the sensor's electronics.
 
 The registration fits one dark level and the attribution a uniform leakage; what is left away
-from the foci (where the model puts less than :data:`DARK_SHARE` of its brightest pixel) is fitted
+from the foci (where the model puts less than :data:`DARK_SHARE` of its brightest pixel above
+its median: most pixels are dark, and a fitted leakage lifts them all) is fitted
 frame by frame by a quadratic surface in the sensor's rows and columns (least squares on every
 :data:`SAMPLE`-th pixel). The structure is named when, over the scan, the surfaces beat a constant
 by :data:`BIC_MARGIN` on the Bayesian information criterion (noise level profiled out) and
@@ -36,9 +37,10 @@ FOLLOWS_EXPOSURE = 0.6
 
 @dataclass(frozen=True)
 class BackgroundStructure:
-    """The fitted surfaces, each of mean zero over the frame (the level is the registration's and
-    the leakage's): quadratic coefficients (N, 6) in counts on pixel coordinates scaled to
-    [−1, 1] over ``shape`` (zero for frames left out); their range at the median exposure
+    """The fitted surfaces of the residual away from the foci, their level included (a dark level
+    or leakage that the registration got wrong with the structure there): quadratic coefficients
+    (N, 6) in counts on pixel coordinates scaled to
+    [−1, 1] over ``shape`` (zero for frames left out or too bright to fit); their range at the median exposure
     (counts), where they are highest and lowest (row, col) px, and the rank correlation of the
     frames' ranges with their exposures."""
 
@@ -85,9 +87,10 @@ def background_structure(analysis: ResidualAnalysis, exposure_ms: np.ndarray) ->
     full = _terms(*np.mgrid[0 : shape[0], 0 : shape[1]].reshape(2, -1), shape)  # (y·x, 6)
     coefficients = np.zeros((len(model_signal), 6))
     bic_constant = bic_surface = 0.0
-    frames = np.flatnonzero(analysis.used)
-    for i in frames:
-        dark = model_signal[i, ::SAMPLE, ::SAMPLE] <= DARK_SHARE * float(model_signal[i].max())
+    fitted = np.zeros(len(model_signal), bool)
+    for i in np.flatnonzero(analysis.used):
+        floor = float(np.median(model_signal[i]))  # most pixels are dark; a fitted leakage lifts them all
+        dark = model_signal[i, ::SAMPLE, ::SAMPLE] - floor <= DARK_SHARE * (float(model_signal[i].max()) - floor)
         values = analysis.residual_counts[i, ::SAMPLE, ::SAMPLE][dark].astype(np.float64)
         if len(values) < 100:
             continue
@@ -99,7 +102,8 @@ def background_structure(analysis: ResidualAnalysis, exposure_ms: np.ndarray) ->
         bic_surface += n * np.log(rss_surface / n) + 6 * np.log(n)
         bic_constant += n * np.log(rss_constant / n) + np.log(n)
         coefficients[i] = solution
-        coefficients[i, 0] -= float((full @ solution).mean())  # mean zero over the frame
+        fitted[i] = True
+    frames = np.flatnonzero(fitted)
     if not frames.size or bic_surface > bic_constant - BIC_MARGIN:
         return None
     exposure = np.asarray(exposure_ms, float)
@@ -129,7 +133,8 @@ def background_entry(found: BackgroundStructure, analysis: ResidualAnalysis, len
     every depth, the share of the model's signal it holds, and what it looks like."""
     used = analysis.used
     signal = np.abs(analysis.model_counts[used] - analysis.registration.dark_level).sum()
-    background = sum(float(np.abs(found.surface(i)).sum()) for i in np.flatnonzero(used))
+    surfaces = (found.surface(i) for i in np.flatnonzero(used))
+    background = sum(float(np.abs(surface - surface.mean()).sum()) for surface in surfaces)  # the structure
     fraction = background / max(float(signal), 1e-30)
     field = np.hypot(analysis.positions_mm[used, 0], analysis.positions_mm[used, 1])
     source = (
