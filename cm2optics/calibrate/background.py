@@ -7,9 +7,11 @@ its median: most pixels are dark, and a fitted leakage lifts them all) is fitted
 frame by frame by a quadratic surface in the sensor's rows and columns (least squares on every
 :data:`SAMPLE`-th pixel). The structure is named when, over the scan, the surfaces beat a constant
 by :data:`BIC_MARGIN` on the Bayesian information criterion (noise level profiled out) and
-their range at the median exposure is at least :data:`MIN_RANGE_SIGMA` times the pixel noise
-there, so that the foci's residuals can be read above it (:mod:`.unexplained`); whether it follows
-the exposures tells light (it does) from a pattern of the sensor (it does not).
+their range at the median exposure is at least :data:`MIN_RANGE_SIGMA` times the dark pixels'
+scatter about them (the noise model's read noise is estimated on those same pixels, and an
+unmodelled background inflates it), so that the foci's residuals can be read above it
+(:mod:`.unexplained`); whether it follows the exposures tells light (it does) from a pattern of
+the sensor (it does not).
 """
 
 from __future__ import annotations
@@ -88,6 +90,7 @@ def background_structure(analysis: ResidualAnalysis, exposure_ms: np.ndarray) ->
     coefficients = np.zeros((len(model_signal), 6))
     bic_constant = bic_surface = 0.0
     fitted = np.zeros(len(model_signal), bool)
+    scatter = np.zeros(len(model_signal))  # the dark pixels' noise about each surface, counts
     for i in np.flatnonzero(analysis.used):
         floor = float(np.median(model_signal[i]))  # most pixels are dark; a fitted leakage lifts them all
         dark = model_signal[i, ::SAMPLE, ::SAMPLE] - floor <= DARK_SHARE * (float(model_signal[i].max()) - floor)
@@ -102,6 +105,7 @@ def background_structure(analysis: ResidualAnalysis, exposure_ms: np.ndarray) ->
         bic_surface += n * np.log(rss_surface / n) + 6 * np.log(n)
         bic_constant += n * np.log(rss_constant / n) + np.log(n)
         coefficients[i] = solution
+        scatter[i] = np.sqrt(rss_surface / n)
         fitted[i] = True
     frames = np.flatnonzero(fitted)
     if not frames.size or bic_surface > bic_constant - BIC_MARGIN:
@@ -114,7 +118,7 @@ def background_structure(analysis: ResidualAnalysis, exposure_ms: np.ndarray) ->
     scaled = coefficients[frames] * (median / exposure[frames])[:, None] if follows else coefficients[frames]
     typical = (full @ np.median(scaled, axis=0)).reshape(shape)
     span = float(np.ptp(typical))
-    if span < MIN_RANGE_SIGMA * float(np.sqrt(analysis.noise.variance(np.zeros(1)))[0]):
+    if span < MIN_RANGE_SIGMA * float(np.median(scatter[frames])):
         return None
     high = np.unravel_index(int(np.argmax(typical)), shape)
     low = np.unravel_index(int(np.argmin(typical)), shape)
