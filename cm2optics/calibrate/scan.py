@@ -366,9 +366,14 @@ def calibrate_scan(
     }
     if stage is not None or z_scale is not None:  # the source was elsewhere: every residual of those frames shows it
         for entry in document["unexplained"]:
+            found = [
+                text
+                for text, warning in (("frames displaced as a whole", stage), ("a z scale error", z_scale))
+                if warning
+            ]
             entry["description"] += (
-                f"; {'frames whose foci are displaced as a whole' if stage else 'a z scale error of the stage'} "
-                "was found (see warnings): part or all of this residual may be the stage's"
+                f"; the stage put the source elsewhere ({' and '.join(found)}, see warnings): part or all of this "
+                "residual may be the stage's"
             )
     if gain_map is not None:  # the foci's energies follow the sensor's gain: residuals of energy show it
         for entry in document["unexplained"]:
