@@ -18,7 +18,7 @@ LATTICE = np.array([[r, c] for r in (-36.0, 0.0, 36.0) for c in (-36.0, 0.0, 36.
 #: The lattice's points below the lenslets' vertices (where a source in front of each lands).
 VERTICES = 90.0 + LATTICE
 DEPTHS = np.array([[x, y, z] for x in (-1.0, 0.0, 1.0) for y in (-1.0, 1.0) for z in (-0.5, 0.5)])
-FIELD = np.array([[x, y, 0.0] for x in np.linspace(-1, 1, 5) for y in np.linspace(-1, 1, 5)])
+FIELD = np.array([[x, y, 0.0] for x in np.linspace(-1, 1, 4) for y in np.linspace(-1, 1, 4)])
 
 
 def lattice_analysis(
