@@ -14,17 +14,40 @@ says (stage backlash, a position error): after the fit, a frame whose bright foc
 together from the model by more than :data:`STAGE_SHIFT_PX` beyond the scan's common offset
 (the median over the frames: the sensor's placement, which the registration fits) is named.
 Optical effects move foci lenslet by lenslet or smoothly with the position; they are fitted
-before this is judged.
+before this is judged. Each frame's motion is fitted to its bright foci's centroid errors as a
+translation plus a change of the foci's spread (:func:`frame_motion`), with standard errors from
+the scatter of the foci about that fit pooled over the scan: the displacement of a frame whose
+foci are dim over a heavy background is noise, and is named only when it is
+:data:`SIGNIFICANCE` standard errors beyond the common offset.
+
+A stage whose z steps are not the recorded ones (a z scale error) changes the foci's spread
+instead: the spread of a lenslet array's foci is 1 + m(z) times the lenslets' (m the chief-ray
+magnification at the source's depth), so a frame whose source sat δz off spreads its foci by
+δz · d ln(1 + m)/dz. The δz of every frame, regressed on its recorded z, gives the scale error
+(its slope) when the scan holds two depths or more (:func:`stage_z_scale`).
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.stats import spearmanr
 
 from cm2optics.calibrate.residual import ResidualAnalysis
+from cm2optics.design import SystemDesign
+from cm2optics.optics import first_order
 
-__all__ = ["bright_foci", "flux_drift", "frame_flux", "frame_shifts", "stage_errors"]
+__all__ = [
+    "FrameMotion",
+    "bright_foci",
+    "flux_drift",
+    "frame_flux",
+    "frame_motion",
+    "spread_rate_per_mm",
+    "stage_errors",
+    "stage_z_scale",
+]
 
 #: Foci at least this share of their image's brightest (model) focus give the frame's flux and
 #: shift, and the scan's magnification check: dimmer data centroids at the field's edge are mostly noise.
@@ -40,6 +63,13 @@ MIN_FRAMES = 6
 STAGE_SHIFT_PX = 0.3
 #: …when at least this many frames are.
 MIN_SHIFTED = 2
+#: A frame's displacement, or a z scale, counts only this many standard errors beyond zero.
+SIGNIFICANCE = 4.0
+#: A frame's displacement is judged on at least this many foci that agree with each other (when
+#: the scan's frames hold that many): one or two dim foci's centroids can be far off together.
+MIN_AGREEING_FOCI = 3
+#: A z scale error smaller than this share of the recorded steps is not named.
+Z_SCALE_MIN = 0.03
 
 
 def bright_foci(analysis: ResidualAnalysis) -> np.ndarray:
@@ -81,33 +111,142 @@ def flux_drift(analysis: ResidualAnalysis) -> str | None:
     )
 
 
-def frame_shifts(analysis: ResidualAnalysis) -> np.ndarray:
-    """(N, 2) each frame's common displacement of its foci from the model's (row, col) px: the
-    median centroid error of its bright foci (NaN for frames left out or without one)."""
-    error = np.where(bright_foci(analysis)[..., None], analysis.centroid_error_px, np.nan)
-    out = np.full((len(error), 2), np.nan)
-    has = np.isfinite(error).all(axis=-1).any(axis=1)
-    out[has] = np.nanmedian(error[has], axis=1)
-    return out
+@dataclass(frozen=True)
+class FrameMotion:
+    """Each frame's bright foci against the model's: a common translation ``shift_px`` (N, 2)
+    (row, col) px and a relative change of their spread ``expansion`` (N,) (0: as the model's;
+    NaN with fewer than two bright foci), with standard errors (N,) (0 when the scan leaves no
+    scatter to estimate them from), and the foci that agree on them (N,); NaN (0 foci) for frames
+    left out or without a bright focus."""
+
+    shift_px: np.ndarray
+    shift_se_px: np.ndarray
+    expansion: np.ndarray
+    expansion_se: np.ndarray
+    foci: np.ndarray
+
+
+def frame_motion(analysis: ResidualAnalysis) -> FrameMotion:
+    """Fit each frame's centroid errors e_j = t + s·(m_j − m̄) over its bright foci (m_j the
+    model's centroids, m̄ their mean) by least squares; the foci's scatter about the fit, pooled
+    over the scan (median absolute residual), gives the standard errors. A focus whose misfit is
+    beyond :data:`SIGNIFICANCE` times that scatter (a centroid that a background or a neighbour
+    pulled far off) is left out of its frame's fit, the worst first, down to two foci."""
+    bright = bright_foci(analysis) & np.isfinite(analysis.centroid_error_px).all(axis=-1)
+    frames = np.flatnonzero(bright.any(axis=1))
+    errors = {i: analysis.centroid_error_px[i][bright[i]] for i in frames}
+    spreads = {
+        i: analysis.model.centroid_px[i][bright[i]] - analysis.model.centroid_px[i][bright[i]].mean(axis=0)
+        for i in frames
+    }
+    fits = {i: _frame_fit(errors[i], spreads[i]) for i in frames}
+    sigma = _pooled_scatter(fits.values())
+    foci = np.zeros(len(bright), int)
+    for i in frames:
+        keep = np.ones(len(errors[i]), bool)
+        while sigma > 0 and keep.sum() > 2 and fits[i][2] is not None:
+            misfit = np.linalg.norm(fits[i][2].reshape(-1, 2), axis=1)
+            if misfit.max() <= SIGNIFICANCE * sigma:
+                break
+            keep[np.flatnonzero(keep)[np.argmax(misfit)]] = False
+            fits[i] = _frame_fit(errors[i][keep], spreads[i][keep])
+        foci[i] = keep.sum()
+    sigma = _pooled_scatter(fits.values())
+    n = len(bright)
+    shift, shift_se = np.full((n, 2), np.nan), np.full(n, np.nan)
+    expansion, expansion_se = np.full(n, np.nan), np.full(n, np.nan)
+    for i, (solution, variance, _) in fits.items():
+        shift[i], shift_se[i] = solution[:2], sigma * np.sqrt(variance[0])
+        expansion[i], expansion_se[i] = solution[2], sigma * np.sqrt(variance[2])
+    return FrameMotion(shift, shift_se, expansion, expansion_se, foci)
+
+
+def _frame_fit(error: np.ndarray, spread: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """(t_row, t_col, s), their variances per unit noise variance, and the residuals (None: no
+    degree of freedom left) of e = t + s·spread over one frame's foci (F, 2); with one focus,
+    or foci on one point, the translation alone (s NaN)."""
+    if len(error) < 2 or not np.any(spread):
+        return np.array([*error.mean(axis=0), np.nan]), np.array([1.0, 1.0, np.nan]) / len(error), None
+    design = np.zeros((2 * len(error), 3))
+    design[0::2, 0], design[1::2, 1] = 1.0, 1.0
+    design[:, 2] = spread.ravel()
+    solution, *_ = np.linalg.lstsq(design, error.ravel(), rcond=None)
+    residual = error.ravel() - design @ solution
+    return solution, np.diag(np.linalg.pinv(design.T @ design)), (residual if len(residual) > 3 else None)
+
+
+def _pooled_scatter(fits) -> float:
+    """The centroids' noise (px) per coordinate: the median absolute residual of the frames' fits
+    (1.4826 × for a normal scatter, corrected for the 3 fitted parameters); 0 without residuals."""
+    residuals = [r for _, _, r in fits if r is not None]
+    if not residuals:
+        return 0.0
+    scatter = np.concatenate(residuals)
+    dof = sum(len(r) - 3 for r in residuals)
+    return 1.4826 * float(np.median(np.abs(scatter))) * float(np.sqrt(len(scatter) / dof))
 
 
 def stage_errors(analysis: ResidualAnalysis, pixel_um: float) -> str | None:
     """A warning when frames are displaced as a whole (module docstring), ``pixel_um`` the binned
     pixel pitch (µm); None when fewer than :data:`MIN_SHIFTED` frames depart from the scan's
-    common offset by more than half :data:`STAGE_SHIFT_PX` or none by more than it."""
-    shifts = frame_shifts(analysis)
-    known = np.flatnonzero(np.isfinite(shifts).all(axis=1))
+    common offset by more than half :data:`STAGE_SHIFT_PX` (and :data:`SIGNIFICANCE` standard
+    errors) or none by more than it; frames with fewer than :data:`MIN_AGREEING_FOCI` foci agreeing
+    are not judged."""
+    motion = frame_motion(analysis)
+    shifts = motion.shift_px
+    enough = min(MIN_AGREEING_FOCI, int(motion.foci.max()))
+    known = np.flatnonzero(np.isfinite(shifts).all(axis=1) & (motion.foci >= enough))
     if len(known) < MIN_FRAMES:
         return None
     beyond = np.linalg.norm(shifts[known] - np.median(shifts[known], axis=0), axis=1)
-    if beyond.max() <= STAGE_SHIFT_PX or np.sum(beyond > STAGE_SHIFT_PX / 2) < MIN_SHIFTED:
+    noise = SIGNIFICANCE * motion.shift_se_px[known]
+    moved = beyond > np.maximum(STAGE_SHIFT_PX / 2, noise)
+    if not np.any(beyond > np.maximum(STAGE_SHIFT_PX, noise)) or np.sum(moved) < MIN_SHIFTED:
         return None
     apart = float(np.max(np.linalg.norm(shifts[known, None] - shifts[None, known], axis=-1)))
-    worst = known[np.argsort(beyond)[::-1][: min(6, np.sum(beyond > STAGE_SHIFT_PX / 2))]]
+    worst = known[np.argsort(np.where(moved, beyond, -1.0))[::-1][: min(6, int(np.sum(moved)))]]
     return (
         f"the foci of whole frames are displaced together from the model, differently from frame to frame: up to "
-        f"{apart:.2f} px ({apart * pixel_um:.0f} µm on the sensor) apart, {int(np.sum(beyond > STAGE_SHIFT_PX / 2))} "
+        f"{apart:.2f} px ({apart * pixel_um:.0f} µm on the sensor) apart, {int(np.sum(moved))} "
         f"of {len(known)} frames more than {STAGE_SHIFT_PX / 2:.2g} px from the scan's common offset (most: "
         f"{', '.join(analysis.files[i] for i in worst)}): the source was not where positions.csv says (stage "
         f"backlash or a position error), which no effect of the optics does"
+    )
+
+
+def spread_rate_per_mm(design: SystemDesign, z_mm: np.ndarray) -> np.ndarray:
+    """d ln(1 + m)/dz (per mm) at each object-space depth ``z_mm``: how fast the spread of the
+    lenslets' foci changes with the source's depth (m the chief-ray magnification; central
+    difference over ±10 µm)."""
+    step = 0.01
+
+    def spread(z: float) -> float:
+        return np.log1p(first_order.chief_ray_magnification(design, first_order.object_z_to_height_mm(design, z)))
+
+    return np.array([(spread(z + step) - spread(z - step)) / (2 * step) for z in np.asarray(z_mm, float)])
+
+
+def stage_z_scale(analysis: ResidualAnalysis, spread_rate: np.ndarray) -> str | None:
+    """A warning when the frames' depth errors δz (from their foci's spread, ``spread_rate`` (N,)
+    per mm from :func:`spread_rate_per_mm`) grow with the recorded depth (module docstring): the
+    slope of δz on z, when it is at least :data:`Z_SCALE_MIN` and :data:`SIGNIFICANCE` standard
+    errors; None otherwise, or when the scan holds one depth."""
+    motion = frame_motion(analysis)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        depth_error = motion.expansion / np.asarray(spread_rate, float)
+    known = np.flatnonzero(np.isfinite(depth_error))
+    z = analysis.positions_mm[known, 2]
+    if len(known) < MIN_FRAMES or len(np.unique(np.round(z, 6))) < 2:
+        return None
+    design = np.column_stack([np.ones(len(known)), z])
+    (offset, scale), *_ = np.linalg.lstsq(design, depth_error[known], rcond=None)
+    scatter = depth_error[known] - design @ np.array([offset, scale])
+    scale_se = np.sqrt(float(np.sum(scatter**2)) / max(len(known) - 2, 1) / float(np.sum((z - z.mean()) ** 2)))
+    if abs(scale) < Z_SCALE_MIN or abs(scale) < SIGNIFICANCE * scale_se:
+        return None
+    return (
+        f"the foci's spread changes with depth as if the source's z steps were {1 + scale:.3f} ± {scale_se:.3f} "
+        f"times the recorded ones (a z scale error of {scale:+.1%}; the depth errors δz = {scale:+.3f}·z "
+        f"{offset:+.3f} mm over {len(known)} frames): the stage's z axis is not calibrated (pitch, steps per mm), "
+        f"which no effect of the optics does"
     )

@@ -31,14 +31,16 @@ from warnings import catch_warnings, simplefilter
 
 import numpy as np
 
-from cm2optics.calibrate.acquisition import bright_foci, flux_drift, stage_errors
+from cm2optics.calibrate.acquisition import bright_foci, flux_drift, spread_rate_per_mm, stage_errors, stage_z_scale
 from cm2optics.calibrate.attribute import Attribution, Problem, attribute
+from cm2optics.calibrate.background import BackgroundStructure, background_entry, background_structure
 from cm2optics.calibrate.defects import defective_pixels, describe_defects, fill_defects
 from cm2optics.calibrate.effects import apply_image_effects, library, split_key
 from cm2optics.calibrate.lowrank_correction import LowRankCorrection, fit_correction, held_out_error
 from cm2optics.calibrate.residual import CalibrationError, ResidualAnalysis, ScanData, analyse_scan, check_frames
-from cm2optics.calibrate.tracer import TracerSimulator, design_with, submit_rates, tracing_pool
-from cm2optics.calibrate.unexplained import describe_unexplained
+from cm2optics.calibrate.sensor_gain import describe_sensor_gain, sensor_gain
+from cm2optics.calibrate.tracer import TracerSimulator, design_with, lenslet_vertices_px, submit_rates, tracing_pool
+from cm2optics.calibrate.unexplained import PATCH_HALF_PX, describe_unexplained
 from cm2optics.design import SystemDesign
 from cm2optics.emission.source import AngularProfile, PointSource
 from cm2optics.formats.scan import PSFScan, grid_index, read_scan
@@ -201,15 +203,25 @@ def _summary(
     problem: Problem,
     pixel_um: float,
     drifted: bool = False,
+    background: BackgroundStructure | None = None,
 ) -> dict[str, Any]:
-    """The report's headline keys: effects, NMSE and χ² before and after, what stays unexplained."""
+    """The report's headline keys: effects, NMSE and χ² before and after, what stays unexplained
+    (a background structure as its own entry, the foci read above it)."""
+    unexplained = describe_unexplained(
+        after,
+        pixel_um,
+        per_frame=drifted,
+        background=None if background is None else background.patches(after.model.centroid_px, PATCH_HALF_PX),
+    )
+    if background is not None:
+        unexplained.append(background_entry(background, after, after.model.energy.shape[1]))
     return {
         "effects": effects_document(attribution),
         "nmse_before": round(before.nmse_total, 6),
         "nmse_after": round(after.nmse_total, 6),
         "chi2_before": round(before.chi2_total, 4),
         "chi2_after": round(after.chi2_total, 4),
-        "unexplained": describe_unexplained(after, pixel_um, per_frame=drifted),
+        "unexplained": unexplained,
         "noise_model": "camera gain from scan.yaml" if problem.noise_known else "gain estimated from the data",
     }
 
@@ -329,7 +341,11 @@ def calibrate_scan(
         rate = _with_image_effects(corrected_job()[0], simulator, attribution)
     after = analyse_scan(data, rate, positions, centres, pitch, counts_per_electron=gain)
     drift, stage = flux_drift(after), stage_errors(after, simulator.pixel_um)
-    for warning in (drift, stage):
+    z_scale = stage_z_scale(after, spread_rate_per_mm(design, positions[:, 2]))
+    background = background_structure(after, scan.exposure_ms)
+    gain_map = sensor_gain(after, lenslet_vertices_px(design, scan.meta.binning), per_frame=drift is not None)
+    gain_warning = None if gain_map is None else describe_sensor_gain(gain_map, scan.meta.binning)
+    for warning in (drift, stage, z_scale, gain_warning):
         if warning is not None:
             say(f"warning: {warning}")
             warnings.append(warning)
@@ -341,17 +357,29 @@ def calibrate_scan(
         "source": source.describe(),
         "warnings": warnings,
         "sensor_defects": describe_defects(~data.good_pixels()),
+        "sensor_gain": gain_map,
         "corrected_design_hash": corrected.parameter_hash(),
-        **_summary(before, after, attribution, problem, simulator.pixel_um, drift is not None),
+        **_summary(before, after, attribution, problem, simulator.pixel_um, drift is not None, background),
         "fit": _fit_record(subset, attribution, problem),
         "before": before.to_dict(),
         "after": after.to_dict(),
     }
-    if stage is not None:  # the foci of whole frames moved: every residual of those frames shows it
+    if stage is not None or z_scale is not None:  # the source was elsewhere: every residual of those frames shows it
+        for entry in document["unexplained"]:
+            found = [
+                text
+                for text, warning in (("frames displaced as a whole", stage), ("a z scale error", z_scale))
+                if warning
+            ]
+            entry["description"] += (
+                f"; the stage put the source elsewhere ({' and '.join(found)}, see warnings): part or all of this "
+                "residual may be the stage's"
+            )
+    if gain_map is not None:  # the foci's energies follow the sensor's gain: residuals of energy show it
         for entry in document["unexplained"]:
             entry["description"] += (
-                "; frames whose foci are displaced as a whole were found (a stage error, see warnings): "
-                "part or all of this residual may be theirs"
+                "; the foci's energies follow one smooth gain pattern over the sensor (see warnings, "
+                "sensor_gain): part or all of this residual may be the sensor's"
             )
     correction = None
     if document["unexplained"]:

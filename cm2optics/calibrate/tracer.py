@@ -61,7 +61,15 @@ from cm2optics.emission.source import AngularProfile, PointSource, ProfileKind
 from cm2optics.optics import first_order
 from cm2optics.optics.lenslets import lens_cells
 
-__all__ = ["UNIT_SOURCE", "TracerSimulator", "design_with", "submit_rates", "traced_rates", "tracing_pool"]
+__all__ = [
+    "UNIT_SOURCE",
+    "TracerSimulator",
+    "design_with",
+    "lenslet_vertices_px",
+    "submit_rates",
+    "traced_rates",
+    "tracing_pool",
+]
 
 #: Counts per ms of a unit source per photon detected per emitted photon.
 UNIT_SOURCE = 1e6
@@ -481,3 +489,14 @@ def traced_rates(
     positions = np.asarray(positions_mm, float).reshape(-1, 3)
     with tracing_pool(workers if len(positions) > chunk else 1) as pool:
         return submit_rates(pool, simulator, positions, values, with_centres=with_centres, chunk=chunk)()
+
+
+def lenslet_vertices_px(design: SystemDesign, binning: int) -> np.ndarray:
+    """(J, 2) (row, col) px, at ``binning``, below each full lenslet's vertex of ``design``: where
+    its focus lands for a source straight in front of it (any depth)."""
+    grid = SensorGrid.of(design, binning)
+    out = np.full((design.mla.rows * design.mla.cols, 2), np.nan)
+    for cell in lens_cells(design.mla, design.as_built):
+        if not cell.partial:
+            out[cell.row * design.mla.cols + cell.col] = grid.row(cell.vertex_y), grid.col(cell.vertex_x)
+    return out

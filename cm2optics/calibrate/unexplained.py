@@ -51,8 +51,9 @@ ENERGY_UNCHANGED = 0.02
 #: A "copy" holding more than this share of the energy one pixel from the focus is the focus
 #: itself displaced (sub-pixel shifts fit best as a copy at one pixel), not a ghost.
 DISPLACED_SHARE = 0.3
-#: Largest ghost offset sought, px.
-GHOST_REACH_PX = 8
+#: Largest ghost offset sought, px: the patch's half less 2 px, so that a copy's core lies in it
+#: (a ghost farther than this from its focus is not sought; session 10's 8 px missed one at 14 px).
+GHOST_REACH_PX = PATCH_HALF_PX - 2
 #: A displaced copy is named when it explains this share of the mean residual patch…
 GHOST_EXPLAINS = 0.6
 #: …and this much more than a change of the focus's energy alone.
@@ -60,14 +61,17 @@ GHOST_GAIN = 0.3
 
 
 def flagged_foci(
-    after: ResidualAnalysis, half: int = PATCH_HALF_PX, per_frame: bool = False
+    after: ResidualAnalysis, half: int = PATCH_HALF_PX, per_frame: bool = False, background: np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(N, J) flagged foci (module docstring), and the residual (against the model at the foci's
-    common energy ratio; with ``per_frame``, at each frame's own, for a scan whose source drifted)
-    and model-signal patches (N, J, 2·half + 1, 2·half + 1) in counts."""
+    common energy ratio; with ``per_frame``, at each frame's own, for a scan whose source drifted;
+    above ``background`` (N, J, 2·half + 1, 2·half + 1) counts on the same patches, a structure of
+    the background described apart, :mod:`.background`) and model-signal patches (N, J, 2·half + 1, 2·half + 1) in counts."""
     model_signal = after.model_counts - after.registration.dark_level
     centres = after.model.centroid_px
     residual, inside = focus_patches(after.residual_counts, centres, half)
+    if background is not None:
+        residual = residual - background
     model, _ = focus_patches(model_signal, centres, half)
     variance = after.noise.variance(model)
     energy = model.sum(axis=(-2, -1))
@@ -89,13 +93,19 @@ def flagged_foci(
 
 
 def describe_unexplained(
-    after: ResidualAnalysis, pixel_um: float, half: int = PATCH_HALF_PX, per_frame: bool = False
+    after: ResidualAnalysis,
+    pixel_um: float,
+    half: int = PATCH_HALF_PX,
+    per_frame: bool = False,
+    background: np.ndarray | None = None,
 ) -> list[dict[str, Any]]:
     """The entries ``{lenslets, field_mm, depths_mm, energy_fraction, description}`` of what
     remains above the noise after the fit (empty when no focus is flagged); ``pixel_um`` is the
     binned pixel pitch, µm; ``per_frame``: each frame's flux is its own (a source that drifted
-    during the scan, :mod:`.acquisition`), so that only what departs from it is described."""
-    flagged, residual, model = flagged_foci(after, half, per_frame)
+    during the scan, :mod:`.acquisition`), so that only what departs from it is described;
+    ``background`` (N, J, 2·half + 1, 2·half + 1) counts: a background structure on the foci's
+    patches, which they are read above."""
+    flagged, residual, model = flagged_foci(after, half, per_frame, background)
     if not flagged.any():
         return []
     repeated = flagged.sum(axis=0) >= MIN_FOCI

@@ -87,8 +87,9 @@ def scan(
     Problems of the data rather than the optics are named, not fitted: defective sensor pixels
     (hot, dead, stuck; clusters, columns) are found in the frames themselves, left out of the
     fit and listed (JSON key sensor_defects); a source or exposure drift along the acquisition
-    order and frames whose foci are displaced together (stage backlash, position errors) are
-    named in warnings.
+    order, frames whose foci are displaced together (stage backlash, position errors), a z scale
+    error of the stage (the foci's spread against depth) and a smooth gain over the sensor (an
+    uncorrected flat field: JSON key sensor_gain) are named in warnings.
 
     Validated on traced 3×3×2 scans (8× binning, shot + read noise): an undeclared 0.5° MLA
     rotation and a lenslet at 60 % transmission are named alone and measured within 0.001,

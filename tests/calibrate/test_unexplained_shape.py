@@ -5,6 +5,7 @@ described as a wider focus, an aberration, not as a ghost."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from scipy.ndimage import gaussian_filter, shift
 
 from cm2optics.calibrate.unexplained import PATCH_HALF_PX, _shape
@@ -17,11 +18,13 @@ def _focus() -> np.ndarray:
     return 1000.0 * np.exp(-(rows**2 + cols**2) / (2 * 1.2**2))
 
 
-def test_a_ghost_is_a_displaced_copy():
+@pytest.mark.parametrize(("offset", "share"), [((5, -3), 0.04), ((12, 8), 0.02), ((-7, 13), 0.03)])
+def test_a_ghost_is_a_displaced_copy(offset, share):
+    """Near the focus and beyond session 10's 8-px reach (the probe's ghost at (+12, +8) px)."""
     focus = _focus()
-    residual = 0.04 * gaussian_filter(shift(focus, (5, -3), order=1), 1.0)
+    residual = share * gaussian_filter(shift(focus, offset, order=1), 1.0)
     text = _shape(residual[None], np.array([focus.sum()]), focus[None], 19.2)
-    assert text is not None and "displaced copy" in text and "(+5, -3)" in text
+    assert text is not None and "displaced copy" in text and f"({offset[0]:+d}, {offset[1]:+d})" in text
 
 
 def test_a_focus_blurred_along_x_is_wider_not_a_ghost():
