@@ -407,9 +407,7 @@ class _Fit:
         residual, var = self.residual(slots, theta)
         return float(np.sum(residual**2 / var))
 
-    def profiled(
-        self, slots: list[_Slot], theta: np.ndarray, template_noise: bool = False
-    ) -> tuple[np.ndarray, float]:
+    def profiled(self, slots: list[_Slot], theta: np.ndarray, template_noise: bool = False) -> tuple[np.ndarray, float]:
         """``theta`` with its linear values — the scale and the free relative fluxes — solved in
         closed form (weighted least squares, the noise of the prediction at ``theta``) for its
         geometry and offset, and the χ² there. ``template_noise``: the least squares corrected for

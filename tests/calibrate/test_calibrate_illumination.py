@@ -16,6 +16,7 @@ from __future__ import annotations
 import json
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -25,8 +26,12 @@ from typer.testing import CliRunner
 
 from cm2optics.calibrate.illumination import (
     TracedMaps,
+    _effect_slots,
+    _Fit,
+    _nuisance_slots,
     bin_measured_map,
     calibrate_illumination,
+    illumination_effects,
     tent_deposit,
     tent_weights,
 )
@@ -74,6 +79,45 @@ def test_rays_share_their_power_by_the_pixels_kernel_and_move_the_model_smoothly
     assert weights.sum() == pytest.approx(400.0, abs=1e-9)  # |x|, |y| ≤ 2.1: all four centres used
     moved, _ = tent_deposit(grid, points + 1e-3, group, 2)
     assert 0 < np.abs(moved - weights).sum() <= 400 * 4 * 2 * 1e-3 / 0.5
+
+
+class _NoisyTemplates:
+    """Two units' traced maps on B bins as Poisson counts of ``rays`` per unit of ``expected``
+    (power per ray 1/rays), against ``data`` without noise (the camera's shot noise negligible)."""
+
+    units = 2
+
+    def __init__(self, expected: np.ndarray, rays: int, rng: np.random.Generator, data: np.ndarray):
+        self.counts = rng.poisson(expected * rays)
+        self.per_ray = 1.0 / rays
+        self.measured = SimpleNamespace(values_at=lambda offset: data, pixels=np.full(data.size, 1e12))
+
+    def maps(self, geometry):
+        return self.counts * self.per_ray, self.counts * self.per_ray**2
+
+
+def test_the_linear_values_are_corrected_for_the_traced_maps_monte_carlo_noise():
+    """Two nearly alike unit maps (1 ± 0.3 x), unit 1 at flux 0.5, each map traced with 100 rays per
+    bin, 400 draws: plain least squares reads the flux high, as the first-order errors-in-variables
+    closed form says, (XᵀWX + D)⁻¹XᵀWd with D the maps' Σ w·variance (0.553); corrected for that
+    noise it reads 0.5."""
+    x = np.linspace(-1, 1, 200)
+    expected = np.stack([1 + 0.3 * x, 1 - 0.3 * x])
+    data = 50 * (expected[0] + 0.5 * expected[1])
+    flux = next(e for e in illumination_effects(2, False) if e.name == "led_flux" and e.unit == 1)
+    slots = _nuisance_slots(0.05)[:1] + _effect_slots(flux)
+    rng = np.random.default_rng(0)
+    plain, corrected = [], []
+    for _ in range(400):
+        fit = _Fit(_NoisyTemplates(expected, 100, rng, data), np.ones(2), np.zeros((2, 4)), 1.0)
+        plain.append(fit.profiled(slots, np.array([50.0, 1.0]))[0][1])
+        corrected.append(fit.profiled(slots, np.array([50.0, 1.0]), template_noise=True)[0][1])
+    w = 1 / (50**2 * expected.sum(0) / 100)  # the weights at flux 1: the maps' Monte Carlo variance
+    maps = 50 * expected
+    coef = np.linalg.solve((maps * w) @ maps.T + np.diag((w * 50**2 * expected / 100).sum(1)), (maps * w) @ data)
+    sem = np.std(plain) / 20
+    assert np.mean(plain) == pytest.approx(coef[1] / coef[0], abs=3 * sem) and coef[1] / coef[0] > 0.5 + 10 * sem
+    assert np.mean(corrected) == pytest.approx(0.5, abs=3 * np.std(corrected) / 20)
 
 
 def test_the_fit_traces_a_tilt_and_a_decentre_as_the_design_injects_them(v2):
