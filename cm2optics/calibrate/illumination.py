@@ -46,6 +46,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -291,9 +292,17 @@ def tent_deposit(
     return sums[0], sums[1]
 
 
+#: Traces kept for reuse within a process (sample-plane hits, ≈ 3 MB per million rays traced),
+#: least recently used dropped first: maps of the same design, rays and seed (several maps
+#: calibrated in one process, the tests' seeds) share the model's traces.
+TRACES_KEPT = 64
+_TRACES: OrderedDict[tuple[str, int, int, bytes], tuple[np.ndarray, np.ndarray, float]] = OrderedDict()
+
+
 class TracedMaps:
     """The design's irradiance per LED unit on the measured map's bins, for any unit tilts and
-    collimator decentres (traces cached; the same rays every time: common random numbers)."""
+    collimator decentres (traces cached, :data:`TRACES_KEPT`; the same rays every time: common
+    random numbers). ``traces``: the traces this instance made (cache hits not counted)."""
 
     def __init__(self, design: SystemDesign, measured: MeasuredMap, rays: int, seed: int):
         from cm2optics.illumination.compare import setup_from_options
@@ -303,7 +312,7 @@ class TracedMaps:
         collimator = collimator_from_design(design) if design.collimator is not None else None
         self.scene = build_scene(design, collimator)
         self.measured = measured
-        self._cache: dict[bytes, tuple[np.ndarray, np.ndarray, float]] = {}
+        self._identity = (design.parameter_hash(), rays, seed)
         self.traces = 0
 
     @property
@@ -316,8 +325,10 @@ class TracedMaps:
         from cm2optics.illumination.robustness import UnitError, perturbed_scene
         from cm2optics.illumination.tracer import Status, trace
 
-        key = np.round(geometry, 9).tobytes()
-        if key not in self._cache:
+        key = (*self._identity, np.round(geometry, 9).tobytes())
+        if key in _TRACES:
+            _TRACES.move_to_end(key)
+        else:
             scene = self.scene
             if np.any(geometry != 0):
                 offsets = -geometry[:, 2:] if scene.collimator is not None else np.zeros((self.units, 2))
@@ -328,9 +339,11 @@ class TracedMaps:
                 scene, self.setup.source, self.setup.rays, transmission=self.setup.transmission, seed=self.setup.seed
             )
             on = record.status == int(Status.SAMPLE)
-            self._cache[key] = (record.hit_mm[on].astype(np.float32), record.unit[on].astype(np.int8), record.power_mw)
+            _TRACES[key] = (record.hit_mm[on].astype(np.float32), record.unit[on].astype(np.int8), record.power_mw)
             self.traces += 1
-        return self._cache[key]
+            while len(_TRACES) > TRACES_KEPT:
+                _TRACES.popitem(last=False)
+        return _TRACES[key]
 
     def maps(self, geometry: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(units, B) irradiance (mW/mm²) of each unit at the used centres, and its Monte Carlo
