@@ -39,6 +39,13 @@ does not lower it: with a realistic map, whose camera noise is far below the mod
 limits detection (BENCHMARKS.md); the search stops when no candidate is significant (the BIC alone: a map has few
 bins, so χ²_red may sit a little above ``CHI2_FLOOR`` with a significant effect left; above it
 after the effects, the residual is described as unexplained).
+Last, the scale and the relative fluxes are solved again with the least squares corrected for the
+traced maps' own Monte Carlo noise (errors in variables: each map's expected Σ w²·variance taken off
+the normal matrix): a map traced with few rays per bin looks like the others' noise-wise, which
+pulls a fitted flux towards the nominal — LED 2 at 0.5 on V1 read 0.60 ± 0.01 on average at
+200 000 model rays, 0.50 after the correction (BENCHMARKS.md). ``setup.template_noise_corrected``
+is false where the maps' noise swamps what fixes the fluxes (the corrected matrix not positive
+definite) and the plain values are kept.
 Uncertainties: the covariance's diagonal, scaled by χ²_red where it exceeds 1.
 """
 

@@ -2,13 +2,16 @@
 illumination effects named by the BIC and measured, the report.
 
 Synthetic maps (:mod:`illumination_maps`): the design as built traced with 5× to 10× the model's
-rays on a 50-µm camera grid, Poisson noise, the optical axis at ``OFFSET_MM`` from the image's
-centre (the fitted offset is the axis's position in the image). Every effect alone at two
-magnitudes and clean maps for ten seeds are not here yet (their first run failed or did not
-finish, BENCHMARKS.md); the tool is not told what was injected. Tolerances (≈ 2σ of the precision
-measured at these ray counts, BENCHMARKS.md): relative LED flux ± 0.1, unit tilt ± 1° about each
-axis (± 0.5° for the pair's tilt with 1 000 000 model rays), collimator decentre ± 0.05 mm, offset
-± 0.08 mm. Detection limit (BENCHMARKS.md): a 2° tilt is not named at 400 000 model rays.
+rays on a 200 × 200 camera grid of 50 µm, Poisson noise, the optical axis at ``OFFSET_MM`` from the
+image's centre (the fitted offset is the axis's position in the image); the tool is not told what
+was injected. Tolerances of the illumination effects (beside the scan library's in
+``test_calibrate.py``; ≈ 2σ of the precision measured at these ray counts, BENCHMARKS.md):
+relative LED flux ± 0.1 on cm2-v2 (± 0.19 on V1 at 200 000 model rays, whose even map fixes a
+flux less well: 3× the spread measured over 15 runs), unit tilt ± 1° about each axis (± 0.5° for
+the pair's tilt with 1 000 000 model rays), collimator decentre ± 0.05 mm, offset ± 0.08 mm on
+cm2-v2 (V1's map does not fix it). Detection limit (BENCHMARKS.md): a 2° tilt is not named at
+400 000 model rays. The effect matrix (every effect alone at two magnitudes) and the clean maps
+of ten seeds are slow tests.
 """
 
 from __future__ import annotations
