@@ -446,13 +446,14 @@ class _Fit:
         weight = 1.0 / np.sqrt(var)
         data = self.maps.measured.values_at(offset)
         a = basis * weight
-        normal = a @ a.T
         if template_noise:
             noise = [flux[fixed] ** 2 @ variance[fixed]] if fixed.any() else []
-            normal = normal - np.diag(np.array(noise + [variance[u] for u in free_units]) @ weight**2)
-            if np.linalg.eigvalsh(normal).min() <= 0:
+            normal = a @ a.T - np.diag(np.array(noise + [variance[u] for u in free_units]) @ weight**2)
+            if not np.linalg.eigvalsh(normal).min() > 0:
                 return theta, math.nan  # the maps' noise swamps what fixes these fluxes: no correction
-        coef = np.linalg.solve(normal, a @ (data * weight))
+            coef = np.linalg.solve(normal, a @ (data * weight))
+        else:
+            coef = np.linalg.lstsq(a.T, data * weight, rcond=None)[0]
         out = theta.copy()
         scale = coef[0] if fixed.any() else theta[0]
         out[0] = scale
