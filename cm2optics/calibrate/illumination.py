@@ -3,15 +3,24 @@
 :func:`calibrate_illumination` is what ``cm2 calibrate illumination`` runs. The measured map is
 an image of a uniform fluorescent slide on the sample plane: its rows run along +y and its
 columns along +x of the device frame (as ``cm2 illum run``'s maps), its centre on the optical
-axis, ``pixel_um`` its pixel on the sample. The image is averaged into square bins of
-``bin_mm`` over the field's circle, where the model's irradiance map — traced by the same
-tracer as ``cm2 illum run``, with the design's ``illumination_as_built`` — is binned too.
+axis, ``pixel_um`` its pixel on the sample. Map and model are compared at the centres of a
+square grid of pitch ``bin_mm`` over the field's circle, each value the average under the same
+tent (bilinear, cloud-in-cell) kernel, one pitch wide on each side: the image's pixels are
+weighted by it, and every ray of the model's irradiance map — traced by the same tracer as
+``cm2 illum run``, with the design's ``illumination_as_built`` — shares its power among the four
+nearest centres by it. A ray's share then changes smoothly as the ray moves, so a tilt or a
+decentre, which moves a unit's rays together (a collimator decentre moves them ≈ 12× as far on
+the sample), changes the model smoothly; with box bins every ray crossing a bin's edge was a
+jump, and the χ² along a decentre, traced with common random numbers, was as rough as the
+decentre's own signal (BENCHMARKS.md).
 
 Registration (nuisance, always free): one global scale (the exposure, the dye's brightness and
 the camera's gain are unknown) and one lateral offset (x, y, mm; the camera's centre on the
 axis). Noise: shot noise of the camera, ``counts_per_electron × model`` per pixel (averaged
-over the bin's pixels), plus the model's own Monte Carlo variance (every ray's power squared
-per bin), so that χ² ≈ 1 when the model matches the data to the noise.
+over the kernel's effective number of pixels, (Σw)²/Σw²), plus the model's own Monte Carlo
+variance (every ray's power times its weight, squared, per centre), so that χ² ≈ 1 when the
+model matches the data to the noise (neighbouring centres share pixels and rays: their noise is
+correlated by ≈ 0.25).
 
 Effects (:func:`illumination_effects`, the fields of
 :class:`~cm2optics.design.as_built_illumination.IlluminationAsBuilt`): ``led_flux`` (a unit's
@@ -30,12 +39,21 @@ does not lower it: with a realistic map, whose camera noise is far below the mod
 limits detection (BENCHMARKS.md); the search stops when no candidate is significant (the BIC alone: a map has few
 bins, so χ²_red may sit a little above ``CHI2_FLOOR`` with a significant effect left; above it
 after the effects, the residual is described as unexplained).
+Last, the scale and the relative fluxes are solved again with the least squares corrected for the
+traced maps' own Monte Carlo noise (errors in variables: each map's expected Σ w²·variance taken off
+the normal matrix): a map traced with few rays per bin looks like the others' noise-wise, which
+pulls a fitted flux towards the nominal — LED 2 at 0.5 on V1 read 0.60 ± 0.01 on average at
+200 000 model rays, 0.50 after the correction (BENCHMARKS.md). ``setup.template_noise_corrected``
+is false where the maps' noise swamps what fixes the fluxes (the corrected matrix not positive
+definite) and the plain values are kept.
 Uncertainties: the covariance's diagonal, scaled by χ²_red where it exceeds 1.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
+from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -57,6 +75,8 @@ __all__ = [
     "calibrate_illumination",
     "illumination_effects",
     "read_measured_map",
+    "tent_deposit",
+    "tent_weights",
 ]
 
 Progress = Callable[[str], None]
@@ -159,21 +179,28 @@ def read_measured_map(path: str | Path) -> np.ndarray:
     return image
 
 
+def tent_weights(centres_mm: np.ndarray, positions_mm: np.ndarray, pitch_mm: float) -> np.ndarray:
+    """(centres, positions) weights of the tent kernel, max(0, 1 − |x − c| / pitch), along one axis."""
+    return np.maximum(0.0, 1.0 - np.abs(centres_mm[:, None] - positions_mm[None, :]) / pitch_mm)
+
+
 @dataclass(frozen=True, eq=False)
 class MeasuredMap:
     """The measured map and its comparison grid.
 
-    image: (y, x) counts. pixel_mm: its pixel on the sample, mm. bin_mm: bin side, mm.
-    half_mm: grid half-width, mm. label: (y, x) flat bin of every pixel (−1: none).
-    index: (B,) flat index of each used bin in the (n, n) grid. pixels: (B,) pixels per used bin.
-    centres_mm: (B, 2) used bins' centres (x, y), mm. values: (B,) mean counts per pixel, no offset.
+    image: (y, x) counts. pixel_mm: its pixel on the sample, mm. bin_mm: the grid's pitch, mm.
+    half_mm: grid half-width, mm. rows, cols: (n, h) and (n, w) tent weights of the image's rows
+    and columns on the grid's centres. index: (B,) flat index of each used centre in the (n, n)
+    grid. pixels: (B,) effective pixels per used centre, (Σw)²/Σw². centres_mm: (B, 2) used
+    centres (x, y), mm. values: (B,) kernel-weighted mean counts per pixel, no offset.
     """
 
     image: np.ndarray
     pixel_mm: float
     bin_mm: float
     half_mm: float
-    label: np.ndarray
+    rows: np.ndarray
+    cols: np.ndarray
     index: np.ndarray
     pixels: np.ndarray
     centres_mm: np.ndarray
@@ -183,20 +210,22 @@ class MeasuredMap:
     def side(self) -> int:
         return int(round(2 * self.half_mm / self.bin_mm))
 
+    def weighted(self, image: np.ndarray) -> np.ndarray:
+        """(B,) kernel-weighted means of ``image`` (y, x) at the used centres."""
+        sums = (self.rows @ image @ self.cols.T).ravel()[self.index]
+        return sums / np.outer(self.rows.sum(1), self.cols.sum(1)).ravel()[self.index]
+
     def values_at(self, offset_mm: np.ndarray) -> np.ndarray:
         """(B,) mean counts per pixel with the optical axis at ``offset_mm`` (x, y) in the image
         (the image resampled bilinearly, so that the values change smoothly with the offset)."""
         from scipy.ndimage import shift
 
-        moved = shift(
-            self.image, (-offset_mm[1] / self.pixel_mm, -offset_mm[0] / self.pixel_mm), order=1, mode="nearest"
+        return self.weighted(
+            shift(self.image, (-offset_mm[1] / self.pixel_mm, -offset_mm[0] / self.pixel_mm), order=1, mode="nearest")
         )
-        keep = self.label >= 0
-        sums = np.bincount(self.label[keep], weights=moved[keep], minlength=self.side**2)
-        return sums[self.index] / self.pixels
 
     def grid(self, values: np.ndarray) -> np.ndarray:
-        """(n, n) image (y, x) of per-bin ``values``, NaN outside the used bins."""
+        """(n, n) image (y, x) of per-centre ``values``, NaN outside the used centres."""
         out = np.full(self.side * self.side, np.nan)
         out[self.index] = values
         return out.reshape(self.side, self.side)
@@ -204,8 +233,8 @@ class MeasuredMap:
 
 def bin_measured_map(image: np.ndarray, pixel_um: float, bin_mm: float, radius_mm: float) -> MeasuredMap:
     """The comparison grid of ``image`` (y, x; its centre on the axis, ``pixel_um`` µm per pixel
-    on the sample): bins of ``bin_mm`` inside the circle of ``radius_mm`` that the image covers
-    whole with :data:`MAX_OFFSET_MM` to spare (room for the fitted offset)."""
+    on the sample): centres of pitch ``bin_mm`` inside the circle of ``radius_mm`` whose kernel
+    the image covers whole with :data:`MAX_OFFSET_MM` to spare (room for the fitted offset)."""
     if not (math.isfinite(pixel_um) and pixel_um > 0):
         raise UserError(f"--pixel-um = {pixel_um}: must be a number > 0")
     pixel_mm = pixel_um / 1000.0
@@ -214,46 +243,73 @@ def bin_measured_map(image: np.ndarray, pixel_um: float, bin_mm: float, radius_m
     half = bin_mm * math.ceil(radius_mm / bin_mm)
     n = int(round(2 * half / bin_mm))
     h, w = image.shape
-    x = (np.arange(w) - (w - 1) / 2) * pixel_mm
-    y = (np.arange(h) - (h - 1) / 2) * pixel_mm
-    col = np.floor((x + half) / bin_mm).astype(np.int64)
-    row = np.floor((y + half) / bin_mm).astype(np.int64)
-    ok = (row[:, None] >= 0) & (row[:, None] < n) & (col[None, :] >= 0) & (col[None, :] < n)
-    label = np.where(ok, row[:, None] * n + col[None, :], -1)
-    pixels = np.bincount(label[ok], minlength=n * n)
     centres = -half + bin_mm * (np.arange(n) + 0.5)
+    rows = tent_weights(centres, (np.arange(h) - (h - 1) / 2) * pixel_mm, bin_mm)
+    cols = tent_weights(centres, (np.arange(w) - (w - 1) / 2) * pixel_mm, bin_mm)
     cx, cy = np.meshgrid(centres, centres)
-    reach = bin_mm / 2 + MAX_OFFSET_MM  # a used bin and the offset's room lie inside the image
+    reach = bin_mm + MAX_OFFSET_MM  # a used centre's kernel and the offset's room lie inside the image
     covered = (np.abs(cx) + reach <= w * pixel_mm / 2) & (np.abs(cy) + reach <= h * pixel_mm / 2)
-    used = (covered & (np.hypot(cx, cy) <= radius_mm)).ravel() & (pixels > 0)
+    used = (covered & (np.hypot(cx, cy) <= radius_mm)).ravel()
     if used.sum() < MIN_BINS:
         raise UserError(
             f"the map ({h} × {w} px at {pixel_um} µm = {w * pixel_mm:.2f} × {h * pixel_mm:.2f} mm) covers "
-            f"{int(used.sum())} bins of {bin_mm} mm inside the {2 * radius_mm:g}-mm field with ±{MAX_OFFSET_MM} mm "
+            f"{int(used.sum())} bins of {bin_mm} mm inside the {2 * radius_mm:g}-mm field with ±{bin_mm + MAX_OFFSET_MM} mm "
             f"to spare: at least {MIN_BINS} needed"
         )
     index = np.flatnonzero(used)
-    label = np.where(np.isin(label, index), label, -1)
-    sums = np.bincount(label[label >= 0], weights=image[label >= 0], minlength=n * n)
-    return MeasuredMap(
+    pixels = np.outer(rows.sum(1) ** 2 / (rows**2).sum(1), cols.sum(1) ** 2 / (cols**2).sum(1)).ravel()[index]
+    grid = MeasuredMap(
         image,
         pixel_mm,
         bin_mm,
         half,
-        label,
+        rows,
+        cols,
         index,
-        pixels[index].astype(float),
+        pixels,
         np.column_stack([cx.ravel()[index], cy.ravel()[index]]),
-        sums[index] / pixels[index],
+        np.empty(0),
     )
+    return dataclasses.replace(grid, values=grid.weighted(image))
 
 
 # ----------------------------------------------------------------------------- the traced model
 
 
+def tent_deposit(
+    measured: MeasuredMap, points_mm: np.ndarray, group: np.ndarray, groups: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """(groups, B) sums of the tent weights of ``points_mm`` (N, 2: x, y, mm) at the used centres,
+    per ``group`` (N,) of each point, and the sums of the squared weights: each point shares 1
+    among its four nearest centres, the same kernel as :meth:`MeasuredMap.weighted` gives pixels."""
+    n = measured.side
+    u = (points_mm.astype(np.float64) + measured.half_mm) / measured.bin_mm - 0.5  # in centres' index units
+    low = np.floor(u).astype(np.int64)
+    frac = u - low
+    sums = np.zeros((2, groups * n * n))
+    for di in (0, 1):
+        for dj in (0, 1):
+            i, j = low[:, 0] + di, low[:, 1] + dj  # column (x), row (y)
+            weight = (frac[:, 0] if di else 1 - frac[:, 0]) * (frac[:, 1] if dj else 1 - frac[:, 1])
+            ok = (i >= 0) & (i < n) & (j >= 0) & (j < n)
+            flat = group[ok].astype(np.int64) * (n * n) + j[ok] * n + i[ok]
+            sums[0] += np.bincount(flat, weights=weight[ok], minlength=sums.shape[1])
+            sums[1] += np.bincount(flat, weights=weight[ok] ** 2, minlength=sums.shape[1])
+    sums = sums.reshape(2, groups, n * n)[:, :, measured.index]
+    return sums[0], sums[1]
+
+
+#: Traces kept for reuse within a process (sample-plane hits, ≈ 3 MB per million rays traced),
+#: least recently used dropped first: maps of the same design, rays and seed (several maps
+#: calibrated in one process, the tests' seeds) share the model's traces.
+TRACES_KEPT = 64
+_TRACES: OrderedDict[tuple[str, int, int, bytes], tuple[np.ndarray, np.ndarray, float]] = OrderedDict()
+
+
 class TracedMaps:
     """The design's irradiance per LED unit on the measured map's bins, for any unit tilts and
-    collimator decentres (traces cached; the same rays every time: common random numbers)."""
+    collimator decentres (traces cached, :data:`TRACES_KEPT`; the same rays every time: common
+    random numbers). ``traces``: the traces this instance made (cache hits not counted)."""
 
     def __init__(self, design: SystemDesign, measured: MeasuredMap, rays: int, seed: int):
         from cm2optics.illumination.compare import setup_from_options
@@ -263,7 +319,7 @@ class TracedMaps:
         collimator = collimator_from_design(design) if design.collimator is not None else None
         self.scene = build_scene(design, collimator)
         self.measured = measured
-        self._cache: dict[bytes, tuple[np.ndarray, np.ndarray, float]] = {}
+        self._identity = (design.parameter_hash(), rays, seed)
         self.traces = 0
 
     @property
@@ -276,8 +332,10 @@ class TracedMaps:
         from cm2optics.illumination.robustness import UnitError, perturbed_scene
         from cm2optics.illumination.tracer import Status, trace
 
-        key = np.round(geometry, 9).tobytes()
-        if key not in self._cache:
+        key = (*self._identity, np.round(geometry, 9).tobytes())
+        if key in _TRACES:
+            _TRACES.move_to_end(key)
+        else:
             scene = self.scene
             if np.any(geometry != 0):
                 offsets = -geometry[:, 2:] if scene.collimator is not None else np.zeros((self.units, 2))
@@ -288,22 +346,19 @@ class TracedMaps:
                 scene, self.setup.source, self.setup.rays, transmission=self.setup.transmission, seed=self.setup.seed
             )
             on = record.status == int(Status.SAMPLE)
-            self._cache[key] = (record.hit_mm[on].astype(np.float32), record.unit[on].astype(np.int8), record.power_mw)
+            _TRACES[key] = (record.hit_mm[on].astype(np.float32), record.unit[on].astype(np.int8), record.power_mw)
             self.traces += 1
-        return self._cache[key]
+            while len(_TRACES) > TRACES_KEPT:
+                _TRACES.popitem(last=False)
+        return _TRACES[key]
 
     def maps(self, geometry: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(units, B) irradiance (mW/mm²) of each unit in the used bins, and its Monte Carlo
+        """(units, B) irradiance (mW/mm²) of each unit at the used centres, and its Monte Carlo
         variance ((mW/mm²)²)."""
         hits, unit, power = self._hits(geometry)
-        m = self.measured
-        n = m.side
-        ij = np.floor((hits + m.half_mm) / m.bin_mm).astype(np.int64)
-        ok = np.all((ij >= 0) & (ij < n), axis=1)
-        flat = unit[ok].astype(np.int64) * (n * n) + ij[ok, 1] * n + ij[ok, 0]
-        counts = np.bincount(flat, minlength=self.units * n * n).reshape(self.units, n * n)[:, m.index]
-        per_ray = power / m.bin_mm**2
-        return counts * per_ray, counts * per_ray**2
+        weights, squares = tent_deposit(self.measured, hits, unit, self.units)
+        per_ray = power / self.measured.bin_mm**2
+        return weights * per_ray, squares * per_ray**2
 
 
 @dataclass(frozen=True)
@@ -372,12 +427,16 @@ class _Fit:
         residual, var = self.residual(slots, theta)
         return float(np.sum(residual**2 / var))
 
-    def profiled(self, slots: list[_Slot], theta: np.ndarray) -> tuple[np.ndarray, float]:
+    def profiled(self, slots: list[_Slot], theta: np.ndarray, template_noise: bool = False) -> tuple[np.ndarray, float]:
         """``theta`` with its linear values — the scale and the free relative fluxes — solved in
         closed form (weighted least squares, the noise of the prediction at ``theta``) for its
-        geometry and offset, and the χ² there."""
+        geometry and offset, and the χ² there. ``template_noise``: the least squares corrected for
+        the Monte Carlo noise of the traced maps it weights (the errors-in-variables moment
+        correction: the normal matrix less each basis map's expected Σ w²·variance), which
+        otherwise pulls a relative flux towards the others' (BENCHMARKS.md: LED 2 at 0.5 on V1 reads
+        0.60 ± 0.01 over 16 model seeds at 200 000 rays)."""
         _, offset, flux, geometry = self.unpack(slots, theta)
-        maps, _ = self.maps.maps(geometry)
+        maps, variance = self.maps.maps(geometry)
         _, var = self.predict(slots, theta)
         free = [i for i, s in enumerate(slots) if s.effect is not None and s.column < 0]
         free_units = [slots[i].effect.unit for i in free]
@@ -386,7 +445,15 @@ class _Fit:
         basis = np.array(basis + [maps[u] for u in free_units])
         weight = 1.0 / np.sqrt(var)
         data = self.maps.measured.values_at(offset)
-        coef = np.linalg.lstsq((basis * weight).T, data * weight, rcond=None)[0]
+        a = basis * weight
+        if template_noise:
+            noise = [flux[fixed] ** 2 @ variance[fixed]] if fixed.any() else []
+            normal = a @ a.T - np.diag(np.array(noise + [variance[u] for u in free_units]) @ weight**2)
+            if not np.linalg.eigvalsh(normal).min() > 0:
+                return theta, math.nan  # the maps' noise swamps what fixes these fluxes: no correction
+            coef = np.linalg.solve(normal, a @ (data * weight))
+        else:
+            coef = np.linalg.lstsq(a.T, data * weight, rcond=None)[0]
         out = theta.copy()
         scale = coef[0] if fixed.any() else theta[0]
         out[0] = scale
@@ -495,7 +562,7 @@ def _refitted(
     tilt of a few degrees moves a unit's spot too far for one linearisation, and changes the
     power on the sample, which stale linear values would count against it. Central differences:
     a forward difference shares the trace at the current values, and its Monte Carlo noise, with
-    the residual (the rays whose fate or bin the step changes), which pulls the step back towards
+    the residual (the rays whose fate or place the step changes), which pulls the step back towards
     the current values (a 0.25-mm collimator decentre stalled at its grid start, −0.15 mm)."""
     trial_slots = slots + _effect_slots(candidate)
     current = _current(fit, slots, theta, candidate)
@@ -712,6 +779,9 @@ def calibrate_illumination(
         kept.append(best)
         steps.append({"effect": best.key, "chi2": round(chi2 / (n - len(slots)), 5), "bic": round(bic, 3)})
         say(f"kept {best.key}: reduced χ² {chi2 / (n - len(slots)):.3g}")
+    corrected, corrected_chi2 = fit.profiled(slots, theta, template_noise=True)
+    if math.isfinite(corrected_chi2):
+        theta, chi2 = corrected, corrected_chi2
     after, var_after = fit.predict(slots, theta)
     chi2_after = chi2 / (n - len(slots))
     inflate = max(chi2_after, 1.0)
@@ -753,6 +823,7 @@ def calibrate_illumination(
             "rays": rays,
             "seed": seed,
             "traces": maps.traces,
+            "template_noise_corrected": math.isfinite(corrected_chi2),
             "candidates": sorted({c.name for c in candidates}),
         },
     }

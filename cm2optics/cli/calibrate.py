@@ -239,7 +239,7 @@ def illumination(
     preset: PresetOption = "cm2-v2",
     out: Annotated[Path, typer.Option("--out", "-o", help="Report folder.")] = Path("out/calibration-illumination"),
     rays: Annotated[int, typer.Option("--rays", help="Rays of each model trace (all LEDs), ≥ 1000.")] = 400_000,
-    bin_mm: Annotated[float, typer.Option("--bin-mm", help="Side of the comparison bins on the sample, mm.")] = 0.5,
+    bin_mm: Annotated[float, typer.Option("--bin-mm", help="Pitch of the comparison grid on the sample, mm.")] = 0.5,
     counts_per_electron: Annotated[
         float, typer.Option("--counts-per-electron", help="The camera's gain, for the map's shot noise.")
     ] = 1.0,
@@ -251,9 +251,10 @@ def illumination(
     """Calibrate a design's illumination against a measured map.
 
     The map's rows run along +y and its columns along +x of the device frame (as cm2 illum
-    run's maps), its centre near the optical axis. It is averaged into --bin-mm bins over the
-    field; the design is traced as cm2 illum run traces it (with its illumination_as_built)
-    and registered to it (one global scale, one lateral offset up to 0.5 mm); the residual's χ²
+    run's maps), its centre near the optical axis. It is averaged at the centres of a grid of
+    pitch --bin-mm over the field, under a tent (bilinear) kernel one pitch wide each side; the
+    design is traced as cm2 illum run traces it (with its illumination_as_built), its rays
+    shared among the centres by the same kernel, and registered to it (one global scale, one lateral offset up to 0.5 mm); the residual's χ²
     counts the map's shot noise and the model's Monte Carlo noise. Effects named by the BIC,
     refitted with the tracer in the loop, with 1σ uncertainties: led_flux (each LED's flux
     relative to the others), led_tilt (a unit tilted, degrees), collimator_decenter (mm).

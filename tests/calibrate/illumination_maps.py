@@ -17,7 +17,7 @@ def unit_pixel_maps(
     design: SystemDesign,
     *,
     pixel_um: float = 50.0,
-    size_px: int = 180,
+    size_px: int = 200,
     rays: int = 2_000_000,
     offset_mm: tuple[float, float] = (0.0, 0.0),
     seed: int = 7,
