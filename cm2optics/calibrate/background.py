@@ -23,7 +23,7 @@ from scipy.stats import spearmanr
 
 from cm2optics.calibrate.residual import ResidualAnalysis
 
-__all__ = ["BackgroundStructure", "background_entry", "background_structure"]
+__all__ = ["BackgroundStructure", "background_entry", "background_structure", "quadratic_terms"]
 
 #: Pixels where the model puts less than this share of its brightest pixel are "away from the foci".
 DARK_SHARE = 1e-3
@@ -74,11 +74,14 @@ class BackgroundStructure:
         return np.where(known[..., None, None], values, 0.0)
 
 
+def quadratic_terms(r: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """(P, 6) the terms 1, r, c, r², r·c, c² of scaled coordinates ``r``, ``c`` (P,)."""
+    return np.column_stack([np.ones(len(r)), r, c, r * r, r * c, c * c])
+
+
 def _terms(rows: np.ndarray, cols: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     """(P, 6) the quadratic terms of pixel coordinates scaled to [−1, 1]."""
-    r = 2.0 * rows / max(shape[0] - 1, 1) - 1.0
-    c = 2.0 * cols / max(shape[1] - 1, 1) - 1.0
-    return np.column_stack([np.ones(len(r)), r, c, r * r, r * c, c * c])
+    return quadratic_terms(2.0 * rows / max(shape[0] - 1, 1) - 1.0, 2.0 * cols / max(shape[1] - 1, 1) - 1.0)
 
 
 def background_structure(analysis: ResidualAnalysis, exposure_ms: np.ndarray) -> BackgroundStructure | None:

@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from cm2optics.calibrate.acquisition import bright_foci, frame_flux
+from cm2optics.calibrate.background import quadratic_terms
 from cm2optics.calibrate.residual import ResidualAnalysis
 
 __all__ = ["BIC_MARGIN", "GAIN_MIN", "describe_sensor_gain", "sensor_gain"]
@@ -34,9 +35,8 @@ MIN_FOCI = 20
 
 
 def _quadratic(points: np.ndarray) -> np.ndarray:
-    """(F, 6) the terms 1, r, c, r², r·c, c² of points (F, 2)."""
-    r, c = points[:, 0], points[:, 1]
-    return np.column_stack([np.ones(len(points)), r, c, r * r, r * c, c * c])
+    """(F, 6) the quadratic terms of points (F, 2)."""
+    return quadratic_terms(points[:, 0], points[:, 1])
 
 
 def _bic(design: np.ndarray, values: np.ndarray) -> tuple[float, np.ndarray]:
