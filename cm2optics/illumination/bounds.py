@@ -2,7 +2,8 @@
 
 * :func:`etendue_bound` — étendue conservation: no passive optic puts more of a Lambertian
   emitter's power through a unit's clear aperture onto the circle than G_target / G_source
-  allows; and the excitation filter passes at most its :func:`spectral_ceiling`.
+  allows; and the excitation filter passes at most its :func:`spectral_ceiling`
+  (:func:`filter_throughput` at normal incidence; off it the filter's edges shift blue).
 * :func:`uniform_beam_bound` — the uniformity constraint: the largest fraction of a unit's
   output that *any rotationally symmetric beam* (the class of every revolved collimator, the
   authors' part included) aimed along the unit's axis can put inside the circle while the
@@ -33,9 +34,11 @@ from cm2optics.design import SystemDesign
 from cm2optics.optics import first_order
 
 __all__ = [
+    "THROUGHPUT_STEP_NM",
     "FREE_AIM_GRID",
     "etendue_blur_rad",
     "etendue_bound",
+    "filter_throughput",
     "free_aim_bound",
     "spectral_ceiling",
     "uniform_beam_bound",
@@ -54,19 +57,35 @@ def _clear_aperture(design: SystemDesign) -> tuple[np.ndarray, tuple[float, floa
     return pose, half_sides, aperture_z
 
 
-def spectral_ceiling(design: SystemDesign, transmission: Any = None, spectrum: Any = None) -> float:
-    """∫ S(λ) T(λ, 0) dλ / ∫ S dλ: the most of the LED's spectrum S the excitation filter passes
-    (every ray at normal incidence), from the run's inputs. transmission: T(λ nm, θ rad) (a
-    coating table's fit), default the model of the design's filter; spectrum: the LED's
+#: Wavelength step of :func:`filter_throughput`'s integral, nm.
+THROUGHPUT_STEP_NM = 0.02
+
+
+def filter_throughput(design: SystemDesign, aoi_rad: Any, transmission: Any = None, spectrum: Any = None) -> np.ndarray:
+    """∫ S(λ) T(λ, θ) dλ / ∫ S dλ at each angle of incidence θ (rad, in air; any shape): the share
+    of the LED's power the excitation filter passes for a ray at θ. S is linear between its
+    samples (as the tracer draws wavelengths from it) and the integral is taken on steps of
+    :data:`THROUGHPUT_STEP_NM`, finer than a hard-coated filter's edge. transmission: T(λ nm, θ rad)
+    (a coating table's fit), default the model of the design's filter; spectrum: the LED's
     :class:`~cm2optics.illumination.source.SourceSpectrum`, default the design's LED model."""
     from cm2optics.illumination.excitation import design_filter_transmission
     from cm2optics.illumination.source import led_source
 
     spectrum = spectrum if spectrum is not None else led_source(design).spectrum
     transmission = transmission or design_filter_transmission(design)
-    wl = spectrum.wavelength_nm
-    power = spectrum.relative_power
-    return float(np.trapezoid(power * transmission(wl, np.zeros_like(wl)), wl) / np.trapezoid(power, wl))
+    aoi = np.asarray(aoi_rad, dtype=float)
+    lo, hi = spectrum.wavelength_nm[0], spectrum.wavelength_nm[-1]
+    grid = np.linspace(lo, hi, int(math.ceil((hi - lo) / THROUGHPUT_STEP_NM)) + 1)
+    wl = np.union1d(spectrum.wavelength_nm, grid)
+    power = np.interp(wl, spectrum.wavelength_nm, spectrum.relative_power)
+    passed = np.broadcast_to(transmission(wl, aoi.reshape(-1, 1)), (aoi.size, wl.size))
+    return (np.trapezoid(power * passed, wl, axis=-1) / np.trapezoid(power, wl)).reshape(aoi.shape)
+
+
+def spectral_ceiling(design: SystemDesign, transmission: Any = None, spectrum: Any = None) -> float:
+    """:func:`filter_throughput` at normal incidence: the most of the LED's spectrum the
+    excitation filter passes (every ray at normal incidence), from the run's inputs."""
+    return float(filter_throughput(design, 0.0, transmission, spectrum))
 
 
 def etendue_bound(
