@@ -122,6 +122,32 @@ def test_uniform_beam_bound_of_the_oblique_array(v2):
         uniform_beam_bound(v2, max_cv=0.0)
 
 
+def test_freeform_cells_tile_the_directions_within_the_angle():
+    """4 × 4 cells over ±tan 45° = ±1: side 0.5, centres ±0.25 / ±0.75; the four corner cells
+    (centre radius 1.06 > 1) are left out, 12 remain; every ray lies inside its own cell."""
+    from cm2optics.illumination.bounds import _cell_directions
+
+    local, centres = _cell_directions(4, 45.0, 500, np.random.default_rng(0))
+    assert local.shape == (12, 500, 3) and centres.shape == (12, 2)
+    assert np.hypot(centres[:, 0], centres[:, 1]).max() == pytest.approx(math.hypot(0.25, 0.75))
+    assert np.abs(local[..., :2] - centres[:, None, :]).max() <= 0.25
+    assert np.all(local[..., 2] == 1.0)
+
+
+def test_a_freeform_beam_lights_the_circle_from_an_oblique_unit(v2):
+    """One unit at 45°, a point-like beam: any rotationally symmetric beam lights the near side of
+    the circle more than the far side (CV > 10 % whatever its profile: bound 0); a beam of any
+    shape (cells of direction) puts ≥ 0.85 of its light evenly into the circle."""
+    one = v2.with_changes({"led_array.count": 1, "led_array.tilt_deg": 45.0, "led_array.aim_mm": 0.0})
+    kw = {"max_cv": 0.10, "max_angle_deg": 30.0}
+    revolved = uniform_beam_bound(one, rings=24, rays_per_ring=3000, **kw)
+    freeform = uniform_beam_bound(one, freeform=True, cells=16, rays_per_ring=2000, **kw)
+    assert revolved["output_bound"] == 0.0
+    assert freeform["output_bound"] > 0.85 and freeform["cv"] <= 0.10
+    assert freeform["freeform"] and len(freeform["cell_centres_deg"]) == len(freeform["profile"])
+    assert sum(freeform["profile"]) == pytest.approx(1.0, abs=1e-4)
+
+
 def test_optimize_writes_a_printable_design(tmp_path):
     from cm2optics.cli.illum import illum_app
 
