@@ -40,6 +40,7 @@ __all__ = [
     "FREE_AIM_GRID",
     "etendue_blur_rad",
     "etendue_bound",
+    "filter_share_by_angle",
     "filter_throughput",
     "free_aim_bound",
     "spectral_ceiling",
@@ -82,6 +83,14 @@ def filter_throughput(design: SystemDesign, aoi_rad: Any, transmission: Any = No
     power = np.interp(wl, spectrum.wavelength_nm, spectrum.relative_power)
     passed = np.broadcast_to(transmission(wl, aoi.reshape(-1, 1)), (aoi.size, wl.size))
     return (np.trapezoid(power * passed, wl, axis=-1) / np.trapezoid(power, wl)).reshape(aoi.shape)
+
+
+def filter_share_by_angle(design: SystemDesign, transmission: Any = None, spectrum: Any = None) -> Any:
+    """``share(angle_rad)``: :func:`filter_throughput` tabulated every 0.25° from 0 to 90° and
+    interpolated linearly (angles beyond 90° pass nothing)."""
+    grid = np.radians(np.arange(0.0, 90.001, 0.25))
+    table = filter_throughput(design, grid, transmission, spectrum)
+    return lambda angle_rad: np.interp(angle_rad, grid, table, right=0.0)
 
 
 def spectral_ceiling(design: SystemDesign, transmission: Any = None, spectrum: Any = None) -> float:
@@ -191,7 +200,12 @@ def _cell_directions(
 
 
 def _footprints(
-    design: SystemDesign, local: np.ndarray, bin_mm: float, rng: np.random.Generator, finite_source: bool
+    design: SystemDesign,
+    local: np.ndarray,
+    bin_mm: float,
+    rng: np.random.Generator,
+    finite_source: bool,
+    filter_share: Any = None,
 ) -> np.ndarray:
     """Irradiance footprints of unit-power beam components, summed over the array's units.
 
@@ -200,7 +214,9 @@ def _footprints(
     power landing in each bin, averaged over the units. Rays leave the centre of each unit's
     clear aperture (an ideal point-like beam) or, with ``finite_source``, points spread
     uniformly over the aperture, each direction blurred by the étendue-limited cone of
-    :func:`etendue_blur_rad` (the finite LED).
+    :func:`etendue_blur_rad` (the finite LED). filter_share: ``share(angle_rad)``, the part of
+    a ray's power the excitation filter passes at its angle to the unit's axis (the beam shaped
+    before the filter); None: every ray counts whole (the beam shaped after it).
     """
     from cm2optics.optics.layout import led_poses
 
@@ -217,6 +233,9 @@ def _footprints(
         local = _blur(local / np.linalg.norm(local, axis=-1, keepdims=True), etendue_blur_rad(design), rng)
         local_start[..., 0] = rng.uniform(-ax, ax, (components, rays))
         local_start[..., 1] = rng.uniform(-ay, ay, (components, rays))
+    power = np.ones((components, rays))
+    if filter_share is not None:
+        power = filter_share(np.arccos(np.clip(local[..., 2] / np.linalg.norm(local, axis=-1), -1.0, 1.0)))
     poses = led_poses(design)
     counts = np.zeros((components, inside.size))
     for pose in poses:  # a handful of units; the rays are vectorised
@@ -230,7 +249,7 @@ def _footprints(
         iy = np.floor((hit[..., 1] + radius) / bin_mm).astype(int)
         ok = (s > 0) & (ix >= 0) & (ix < centres.size) & (iy >= 0) & (iy < centres.size)
         flat = np.arange(components)[:, None] * inside.size + ix * centres.size + iy
-        counts += np.bincount(flat[ok], minlength=counts.size).reshape(counts.shape)
+        counts += np.bincount(flat[ok], power[ok], minlength=counts.size).reshape(counts.shape)
     fractions = counts / (len(poses) * rays)
     return fractions[:, inside.ravel()].T
 
@@ -243,11 +262,12 @@ def _ring_footprints(
     rays_per_ring: int,
     seed: int,
     finite_source: bool = False,
+    filter_share: Any = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """(:func:`_footprints` of the rings of a radial intensity profile, ring edges in tan(angle))."""
     rng = np.random.default_rng(seed)
     local, tan_edges = _ring_directions(rings, max_angle_deg, rays_per_ring, rng)
-    return _footprints(design, local, bin_mm, rng, finite_source), tan_edges
+    return _footprints(design, local, bin_mm, rng, finite_source, filter_share), tan_edges
 
 
 def _beam_footprints(
@@ -259,18 +279,21 @@ def _beam_footprints(
     rays: int,
     seed: int,
     finite_source: bool,
+    filter_share: Any = None,
 ) -> tuple[np.ndarray, dict[str, Any]]:
     """Footprints of a beam's components — ``components`` rings of a rotationally symmetric
     beam, or with ``freeform`` a ``components`` × ``components`` grid of direction cells (a beam
     of any shape, the same for every unit) — and how to read the best weights: ring edges in
-    degrees, or the cells' centres as (x, y) angles in degrees."""
+    degrees, or the cells' centres as (x, y) angles in degrees. filter_share: see :func:`_footprints`."""
     if not freeform:
-        footprints, tan_edges = _ring_footprints(design, components, max_angle_deg, bin_mm, rays, seed, finite_source)
+        footprints, tan_edges = _ring_footprints(
+            design, components, max_angle_deg, bin_mm, rays, seed, finite_source, filter_share
+        )
         return footprints, {"ring_edges_deg": [round(math.degrees(math.atan(t)), 3) for t in tan_edges]}
     rng = np.random.default_rng(seed)
     local, centres = _cell_directions(components, max_angle_deg, rays, rng)
     cell_deg = np.degrees(np.arctan(centres)).round(3)
-    return _footprints(design, local, bin_mm, rng, finite_source), {"cell_centres_deg": cell_deg.tolist()}
+    return _footprints(design, local, bin_mm, rng, finite_source, filter_share), {"cell_centres_deg": cell_deg.tolist()}
 
 
 def _best_profile(footprints: np.ndarray, max_cv: float) -> tuple[float, float, np.ndarray]:
@@ -325,6 +348,7 @@ def uniform_beam_bound(
     finite_source: bool = False,
     freeform: bool = False,
     cells: int = 24,
+    before_filter: bool = False,
 ) -> dict[str, Any]:
     """The most a rotationally symmetric beam can deliver uniformly (module docstring); with
     ``freeform`` the most a beam of any shape can (the same beam from every unit: for an array
@@ -337,6 +361,11 @@ def uniform_beam_bound(
     the finite LED (:func:`etendue_blur_rad`) rather than as an ideal point-like beam.
     freeform, cells: the beam as ``cells`` × ``cells`` cells of direction (tangent plane within
     ``max_angle_deg``; ``rays_per_ring`` rays per cell) instead of rings.
+    before_filter: the beam is shaped before the excitation filter, which passes each ray's
+    :func:`filter_throughput` at its angle to the unit's axis (so a wide beam pays at the
+    filter); ``output_bound`` is then the fraction of the light reaching the filter that lands,
+    filtered, in the circle, and ``delivered_bound`` is it (the filter is counted). Default:
+    shaped after the filter (a spreader beyond it), every ray passing the normal-incidence share.
     Returns ``output_bound`` (fraction of the light leaving a unit that lands in the circle),
     ``delivered_bound`` (× the filter's spectral ceiling: a fraction of the LED's power), the
     CV reached, and the best profile (relative power per ring, ring edges in degrees; or per
@@ -347,8 +376,9 @@ def uniform_beam_bound(
     """
     if not 0.0 < max_cv < 1.0:
         raise ValueError(f"max_cv must lie in (0, 1), got {max_cv}")
+    share = filter_share_by_angle(design, transmission, spectrum) if before_filter else None
     footprints, layout = _beam_footprints(
-        design, freeform, cells if freeform else rings, max_angle_deg, bin_mm, rays_per_ring, seed, finite_source
+        design, freeform, cells if freeform else rings, max_angle_deg, bin_mm, rays_per_ring, seed, finite_source, share
     )
     output, cv, profile = _best_profile(footprints, max_cv)
     ceiling = spectral_ceiling(design, transmission, spectrum)
@@ -356,10 +386,11 @@ def uniform_beam_bound(
         "max_cv": max_cv,
         "finite_source": finite_source,
         "freeform": freeform,
+        "before_filter": before_filter,
         "output_bound": round(output, 4),
         "cv": round(cv, 4),
         "spectral_ceiling": round(ceiling, 4),
-        "delivered_bound": round(output * ceiling, 4),
+        "delivered_bound": round(output if before_filter else output * ceiling, 4),
         "profile": [round(float(v), 5) for v in profile],
         **layout,
     }
@@ -387,10 +418,11 @@ def free_aim_bound(
     spectrum: Any = None,
     freeform: bool = False,
     cells: int = 24,
+    before_filter: bool = False,
 ) -> dict[str, Any]:
     """The most a rotationally symmetric beam (with ``freeform``: a beam of any shape, as
-    :func:`uniform_beam_bound`'s ``cells``) can deliver uniformly when the units may be
-    re-aimed: :func:`uniform_beam_bound`'s linear programme for every placement of the grid
+    :func:`uniform_beam_bound`'s ``cells``; ``before_filter``: shaped before the filter, as
+    there) can deliver uniformly when the units may be re-aimed: :func:`uniform_beam_bound`'s linear programme for every placement of the grid
     (dotted ``led_array`` fields → values, every combination; default :data:`FREE_AIM_GRID`)
     whose units clear the imaging tower and each other (:func:`cm2optics.optics.layout.unit_clashes`),
     and the best of them. finite_source: the étendue-limited beam of the finite LED (default)
@@ -406,6 +438,7 @@ def free_aim_bound(
     if not 0.0 < max_cv < 1.0:
         raise ValueError(f"max_cv must lie in (0, 1), got {max_cv}")
     grid = FREE_AIM_GRID if grid is None else grid
+    share = filter_share_by_angle(design, transmission, spectrum) if before_filter else None
     names = list(grid)
     tried: list[dict[str, Any]] = []
     best: tuple[float, float, dict[str, float]] | None = None
@@ -422,7 +455,15 @@ def free_aim_bound(
             tried.append({**entry, "skipped": clashes[0]})
             continue
         footprints, _ = _beam_footprints(
-            placed, freeform, cells if freeform else rings, max_angle_deg, bin_mm, rays_per_ring, seed, finite_source
+            placed,
+            freeform,
+            cells if freeform else rings,
+            max_angle_deg,
+            bin_mm,
+            rays_per_ring,
+            seed,
+            finite_source,
+            share,
         )
         output, cv, _ = _best_profile(footprints, max_cv)
         if not math.isfinite(cv):  # no profile of this placement lights the circle within max_cv
@@ -439,10 +480,11 @@ def free_aim_bound(
         "max_cv": max_cv,
         "finite_source": finite_source,
         "freeform": freeform,
+        "before_filter": before_filter,
         "placement": placement,
         "output_bound": round(output, 4),
         "cv": round(cv, 4),
         "spectral_ceiling": round(ceiling, 4),
-        "delivered_bound": round(output * ceiling, 4),
+        "delivered_bound": round(output if before_filter else output * ceiling, 4),
         "placements": tried,
     }

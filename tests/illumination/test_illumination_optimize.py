@@ -148,6 +148,23 @@ def test_a_freeform_beam_lights_the_circle_from_an_oblique_unit(v2):
     assert sum(freeform["profile"]) == pytest.approx(1.0, abs=1e-4)
 
 
+def test_a_beam_shaped_before_the_filter_pays_its_angles_there(v2):
+    """A filter passing half at every angle: shaped before it, the same profile delivers exactly
+    half of the light reaching the filter (the footprints scale by ½), which is what the
+    after-filter bound delivers of the LED's power. A filter that passes only within 15° of the
+    axis: before it, the beam cannot spread onto the circle (bound ≤ the rays within 15°)."""
+    kw = {"rings": 24, "rays_per_ring": 2000, "max_angle_deg": 45.0, "finite_source": True}
+    half = lambda wl, aoi: np.full(np.broadcast(wl, aoi).shape, 0.5)  # noqa: E731
+    after = uniform_beam_bound(v2, transmission=half, **kw)
+    before = uniform_beam_bound(v2, transmission=half, before_filter=True, **kw)
+    assert after["output_bound"] > 0.3
+    assert before["output_bound"] == pytest.approx(0.5 * after["output_bound"], abs=2e-4)
+    assert before["delivered_bound"] == pytest.approx(after["delivered_bound"], abs=2e-4)
+    narrow = lambda wl, aoi: np.where(np.asarray(aoi) < math.radians(15.0), 1.0, 0.0) + 0 * np.asarray(wl)  # noqa: E731
+    blocked = uniform_beam_bound(v2, transmission=narrow, before_filter=True, **kw)
+    assert blocked["output_bound"] < 0.5 * after["output_bound"]
+
+
 def test_optimize_writes_a_printable_design(tmp_path):
     from cm2optics.cli.illum import illum_app
 
