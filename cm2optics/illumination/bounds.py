@@ -2,7 +2,8 @@
 
 * :func:`etendue_bound` — étendue conservation: no passive optic puts more of a Lambertian
   emitter's power through a unit's clear aperture onto the circle than G_target / G_source
-  allows; and the excitation filter passes at most its :func:`spectral_ceiling`.
+  allows; and the excitation filter passes at most its :func:`spectral_ceiling`
+  (:func:`filter_throughput` at normal incidence; off it the filter's edges shift blue).
 * :func:`uniform_beam_bound` — the uniformity constraint: the largest fraction of a unit's
   output that *any rotationally symmetric beam* (the class of every revolved collimator, the
   authors' part included) aimed along the unit's axis can put inside the circle while the
@@ -19,6 +20,8 @@
   point-like or finite source. With the finite source it is an estimate, not a strict bound:
   the blur is the étendue minimum spread evenly over the aperture, and a freeform optic may
   distribute it differently.
+* with ``freeform`` both take a beam of any shape (cells of direction rather than rings): the
+  bound of a freeform optic (of a post-filter spreader, for instance).
 """
 
 from __future__ import annotations
@@ -33,9 +36,12 @@ from cm2optics.design import SystemDesign
 from cm2optics.optics import first_order
 
 __all__ = [
+    "THROUGHPUT_STEP_NM",
     "FREE_AIM_GRID",
     "etendue_blur_rad",
     "etendue_bound",
+    "filter_share_by_angle",
+    "filter_throughput",
     "free_aim_bound",
     "spectral_ceiling",
     "uniform_beam_bound",
@@ -54,19 +60,43 @@ def _clear_aperture(design: SystemDesign) -> tuple[np.ndarray, tuple[float, floa
     return pose, half_sides, aperture_z
 
 
-def spectral_ceiling(design: SystemDesign, transmission: Any = None, spectrum: Any = None) -> float:
-    """∫ S(λ) T(λ, 0) dλ / ∫ S dλ: the most of the LED's spectrum S the excitation filter passes
-    (every ray at normal incidence), from the run's inputs. transmission: T(λ nm, θ rad) (a
-    coating table's fit), default the model of the design's filter; spectrum: the LED's
+#: Wavelength step of :func:`filter_throughput`'s integral, nm.
+THROUGHPUT_STEP_NM = 0.02
+
+
+def filter_throughput(design: SystemDesign, aoi_rad: Any, transmission: Any = None, spectrum: Any = None) -> np.ndarray:
+    """∫ S(λ) T(λ, θ) dλ / ∫ S dλ at each angle of incidence θ (rad, in air; any shape): the share
+    of the LED's power the excitation filter passes for a ray at θ. S is linear between its
+    samples (as the tracer draws wavelengths from it) and the integral is taken on steps of
+    :data:`THROUGHPUT_STEP_NM`, finer than a hard-coated filter's edge. transmission: T(λ nm, θ rad)
+    (a coating table's fit), default the model of the design's filter; spectrum: the LED's
     :class:`~cm2optics.illumination.source.SourceSpectrum`, default the design's LED model."""
     from cm2optics.illumination.excitation import design_filter_transmission
     from cm2optics.illumination.source import led_source
 
     spectrum = spectrum if spectrum is not None else led_source(design).spectrum
     transmission = transmission or design_filter_transmission(design)
-    wl = spectrum.wavelength_nm
-    power = spectrum.relative_power
-    return float(np.trapezoid(power * transmission(wl, np.zeros_like(wl)), wl) / np.trapezoid(power, wl))
+    aoi = np.asarray(aoi_rad, dtype=float)
+    lo, hi = spectrum.wavelength_nm[0], spectrum.wavelength_nm[-1]
+    grid = np.linspace(lo, hi, int(math.ceil((hi - lo) / THROUGHPUT_STEP_NM)) + 1)
+    wl = np.union1d(spectrum.wavelength_nm, grid)
+    power = np.interp(wl, spectrum.wavelength_nm, spectrum.relative_power)
+    passed = np.broadcast_to(transmission(wl, aoi.reshape(-1, 1)), (aoi.size, wl.size))
+    return (np.trapezoid(power * passed, wl, axis=-1) / np.trapezoid(power, wl)).reshape(aoi.shape)
+
+
+def filter_share_by_angle(design: SystemDesign, transmission: Any = None, spectrum: Any = None) -> Any:
+    """``share(angle_rad)``: :func:`filter_throughput` tabulated every 0.25° from 0 to 90° and
+    interpolated linearly (angles beyond 90° pass nothing)."""
+    grid = np.radians(np.arange(0.0, 90.001, 0.25))
+    table = filter_throughput(design, grid, transmission, spectrum)
+    return lambda angle_rad: np.interp(angle_rad, grid, table, right=0.0)
+
+
+def spectral_ceiling(design: SystemDesign, transmission: Any = None, spectrum: Any = None) -> float:
+    """:func:`filter_throughput` at normal incidence: the most of the LED's spectrum the
+    excitation filter passes (every ray at normal incidence), from the run's inputs."""
+    return float(filter_throughput(design, 0.0, transmission, spectrum))
 
 
 def etendue_bound(
@@ -140,45 +170,74 @@ def _blur(directions: np.ndarray, half_angle_rad: float, rng: np.random.Generato
     return cos_t[..., None] * directions + (sin_t * np.cos(psi))[..., None] * u + (sin_t * np.sin(psi))[..., None] * v
 
 
-def _ring_footprints(
-    design: SystemDesign,
-    rings: int,
-    max_angle_deg: float,
-    bin_mm: float,
-    rays_per_ring: int,
-    seed: int,
-    finite_source: bool = False,
+def _ring_directions(
+    rings: int, max_angle_deg: float, rays: int, rng: np.random.Generator
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Irradiance footprints of unit-power direction rings, summed over the array's units.
+    """(directions (rings, rays, 3), not normalised, in a unit's frame; ring edges in tan(angle)):
+    rays uniform in the tangent plane of directions within each ring of the radial profile."""
+    tan_edges = np.linspace(0.0, math.tan(math.radians(max_angle_deg)), rings + 1)
+    rho = np.sqrt(rng.uniform(tan_edges[:-1, None] ** 2, tan_edges[1:, None] ** 2, (rings, rays)))
+    phi = rng.uniform(0.0, 2.0 * math.pi, (rings, rays))
+    return np.stack([rho * np.cos(phi), rho * np.sin(phi), np.ones_like(rho)], axis=-1), tan_edges
 
-    Returns (fractions (bins inside the circle × rings): the share of one unit's ring power
-    landing in each bin, averaged over the units; ring edges in tan(angle) from the axis).
-    Rays are uniform in the tangent plane of directions within each ring (a ring of the radial
-    intensity profile) and leave the centre of each unit's clear aperture (an ideal point-like
-    beam) or, with ``finite_source``, points spread uniformly over the aperture, each direction
-    blurred by the étendue-limited cone of :func:`etendue_blur_rad` (the finite LED).
+
+def _cell_directions(
+    cells: int, max_angle_deg: float, rays: int, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
+    """(directions (n, rays, 3), not normalised, in a unit's frame; cell centres (n, 2) in the
+    tangent plane): ``cells`` × ``cells`` square cells of the tangent plane of directions over
+    ±tan(``max_angle_deg``), those whose centre lies within that angle, rays uniform in each —
+    the pixels of a beam of any shape (a freeform optic's), not only of rings."""
+    reach = math.tan(math.radians(max_angle_deg))
+    side = 2 * reach / cells
+    centres_1d = -reach + side * (np.arange(cells) + 0.5)
+    tx, ty = np.meshgrid(centres_1d, centres_1d, indexing="ij")
+    keep = tx**2 + ty**2 <= reach**2
+    centres = np.column_stack([tx[keep], ty[keep]])
+    jitter = rng.uniform(-side / 2, side / 2, (len(centres), rays, 2))
+    plane = centres[:, None, :] + jitter
+    return np.concatenate([plane, np.ones((len(centres), rays, 1))], axis=-1), centres
+
+
+def _footprints(
+    design: SystemDesign,
+    local: np.ndarray,
+    bin_mm: float,
+    rng: np.random.Generator,
+    finite_source: bool,
+    filter_share: Any = None,
+) -> np.ndarray:
+    """Irradiance footprints of unit-power beam components, summed over the array's units.
+
+    local: (components, rays, 3) directions in a unit's frame (a ring or a cell of directions).
+    Returns fractions (bins inside the circle × components): the share of one unit's component
+    power landing in each bin, averaged over the units. Rays leave the centre of each unit's
+    clear aperture (an ideal point-like beam) or, with ``finite_source``, points spread
+    uniformly over the aperture, each direction blurred by the étendue-limited cone of
+    :func:`etendue_blur_rad` (the finite LED). filter_share: ``share(angle_rad)``, the part of
+    a ray's power the excitation filter passes at its angle to the unit's axis (the beam shaped
+    before the filter); None: every ray counts whole (the beam shaped after it).
     """
     from cm2optics.optics.layout import led_poses
 
-    rng = np.random.default_rng(seed)
     _, (ax, ay), aperture_z = _clear_aperture(design)
     radius = design.volume.field_mm / 2
     edges_xy = np.arange(-radius, radius + bin_mm / 2, bin_mm)
     centres = (edges_xy[:-1] + edges_xy[1:]) / 2
     cx, cy = np.meshgrid(centres, centres, indexing="ij")
     inside = cx**2 + cy**2 <= radius**2
-    tan_edges = np.linspace(0.0, math.tan(math.radians(max_angle_deg)), rings + 1)
-    rho = np.sqrt(rng.uniform(tan_edges[:-1, None] ** 2, tan_edges[1:, None] ** 2, (rings, rays_per_ring)))
-    phi = rng.uniform(0.0, 2.0 * math.pi, (rings, rays_per_ring))
-    local = np.stack([rho * np.cos(phi), rho * np.sin(phi), np.ones_like(rho)], axis=-1)
-    local_start = np.zeros((rings, rays_per_ring, 3))
+    components, rays = local.shape[:2]
+    local_start = np.zeros((components, rays, 3))
     local_start[..., 2] = aperture_z
     if finite_source:
         local = _blur(local / np.linalg.norm(local, axis=-1, keepdims=True), etendue_blur_rad(design), rng)
-        local_start[..., 0] = rng.uniform(-ax, ax, (rings, rays_per_ring))
-        local_start[..., 1] = rng.uniform(-ay, ay, (rings, rays_per_ring))
+        local_start[..., 0] = rng.uniform(-ax, ax, (components, rays))
+        local_start[..., 1] = rng.uniform(-ay, ay, (components, rays))
+    power = np.ones((components, rays))
+    if filter_share is not None:
+        power = filter_share(np.arccos(np.clip(local[..., 2] / np.linalg.norm(local, axis=-1), -1.0, 1.0)))
     poses = led_poses(design)
-    counts = np.zeros((rings, inside.size))
+    counts = np.zeros((components, inside.size))
     for pose in poses:  # a handful of units; the rays are vectorised
         matrix = pose.matrix
         start = local_start @ matrix[:3, :3].T + matrix[:3, 3]
@@ -189,10 +248,52 @@ def _ring_footprints(
         ix = np.floor((hit[..., 0] + radius) / bin_mm).astype(int)
         iy = np.floor((hit[..., 1] + radius) / bin_mm).astype(int)
         ok = (s > 0) & (ix >= 0) & (ix < centres.size) & (iy >= 0) & (iy < centres.size)
-        flat = np.arange(rings)[:, None] * inside.size + ix * centres.size + iy
-        counts += np.bincount(flat[ok], minlength=counts.size).reshape(counts.shape)
-    fractions = counts / (len(poses) * rays_per_ring)
-    return fractions[:, inside.ravel()].T, tan_edges
+        flat = np.arange(components)[:, None] * inside.size + ix * centres.size + iy
+        counts += np.bincount(flat[ok], power[ok], minlength=counts.size).reshape(counts.shape)
+    fractions = counts / (len(poses) * rays)
+    return fractions[:, inside.ravel()].T
+
+
+def _ring_footprints(
+    design: SystemDesign,
+    rings: int,
+    max_angle_deg: float,
+    bin_mm: float,
+    rays_per_ring: int,
+    seed: int,
+    finite_source: bool = False,
+    filter_share: Any = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """(:func:`_footprints` of the rings of a radial intensity profile, ring edges in tan(angle))."""
+    rng = np.random.default_rng(seed)
+    local, tan_edges = _ring_directions(rings, max_angle_deg, rays_per_ring, rng)
+    return _footprints(design, local, bin_mm, rng, finite_source, filter_share), tan_edges
+
+
+def _beam_footprints(
+    design: SystemDesign,
+    freeform: bool,
+    components: int,
+    max_angle_deg: float,
+    bin_mm: float,
+    rays: int,
+    seed: int,
+    finite_source: bool,
+    filter_share: Any = None,
+) -> tuple[np.ndarray, dict[str, Any]]:
+    """Footprints of a beam's components — ``components`` rings of a rotationally symmetric
+    beam, or with ``freeform`` a ``components`` × ``components`` grid of direction cells (a beam
+    of any shape, the same for every unit) — and how to read the best weights: ring edges in
+    degrees, or the cells' centres as (x, y) angles in degrees. filter_share: see :func:`_footprints`."""
+    if not freeform:
+        footprints, tan_edges = _ring_footprints(
+            design, components, max_angle_deg, bin_mm, rays, seed, finite_source, filter_share
+        )
+        return footprints, {"ring_edges_deg": [round(math.degrees(math.atan(t)), 3) for t in tan_edges]}
+    rng = np.random.default_rng(seed)
+    local, centres = _cell_directions(components, max_angle_deg, rays, rng)
+    cell_deg = np.degrees(np.arctan(centres)).round(3)
+    return _footprints(design, local, bin_mm, rng, finite_source, filter_share), {"cell_centres_deg": cell_deg.tolist()}
 
 
 def _best_profile(footprints: np.ndarray, max_cv: float) -> tuple[float, float, np.ndarray]:
@@ -245,37 +346,53 @@ def uniform_beam_bound(
     seed: int = 0,
     spectrum: Any = None,
     finite_source: bool = False,
+    freeform: bool = False,
+    cells: int = 24,
+    before_filter: bool = False,
 ) -> dict[str, Any]:
-    """The most a rotationally symmetric beam can deliver uniformly (module docstring).
+    """The most a rotationally symmetric beam can deliver uniformly (module docstring); with
+    ``freeform`` the most a beam of any shape can (the same beam from every unit: for an array
+    symmetric under its units' rotation the best beam can be taken symmetric, so no loss).
 
     max_cv: the array's coefficient of variation allowed inside the circle (0–1), over bins of
     ``bin_mm`` (mm) as in the figures of merit. rings: rings of the radial profile, equal steps
     in tan(angle) up to ``max_angle_deg`` (deg). rays_per_ring, seed: Monte Carlo footprints.
     finite_source: the beam leaves the whole clear aperture with the étendue-limited blur of
     the finite LED (:func:`etendue_blur_rad`) rather than as an ideal point-like beam.
+    freeform, cells: the beam as ``cells`` × ``cells`` cells of direction (tangent plane within
+    ``max_angle_deg``; ``rays_per_ring`` rays per cell) instead of rings.
+    before_filter: the beam is shaped before the excitation filter, which passes each ray's
+    :func:`filter_throughput` at its angle to the unit's axis (so a wide beam pays at the
+    filter); ``output_bound`` is then the fraction of the light reaching the filter that lands,
+    filtered, in the circle, and ``delivered_bound`` is it (the filter is counted). Default:
+    shaped after the filter (a spreader beyond it), every ray passing the normal-incidence share.
     Returns ``output_bound`` (fraction of the light leaving a unit that lands in the circle),
     ``delivered_bound`` (× the filter's spectral ceiling: a fraction of the LED's power), the
-    CV reached, and the best profile (relative power per ring, ring edges in degrees).
+    CV reached, and the best profile (relative power per ring, ring edges in degrees; or per
+    cell, the cells' centres as x, y angles in degrees).
     The CV of the LP's optimum rises with the allowed band δ (irradiance within (1 ± δ) × mean);
     δ is bisected to the largest with CV ≤ ``max_cv``. transmission, spectrum: the run's filter
     and LED spectrum (:func:`spectral_ceiling`).
     """
     if not 0.0 < max_cv < 1.0:
         raise ValueError(f"max_cv must lie in (0, 1), got {max_cv}")
-    footprints, tan_edges = _ring_footprints(
-        design, rings, max_angle_deg, bin_mm, rays_per_ring, seed, finite_source=finite_source
+    share = filter_share_by_angle(design, transmission, spectrum) if before_filter else None
+    footprints, layout = _beam_footprints(
+        design, freeform, cells if freeform else rings, max_angle_deg, bin_mm, rays_per_ring, seed, finite_source, share
     )
     output, cv, profile = _best_profile(footprints, max_cv)
     ceiling = spectral_ceiling(design, transmission, spectrum)
     return {
         "max_cv": max_cv,
         "finite_source": finite_source,
+        "freeform": freeform,
+        "before_filter": before_filter,
         "output_bound": round(output, 4),
         "cv": round(cv, 4),
         "spectral_ceiling": round(ceiling, 4),
-        "delivered_bound": round(output * ceiling, 4),
+        "delivered_bound": round(output if before_filter else output * ceiling, 4),
         "profile": [round(float(v), 5) for v in profile],
-        "ring_edges_deg": [round(math.degrees(math.atan(t)), 3) for t in tan_edges],
+        **layout,
     }
 
 
@@ -299,9 +416,13 @@ def free_aim_bound(
     rays_per_ring: int = 5_000,
     seed: int = 0,
     spectrum: Any = None,
+    freeform: bool = False,
+    cells: int = 24,
+    before_filter: bool = False,
 ) -> dict[str, Any]:
-    """The most a rotationally symmetric beam can deliver uniformly when the units may be
-    re-aimed: :func:`uniform_beam_bound`'s linear programme for every placement of the grid
+    """The most a rotationally symmetric beam (with ``freeform``: a beam of any shape, as
+    :func:`uniform_beam_bound`'s ``cells``; ``before_filter``: shaped before the filter, as
+    there) can deliver uniformly when the units may be re-aimed: :func:`uniform_beam_bound`'s linear programme for every placement of the grid
     (dotted ``led_array`` fields → values, every combination; default :data:`FREE_AIM_GRID`)
     whose units clear the imaging tower and each other (:func:`cm2optics.optics.layout.unit_clashes`),
     and the best of them. finite_source: the étendue-limited beam of the finite LED (default)
@@ -317,6 +438,7 @@ def free_aim_bound(
     if not 0.0 < max_cv < 1.0:
         raise ValueError(f"max_cv must lie in (0, 1), got {max_cv}")
     grid = FREE_AIM_GRID if grid is None else grid
+    share = filter_share_by_angle(design, transmission, spectrum) if before_filter else None
     names = list(grid)
     tried: list[dict[str, Any]] = []
     best: tuple[float, float, dict[str, float]] | None = None
@@ -332,8 +454,16 @@ def free_aim_bound(
         if clashes:
             tried.append({**entry, "skipped": clashes[0]})
             continue
-        footprints, _ = _ring_footprints(
-            placed, rings, max_angle_deg, bin_mm, rays_per_ring, seed, finite_source=finite_source
+        footprints, _ = _beam_footprints(
+            placed,
+            freeform,
+            cells if freeform else rings,
+            max_angle_deg,
+            bin_mm,
+            rays_per_ring,
+            seed,
+            finite_source,
+            share,
         )
         output, cv, _ = _best_profile(footprints, max_cv)
         if not math.isfinite(cv):  # no profile of this placement lights the circle within max_cv
@@ -349,10 +479,12 @@ def free_aim_bound(
     return {
         "max_cv": max_cv,
         "finite_source": finite_source,
+        "freeform": freeform,
+        "before_filter": before_filter,
         "placement": placement,
         "output_bound": round(output, 4),
         "cv": round(cv, 4),
         "spectral_ceiling": round(ceiling, 4),
-        "delivered_bound": round(output * ceiling, 4),
+        "delivered_bound": round(output if before_filter else output * ceiling, 4),
         "placements": tried,
     }

@@ -10,7 +10,13 @@ import pytest
 from typer.testing import CliRunner
 
 from cm2optics.design import DesignError, load_design
-from cm2optics.illumination.bounds import etendue_bound, spectral_ceiling, uniform_beam_bound
+from cm2optics.illumination.bounds import (
+    THROUGHPUT_STEP_NM,
+    etendue_bound,
+    filter_throughput,
+    spectral_ceiling,
+    uniform_beam_bound,
+)
 from cm2optics.illumination.revolve import revolve_profile
 from cm2optics.optics.collimator import collimator_profile
 from cm2optics.optics.collimator_shaping import shaped_profile
@@ -116,6 +122,49 @@ def test_uniform_beam_bound_of_the_oblique_array(v2):
         uniform_beam_bound(v2, max_cv=0.0)
 
 
+def test_freeform_cells_tile_the_directions_within_the_angle():
+    """4 × 4 cells over ±tan 45° = ±1: side 0.5, centres ±0.25 / ±0.75; the four corner cells
+    (centre radius 1.06 > 1) are left out, 12 remain; every ray lies inside its own cell."""
+    from cm2optics.illumination.bounds import _cell_directions
+
+    local, centres = _cell_directions(4, 45.0, 500, np.random.default_rng(0))
+    assert local.shape == (12, 500, 3) and centres.shape == (12, 2)
+    assert np.hypot(centres[:, 0], centres[:, 1]).max() == pytest.approx(math.hypot(0.25, 0.75))
+    assert np.abs(local[..., :2] - centres[:, None, :]).max() <= 0.25
+    assert np.all(local[..., 2] == 1.0)
+
+
+def test_a_freeform_beam_lights_the_circle_from_an_oblique_unit(v2):
+    """One unit at 45°, a point-like beam: any rotationally symmetric beam lights the near side of
+    the circle more than the far side (CV > 10 % whatever its profile: bound 0); a beam of any
+    shape (cells of direction) puts ≥ 0.85 of its light evenly into the circle."""
+    one = v2.with_changes({"led_array.count": 1, "led_array.tilt_deg": 45.0, "led_array.aim_mm": 0.0})
+    kw = {"max_cv": 0.10, "max_angle_deg": 30.0}
+    revolved = uniform_beam_bound(one, rings=24, rays_per_ring=3000, **kw)
+    freeform = uniform_beam_bound(one, freeform=True, cells=16, rays_per_ring=2000, **kw)
+    assert revolved["output_bound"] == 0.0
+    assert freeform["output_bound"] > 0.85 and freeform["cv"] <= 0.10
+    assert freeform["freeform"] and len(freeform["cell_centres_deg"]) == len(freeform["profile"])
+    assert sum(freeform["profile"]) == pytest.approx(1.0, abs=1e-4)
+
+
+def test_a_beam_shaped_before_the_filter_pays_its_angles_there(v2):
+    """A filter passing half at every angle: shaped before it, the same profile delivers exactly
+    half of the light reaching the filter (the footprints scale by ½), which is what the
+    after-filter bound delivers of the LED's power. A filter that passes only within 15° of the
+    axis: before it, the beam cannot spread onto the circle (bound ≤ the rays within 15°)."""
+    kw = {"rings": 24, "rays_per_ring": 2000, "max_angle_deg": 45.0, "finite_source": True}
+    half = lambda wl, aoi: np.full(np.broadcast(wl, aoi).shape, 0.5)  # noqa: E731
+    after = uniform_beam_bound(v2, transmission=half, **kw)
+    before = uniform_beam_bound(v2, transmission=half, before_filter=True, **kw)
+    assert after["output_bound"] > 0.3
+    assert before["output_bound"] == pytest.approx(0.5 * after["output_bound"], abs=2e-4)
+    assert before["delivered_bound"] == pytest.approx(after["delivered_bound"], abs=2e-4)
+    narrow = lambda wl, aoi: np.where(np.asarray(aoi) < math.radians(15.0), 1.0, 0.0) + 0 * np.asarray(wl)  # noqa: E731
+    blocked = uniform_beam_bound(v2, transmission=narrow, before_filter=True, **kw)
+    assert blocked["output_bound"] < 0.5 * after["output_bound"]
+
+
 def test_optimize_writes_a_printable_design(tmp_path):
     from cm2optics.cli.illum import illum_app
 
@@ -155,15 +204,46 @@ def test_optimize_writes_a_printable_design(tmp_path):
 
 def test_spectral_ceiling_of_closed_cases(v2):
     """A flat 50 % filter passes half of any spectrum; a box spectrum (1 on 460–480 nm, linear to
-    0 at 459 and 481 nm) behind an ideal edge at 470 nm: 11 of its 21 nm·power (linear between
-    the 1-nm samples, the filter's step taken on the same samples)."""
+    0 at 459 and 481 nm) behind an ideal edge at 470 nm: 10.5 of its 21 nm·power, to within the
+    half step of the integral's grid where the edge falls (the spectrum linear between its
+    1-nm samples, as the tracer draws it)."""
     from cm2optics.illumination.source import SourceSpectrum
 
     half = spectral_ceiling(v2, lambda wl, aoi: np.full(np.broadcast(wl, aoi).shape, 0.5))
     assert half == pytest.approx(0.5, abs=1e-12)
     box = SourceSpectrum(np.arange(455.0, 486.0), np.where(np.abs(np.arange(455.0, 486.0) - 470) <= 10, 1.0, 0.0))
     edge = spectral_ceiling(v2, lambda wl, aoi: np.where(np.asarray(wl) >= 470.0, 1.0, 0.0) + 0 * aoi, box)
-    assert edge == pytest.approx(11.0 / 21.0, abs=1e-12)
+    assert edge == pytest.approx(10.5 / 21.0, abs=THROUGHPUT_STEP_NM / 2 / 21.0 + 1e-12)
+    assert edge != pytest.approx(11.0 / 21.0, abs=0.01)  # not the 1-nm samples' step
+
+
+def test_filter_throughput_follows_the_angle_in_closed_form(v2):
+    """A flat spectrum on 400–500 nm behind T = cos θ · (λ − 400 nm) / 100 nm (linear in λ, so
+    the trapezoid rule is exact) passes cos(θ) / 2 at every angle, in the angles' own shape."""
+    from cm2optics.illumination.source import SourceSpectrum
+
+    flat = SourceSpectrum(np.arange(400.0, 501.0), np.ones(101))
+    aoi = np.radians([[0.0, 20.0, 40.0], [60.0, 75.0, 89.0]])
+    passed = filter_throughput(v2, aoi, lambda wl, a: np.cos(a) * (np.asarray(wl) - 400.0) / 100.0, flat)
+    assert passed.shape == aoi.shape
+    np.testing.assert_allclose(passed, np.cos(aoi) / 2, atol=1e-12)
+
+
+def test_the_authors_filter_passes_less_off_axis(v2, reference_dir):
+    """The authors' coating table's fit with their LED spectrum: ≈ 0.86 at 0°, within 0.015 of
+    the table's own (Ts + Tp)/2 at 20° (0.790, the spectrum-weighted table), and < 0.25 at 40°
+    (the table: 0.135): the passband's blue shift, the lever of a collimated beam."""
+    from cm2optics.illumination.excitation import filter_from_table
+    from cm2optics.illumination.source import read_source_spectrum
+
+    table = filter_from_table(str(reference_dir / "coating_real_ex.csv"))
+    spectrum = read_source_spectrum(reference_dir / "led_spectrum.csv")
+    passed = filter_throughput(v2, np.radians([0.0, 10.0, 20.0, 40.0]), table, spectrum)
+    assert passed[0] == pytest.approx(spectral_ceiling(v2, table, spectrum), abs=1e-12)
+    assert passed[0] == pytest.approx(0.86, abs=0.015)
+    assert passed[1] > passed[0] - 0.01
+    assert passed[2] == pytest.approx(0.790, abs=0.015)
+    assert passed[3] < 0.25
 
 
 def test_spectral_ceiling_from_the_authors_filter_and_led(v2, reference_dir):
