@@ -27,7 +27,7 @@ from illum_ray_families import reference_inputs
 
 from cm2optics.design import load_preset
 from cm2optics.formats.outputs import OutputError, check_output
-from cm2optics.illumination.bounds import etendue_blur_rad, uniform_beam_bound
+from cm2optics.illumination.bounds import _blur, etendue_blur_rad, uniform_beam_bound
 from cm2optics.illumination.geometry import build_scene, collimator_from_design
 from cm2optics.illumination.tracer import trace
 from cm2optics.optics.layout import led_poses
@@ -66,22 +66,13 @@ def shape(tan_xy: np.ndarray, weight: np.ndarray) -> dict:
 def blurred(design, centres_tan: np.ndarray, profile: np.ndarray, samples: int, rng: np.random.Generator) -> np.ndarray:
     """Directions (samples, 2; tangent plane) of the bound's beam after the finite LED's étendue blur:
     drawn from the cells' weights, uniform within a cell, each turned at random within the blur
-    cone (uniform radiance), as the bound's footprints do."""
+    cone (uniform radiance) by the bound's own blur."""
     side = 2 * math.tan(math.radians(MAX_ANGLE_DEG)) / CELLS
     pick = rng.choice(len(profile), samples, p=profile / profile.sum())
     tan_xy = centres_tan[pick] + rng.uniform(-side / 2, side / 2, (samples, 2))
     direction = np.column_stack([tan_xy, np.ones(samples)])
     direction /= np.linalg.norm(direction, axis=1, keepdims=True)
-    sin_t = math.sin(etendue_blur_rad(design)) * np.sqrt(rng.random(samples))
-    psi = rng.uniform(0.0, 2.0 * math.pi, samples)
-    u = np.cross(direction, [1.0, 0.0, 0.0])
-    u /= np.linalg.norm(u, axis=1, keepdims=True)
-    v = np.cross(direction, u)
-    turned = (
-        np.sqrt(1 - sin_t**2)[:, None] * direction
-        + (sin_t * np.cos(psi))[:, None] * u
-        + (sin_t * np.sin(psi))[:, None] * v
-    )
+    turned = _blur(direction, etendue_blur_rad(design), rng)
     return turned[:, :2] / turned[:, 2:]
 
 
