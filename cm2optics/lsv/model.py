@@ -11,6 +11,9 @@ the axis sums to 1 (``scale`` records the factor).
 File layout: :mod:`cm2optics.formats.lsv_model` (``format = "cm2optics-lsv"``). With
 ``oversample`` S > 1 the ``basis`` is (K, J, h·S, w·S), an effective PSF on a grid S times finer
 than the pixels, sampled at each focus's exact sub-pixel position (:mod:`cm2optics.lsv.epsf`).
+A per-lenslet basis (:func:`~cm2optics.lsv.decompose.decompose_per_lenslet`) is stored in the same
+layout, each of its J·K focus arrays dark but in one lenslet; every path uses, per lenslet, only the
+terms with light there (:meth:`LSVModel.lenslet_terms`).
 """
 
 from __future__ import annotations
