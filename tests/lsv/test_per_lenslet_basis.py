@@ -8,7 +8,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from test_lsv_operators import SENSOR, _check_adjoint_and_naive, synthetic_model
+from test_lsv_operators import GRIDS, SENSOR, _check_adjoint_and_naive, synthetic_model
 
 from cm2optics.formats.emitters import Emitters
 from cm2optics.lsv.decompose import decompose, decompose_per_lenslet
@@ -93,3 +93,16 @@ def test_a_per_lenslet_basis_runs_every_path_at_a_shared_basis_cost(kind, tmp_pa
     )
     loaded = load_model(model.save(tmp_path / "per_lenslet.h5"))  # the model format is unchanged
     assert [list(loaded.lenslet_terms(j)) for j in range(J)] == [list(model.lenslet_terms(j)) for j in range(J)]
+
+
+def test_an_epsf_model_with_a_per_lenslet_basis_images_as_its_shared_basis():
+    from test_lsv_epsf import epsf_model
+
+    shared = epsf_model("general")
+    model = _as_per_lenslet(shared)
+    grid = GRIDS["coarser"]
+    x = np.random.default_rng(5).random(grid.shape).astype(np.float32)
+    dense = model.forward(x, grid)  # the ePSF operator: the whole-pixel operator of the fine model
+    np.testing.assert_allclose(dense, shared.forward(x, grid), atol=1e-5 * np.abs(dense).max())
+    point = model.point_image(0.2, -0.3, 0.05)
+    np.testing.assert_allclose(point, shared.point_image(0.2, -0.3, 0.05), atol=1e-6 * np.abs(point).max())
