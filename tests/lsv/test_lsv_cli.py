@@ -83,6 +83,12 @@ def test_build_a_per_lenslet_basis(scan, tmp_path):
     assert 0 <= summary["nmse_calibration"] < 0.05
     image = model.point_image(0.5, -0.7, 0.1)
     assert image.sum() > 0 and np.isfinite(image).all()
+    with pytest.warns(UserWarning, match="per-lenslet basis"):  # validate's check is of another structure: said so
+        result = runner.invoke(
+            app, ["lsv", "validate", str(out), str(scan), "--json", "--no-subsample", "--heldout", "4"]
+        )
+    assert result.exit_code == 0, result.output
+    assert "one basis of focus arrays" in json.loads(result.stdout)["basis_warning"]
 
 
 def test_validate_json_on_the_calibration_scan(model, scan):
