@@ -262,10 +262,6 @@ def test_simulate_volume_per_lenslet_and_lsi(model, tmp_path):
         (["lsv", "build", "{scan}", "--memory-gb", "0"], "--memory-gb = 0.0: must be > 0"),
         (["lsv", "build", "{scan}", "--aberration-model", "-1"], "--aberration-model = -1: must be ≥ 0"),
         (["lsv", "build", "{scan}", "--aberration-model", "100"], "--aberration-model needs an ePSF basis"),
-        (
-            ["lsv", "build", "{scan}", "--oversample", "4", "--per-lenslet-basis"],
-            "a per-lenslet basis needs fine crops",
-        ),
         (["lsv", "validate", "/no/model.h5", "{scan}"], "no such model file"),
         (["lsv", "validate", "{model}", "{scan}", "--ranks", "a,b"], "--ranks"),
         (["simulate", "--model", "{model}", "--out", "x.tif"], "exactly one of --volume and --emitters"),

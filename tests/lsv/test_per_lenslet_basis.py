@@ -11,6 +11,8 @@ import pytest
 from test_lsv_operators import GRIDS, SENSOR, _check_adjoint_and_naive, synthetic_model
 
 from cm2optics.formats.emitters import Emitters
+from cm2optics.formats.scan import ScanError
+from cm2optics.lsv.build import model_from_crops
 from cm2optics.lsv.decompose import decompose, decompose_per_lenslet
 from cm2optics.lsv.model import load_model
 
@@ -106,3 +108,23 @@ def test_an_epsf_model_with_a_per_lenslet_basis_images_as_its_shared_basis():
     np.testing.assert_allclose(dense, shared.forward(x, grid), atol=1e-5 * np.abs(dense).max())
     point = model.point_image(0.2, -0.3, 0.05)
     np.testing.assert_allclose(point, shared.point_image(0.2, -0.3, 0.05), atol=1e-6 * np.abs(point).max())
+
+
+def test_an_epsf_estimated_from_whole_pixel_frames_refuses_a_per_lenslet_basis():
+    shared = synthetic_model()
+    crops = _lenslet_crops(N=36, J=4, ranks=(2, 2, 1, 3))[:, :, :4, :4]
+    grid_index = np.array([[ix, iy, iz] for iz in range(3) for iy in range(3) for ix in range(4)])
+    with pytest.raises(ScanError, match="a per-lenslet basis needs fine crops"):
+        model_from_crops(
+            crops,
+            grid_index,
+            shared.axes,
+            shared.geometry,
+            rank=2,
+            sensor_shape=SENSOR,
+            pixel_um=20.0,
+            trim=None,
+            oversample=2,
+            frames=(None, None),  # whole-pixel frames: the ePSF basis would be estimated jointly
+            per_lenslet=True,
+        )
