@@ -183,6 +183,15 @@ def build(
             "ePSF scan (--oversample even ≥ 2). 0: node PSFs and basis from the scan's crops.",
         ),
     ] = 0,
+    per_lenslet_basis: Annotated[
+        bool,
+        typer.Option(
+            "--per-lenslet-basis",
+            help="Each lenslet its own basis of K single-lenslet PSFs (K = --rank; J·K terms in all) instead of one "
+            "basis of K focus arrays: the same forward cost (each lenslet uses its own K), far more rank where the "
+            "PSFs change over the field. Needs fine crops (a synthetic ePSF scan) or --oversample 1.",
+        ),
+    ] = False,
     preset: PresetOption = "cm2-v2",
     overwrite: OverwriteOption = False,
     as_json: JsonOption = False,
@@ -246,6 +255,7 @@ def build(
             warp=warping,
             memory_bytes=int(memory_gb * 1024**3),
             node_psfs=_aberration_model(design, aberration_model),
+            per_lenslet_basis=per_lenslet_basis,
         )
     summary = _save_build(result, model_path, None if no_report else folder, oversample)
     if as_json:

@@ -29,7 +29,14 @@ from cm2optics.design import SystemDesign, default_design
 from cm2optics.formats.scan import ScanError, ScanIndex, open_scan
 from cm2optics.formats.volume import VolumeGrid
 from cm2optics.lsv.crop_store import DEFAULT_MEMORY_BYTES, CropStore, position_chunks
-from cm2optics.lsv.decompose import Decomposition, decompose, numerical_rank, project, trim_window
+from cm2optics.lsv.decompose import (
+    Decomposition,
+    decompose,
+    decompose_per_lenslet,
+    numerical_rank,
+    project,
+    trim_window,
+)
 from cm2optics.lsv.epsf_validate import turn_check
 from cm2optics.lsv.focal_surface import FocalSurface, estimate_focal_surface
 from cm2optics.lsv.model import LSVModel
@@ -427,6 +434,7 @@ def build_model(
     warp: bool | None = None,
     memory_bytes: int = DEFAULT_MEMORY_BYTES,
     node_psfs: NodePSFs | None = None,
+    per_lenslet_basis: bool = False,
 ) -> BuildResult:
     """Build an LSV model from the scan folder ``scan_dir`` (see the module docstring).
 
@@ -466,7 +474,10 @@ def build_model(
         :mod:`cm2optics.calibrate.aberration_build`, which the CLI passes with the design): called
         as ``node_psfs(crops, grid_index, axes_mm, geometry, oversample, pixel_um, progress=,
         memory_bytes=)`` on the scan's fine crops, it returns the PSFs at the nodes, the PSFs the
-        basis is decomposed from and a record for the provenance; None: the crops themselves."""
+        basis is decomposed from and a record for the provenance; None: the crops themselves.
+    per_lenslet_basis: each lenslet its own basis of ``rank`` single-lenslet PSFs instead of one
+        basis of ``rank`` J-lenslet focus arrays (J·rank terms in all, each lenslet's forward
+        using its own ``rank``: the forward's cost is the same, the model's rank J times)."""
     axial_um = _check_build_options(oversample, rank, lateral_um, axial_um, design, refine)
     seconds: dict[str, float] = {}
     start = time.perf_counter()
@@ -511,6 +522,8 @@ def build_model(
     options |= {"rotate": {None: "data decides", True: "on", False: "off"}[rotate]}
     options |= {"warp": {None: "data decides", True: "on", False: "off"}[warp]}
     options |= {"svd": "exact (crops in memory)" if isinstance(crops, np.ndarray) else "streamed (crops on disk)"}
+    if per_lenslet_basis:
+        options |= {"svd": "exact, per lenslet", "basis": "per lenslet"}
     provenance = _build_provenance(index, fit, alignment, options, epsf_info) | {"focal_surface": surface_info}
     if node_model is not None:
         provenance["node_psfs"] = node_model
@@ -533,6 +546,7 @@ def build_model(
         refine=refine,
         progress=progress,
         basis_psfs=basis_psfs,
+        per_lenslet=per_lenslet_basis,
     )
     if node_model is not None:  # the model's error at the nodes against the scan's own crops
         scan_error = node_nmse(decomposition, _trim_like(scan_crops, decomposition))
@@ -547,7 +561,7 @@ def build_model(
         model, turn_info = _choose_interpolation(model, crops, gi, rotate, warp, refine, oversample if fine else 1)
     model.provenance["rotation"] = turn_info
     seconds["rotation"] = time.perf_counter() - start
-    if model.rank < rank:
+    if model.rank < rank * (model.n_lenslets if per_lenslet_basis else 1):
         source = f"the scan's {len(index)} positions"
         if basis_psfs is not None:
             source = f"the {len(basis_psfs)} positions the basis is decomposed from"
@@ -716,6 +730,7 @@ def model_from_crops(
     refine: int = 1,
     progress: Progress | None = None,
     basis_psfs: np.ndarray | CropStore | None = None,
+    per_lenslet: bool = False,
 ) -> tuple[LSVModel, Decomposition]:
     """Truncated SVD of registered ``crops`` (N, J, h, w) at grid positions ``grid_index`` (N, 3) as
     (ix, iy, iz) of ``axes`` (x, y, z mm), scaled so that the in-focus on-axis image of a unit source
@@ -723,13 +738,16 @@ def model_from_crops(
     drop dark margins holding less than this share of the energy (None: keep the full crops).
     ``basis_psfs`` (M, J, h, w): PSFs to decompose instead of the crops (the aberration model's
     at positions between the nodes); the crops' coefficients are then their projections on that
-    basis, and the decomposition's errors against K are those of ``basis_psfs``."""
+    basis, and the decomposition's errors against K are those of ``basis_psfs``. ``per_lenslet``:
+    each lenslet its own ``rank``-term basis (:func:`~cm2optics.lsv.decompose.decompose_per_lenslet`;
+    J·rank terms in all, each lenslet's forward uses its own ``rank``)."""
     xs, ys, zs = axes
     S = int(oversample)
+    split = decompose_per_lenslet if per_lenslet else decompose
     if basis_psfs is None:
-        decomposition = decompose(crops, rank, progress=progress)
+        decomposition = split(crops, rank, progress=progress)
     else:
-        decomposition = decompose(basis_psfs, rank, progress=progress)
+        decomposition = split(basis_psfs, rank, progress=progress)
         decomposition = replace(decomposition, coefficients=project(crops, decomposition.basis))
     K = decomposition.rank
     crop_shape = crops.shape[2:]
@@ -738,6 +756,12 @@ def model_from_crops(
     estimate: dict[str, Any] | None = None
     if frames is not None and S > 1:  # a measured scan: the ePSF basis from whole-pixel frames
         from cm2optics.lsv.epsf_estimate import estimate_epsf_basis
+
+        if per_lenslet:
+            raise ScanError(
+                "a per-lenslet basis needs fine crops (a synthetic scan's epsf.h5) or whole pixels (--oversample 1): "
+                "the ePSF estimate from whole-pixel frames fits one basis of focus arrays"
+            )
 
         index, options = frames
         whole = crops if isinstance(crops, np.ndarray) else crops[:]  # the estimate holds the whole-pixel crops
@@ -770,6 +794,7 @@ def model_from_crops(
     provenance = _model_provenance(provenance, geometry, zs, pixel_um, native_um)
     provenance["svd"] = {
         "rank": K,
+        "basis": f"per lenslet ({rank} terms each at most)" if per_lenslet else "focus arrays",
         "crop_px": list(crop_shape),
         "patch_px": list(model.patch_shape),
         "trim_energy": trim,

@@ -27,7 +27,15 @@ from cm2optics.lsv.crop_store import CropStore, position_chunks
 
 Progress = Callable[[str, int, int], None]
 
-__all__ = ["Decomposition", "decompose", "numerical_rank", "project", "streamed_decompose", "trim_window"]
+__all__ = [
+    "Decomposition",
+    "decompose",
+    "decompose_per_lenslet",
+    "numerical_rank",
+    "project",
+    "streamed_decompose",
+    "trim_window",
+]
 
 
 @dataclass(frozen=True)
@@ -63,23 +71,68 @@ def decompose(crops: np.ndarray | CropStore, rank: int, progress: Progress | Non
     :class:`~cm2optics.lsv.crop_store.CropStore` on disk."""
     if not isinstance(crops, np.ndarray):
         return streamed_decompose(crops, rank, progress=progress)
-    N = crops.shape[0]
-    shape = crops.shape[1:]
-    X = crops.reshape(N, -1)
+    X = crops.reshape(crops.shape[0], -1)
+    singular, vectors, norms = _gram_svd(X)
+    K = _kept_rank(singular, rank, len(X))
+    basis = _right_vectors(X, singular[:K], vectors[:, :K])
+    return _decomposition(basis.reshape((K,) + crops.shape[1:]), vectors * singular, singular, norms)
+
+
+def decompose_per_lenslet(crops: np.ndarray | CropStore, rank: int, progress: Progress | None = None) -> Decomposition:
+    """Each lenslet its own truncated SVD of its foci ``crops[:, j]`` (exact, through its Gram
+    matrix), ``rank`` terms per lenslet, as one orthonormal basis of J·rank focus arrays each dark
+    but in its own lenslet (block-diagonal: lenslet bases on disjoint supports are orthogonal to
+    each other), ordered by singular value over all lenslets, so that a truncation keeps the
+    strongest terms. Errors against the number of terms kept are those of this ordering. A
+    lenslet whose foci span fewer than ``rank`` dimensions keeps fewer terms."""
+    N, J = crops.shape[:2]
+    lenslet_of, singular, coefficients, blocks = [], [], [], []
+    norms = np.zeros(N)
+    for j in range(J):
+        X = np.asarray(crops[:, j : j + 1]).reshape(N, -1)
+        s, vectors, n = _gram_svd(X)
+        K = _kept_rank(s, rank, N)
+        blocks.append(_right_vectors(X, s[:K], vectors[:, :K]))
+        lenslet_of.append(np.full(len(s), j))
+        singular.append(s)
+        coefficients.append(vectors * s)
+        norms += n
+        if progress:
+            progress("per-lenslet SVD (lenslets)", j + 1, J)
+    kept = [len(b) for b in blocks]
+    term = np.concatenate([np.arange(len(s)) for s in singular])
+    lenslet_of, singular = np.concatenate(lenslet_of), np.concatenate(singular)
+    order = np.argsort(-singular, kind="stable")
+    order = order[term[order] < np.asarray(kept)[lenslet_of[order]]]  # the kept terms first …
+    rest = np.setdiff1d(np.arange(len(singular)), order)
+    order = np.concatenate([order, rest[np.argsort(-singular[rest], kind="stable")]])  # … then the others
+    basis = np.zeros((sum(kept), J) + crops.shape[2:], np.float32)
+    for i, (j, k) in enumerate(zip(lenslet_of[order[: len(basis)]], term[order[: len(basis)]], strict=True)):
+        basis[i, j] = blocks[j][k].reshape(crops.shape[2:])
+    all_coefficients = np.concatenate(coefficients, axis=1)[:, order]
+    return _decomposition(basis, all_coefficients, singular[order], norms)
+
+
+def _gram_svd(X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Singular values (descending, N), left singular vectors (N, N) and squared row norms (N,)
+    of ``X`` (N, D) through its Gram matrix in float64."""
     if not np.all(np.isfinite(X)):
         raise ValueError("the focus crops contain NaN or infinite values")
     G = gram(X)
     eigenvalues, vectors = np.linalg.eigh(G)
     order = np.argsort(eigenvalues)[::-1]
-    singular = np.sqrt(np.clip(eigenvalues[order], 0, None))
-    vectors = vectors[:, order]
-    K = _kept_rank(singular, rank, N)
-    scale = np.where(singular[:K] > 0, 1.0 / np.maximum(singular[:K], 1e-300), 0.0)
-    projector = (vectors[:, :K] * scale).T  # (K, N)
-    basis = np.zeros((K, X.shape[1]), np.float64)
+    return np.sqrt(np.clip(eigenvalues[order], 0, None)), vectors[:, order], np.diag(G).copy()
+
+
+def _right_vectors(X: np.ndarray, singular: np.ndarray, vectors: np.ndarray) -> np.ndarray:
+    """(K, D) right singular vectors ``Σ⁻¹ Uᵀ X`` of ``X`` (N, D) for the K singular values and
+    left vectors (N, K) given (zero where a singular value is 0), float64 over column chunks."""
+    scale = np.where(singular > 0, 1.0 / np.maximum(singular, 1e-300), 0.0)
+    projector = (vectors * scale).T  # (K, N)
+    basis = np.zeros((len(singular), X.shape[1]), np.float64)
     for start in range(0, X.shape[1], 16384):
         basis[:, start : start + 16384] = projector @ X[:, start : start + 16384].astype(np.float64)
-    return _decomposition(basis.reshape((K,) + shape), vectors * singular, singular, np.diag(G))
+    return basis
 
 
 def project(crops: np.ndarray | CropStore, basis: np.ndarray) -> np.ndarray:

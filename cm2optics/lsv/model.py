@@ -11,6 +11,9 @@ the axis sums to 1 (``scale`` records the factor).
 File layout: :mod:`cm2optics.formats.lsv_model` (``format = "cm2optics-lsv"``). With
 ``oversample`` S > 1 the ``basis`` is (K, J, h·S, w·S), an effective PSF on a grid S times finer
 than the pixels, sampled at each focus's exact sub-pixel position (:mod:`cm2optics.lsv.epsf`).
+A per-lenslet basis (:func:`~cm2optics.lsv.decompose.decompose_per_lenslet`) is stored in the same
+layout, each of its J·K focus arrays dark but in one lenslet; every path uses, per lenslet, only the
+terms with light there (:meth:`LSVModel.lenslet_terms`).
 """
 
 from __future__ import annotations
@@ -115,6 +118,8 @@ class LSVModel:
         object.__setattr__(self, "grid_z_mm", axes[2])
         object.__setattr__(self, "sensor_shape", tuple(int(s) for s in self.sensor_shape))
         object.__setattr__(self, "_operators", {})
+        lit = np.abs(basis).reshape(basis.shape[0], basis.shape[1], -1).max(axis=2) > 0  # (K, J)
+        object.__setattr__(self, "_lenslet_terms", tuple(np.flatnonzero(lit[:, j]) for j in range(basis.shape[1])))
         self._set_interpolation_grid()
 
     def _set_interpolation_grid(self) -> None:
@@ -168,6 +173,11 @@ class LSVModel:
     def patch_shape(self) -> tuple[int, int]:
         """Patch size in image pixels (the basis holds ``oversample`` × as many samples)."""
         return self.basis.shape[2] // self.oversample, self.basis.shape[3] // self.oversample
+
+    def lenslet_terms(self, lenslet: int) -> np.ndarray:
+        """Indices of the basis PSFs with light in ``lenslet``: all K for a basis of focus arrays,
+        that lenslet's own terms for a per-lenslet basis (every path skips the others, dark there)."""
+        return self._lenslet_terms[lenslet]  # type: ignore[attr-defined]
 
     @property
     def axes(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -303,15 +303,22 @@ class LSVOperator:
         self.depth_nodes = sorted({g for pairs in self.depth_weights for g, _ in pairs})
         self._slot = {g: i for i, g in enumerate(self.depth_nodes)}
         # node stage
-        self._basis = torch.as_tensor(model.basis, device=self.device)  # (K, J, h, w)
-        # per lenslet (K, nz, ny, nx) on the interpolation grid (one shared tensor on the plain grid)
+        # per lenslet the basis patches with light there (K_j, h, w): all K of a basis of focus
+        # arrays, K of the J·K terms of a per-lenslet basis; and their coefficients (K_j, nz, ny,
+        # nx) on the interpolation grid (one shared tensor where every lenslet has all terms)
         shared = model.shared_coefficients
-        self._coefficients = [
-            torch.as_tensor(model.lenslet_coefficients(0 if shared else j), device=self.device)
-            for j in range(self.n_lenslets)
-        ]
-        if shared:
-            self._coefficients = [self._coefficients[0]] * self.n_lenslets
+        self._patches, self._coefficients = [], []
+        full: dict[int, torch.Tensor] = {}
+        for j in range(self.n_lenslets):
+            terms = model.lenslet_terms(j)
+            every = len(terms) == model.rank
+            self._patches.append(
+                torch.as_tensor(model.basis[:, j] if every else model.basis[terms, j], device=self.device)
+            )
+            key = 0 if shared else j
+            if key not in full:
+                full[key] = torch.as_tensor(model.lenslet_coefficients(key), device=self.device)
+            self._coefficients.append(full[key] if every else full[key][torch.as_tensor(terms, device=self.device)])
         self._axes = model.interpolation_axes
         self._content = (
             int(np.floor(self.shifts[..., 0].min())) - 1,
@@ -500,8 +507,8 @@ class LSVOperator:
         nodes) at their FFT shape: (tiles, depth nodes, Fh, Fw//2+1)."""
         nodes = tiles[0].depth_nodes
         c = torch.stack([self._coefficients[j][:, nodes, tile.gy, tile.gx].T for tile in tiles])  # (t, d, K)
-        K, _, h, w = self._basis.shape
-        q = (c.reshape(-1, K) @ self._basis[:, j].reshape(K, h * w)).reshape(len(tiles), len(nodes), h, w)
+        K, h, w = self._patches[j].shape
+        q = (c.reshape(-1, K) @ self._patches[j].reshape(K, h * w)).reshape(len(tiles), len(nodes), h, w)
         return torch.fft.rfft2(q, s=tiles[0].fft)
 
     def _chunks(self, j: int) -> list[list[_Tile]]:
@@ -539,7 +546,7 @@ class LSVOperator:
 
         kernels = (self._ky, self._kx, self._ky_conj, self._kx_conj)
         coefficients = {id(t): t for t in self._coefficients}.values()
-        total = sum(size(t) for t in (*kernels, self._basis, *coefficients))
+        total = sum(size(t) for t in (*kernels, *self._patches, *coefficients))
         for splat in self._splats:
             for axis in (splat.rows, splat.cols):
                 if axis is not None:

@@ -120,7 +120,7 @@ def render_emitters(
     """Sensor image (y, x) (or (J, y, x)) of ``emitters`` (see the module docstring), float32."""
     H, W = model.sensor_shape
     h, w = model.patch_shape
-    J, K = model.n_lenslets, model.rank
+    J = model.n_lenslets
     keep = emitters.intensity > 0
     positions = emitters.positions_mm()[keep]
     intensity = emitters.intensity[keep]
@@ -143,17 +143,18 @@ def render_emitters(
         if len(index) == 0:
             continue
         nodes, weights = chief_ray_nodes(model.geometry, model.interpolation_axes, j, x[index], y[index], z[index])
-        coefficients = model.lenslet_coefficients(j)
+        terms = model.lenslet_terms(j)  # the basis PSFs with light in lenslet j
+        coefficients = model.lenslet_coefficients(j)[terms]
         c = np.einsum("kne,ne->nk", coefficients[:, nodes[..., 0], nodes[..., 1], nodes[..., 2]], weights)
         c = torch.as_tensor(c * intensity[index, None], dtype=torch.float32)
         n, phases, phase_values = _phases(corner[index], subpixel_steps)
         target = out[j if per_lenslet else 0]
-        basis_j = np.ascontiguousarray(model.basis[:, j], dtype=np.float32)
+        basis_j = np.ascontiguousarray(model.basis[terms, j], dtype=np.float32)
         bins, tops, lefts = size_bin[index], n[:, 0] - 1, n[:, 1] - 1
         for phase in np.unique(phases):
             members = np.nonzero(phases == phase)[0]
             shifted = torch.from_numpy(
-                _placed(model, basis_j, phase_values[int(phase)]).astype(np.float32).reshape(K, -1)
+                _placed(model, basis_j, phase_values[int(phase)]).astype(np.float32).reshape(len(terms), -1)
             )
             for start in range(0, len(members), chunk):
                 part = members[start : start + chunk]

@@ -263,11 +263,13 @@ def analytic_lsv_model(
     trim: float | None = 1e-6,
     focal_surface: bool = False,
     refine: int = 2,
+    per_lenslet: bool = False,
 ):
     """An :class:`~cm2optics.lsv.model.LSVModel` of the analytic system built straight from
     noise-free crops on the grid x × y × z (mm): no scan files, the paraxial geometry known.
     ``focal_surface``: estimate each lenslet's best-focus surface from the crops and interpolate
-    along it on the grid refined ``refine`` times (:mod:`cm2optics.lsv.focal_surface`)."""
+    along it on the grid refined ``refine`` times (:mod:`cm2optics.lsv.focal_surface`). ``per_lenslet``:
+    each lenslet its own ``rank``-term basis (:func:`~cm2optics.lsv.decompose.decompose_per_lenslet`)."""
     from cm2optics.lsv.build import default_patch_px, model_from_crops
     from cm2optics.lsv.focal_surface import estimate_focal_surface
 
@@ -290,6 +292,7 @@ def analytic_lsv_model(
         provenance={"source": "analytic CM²-like model (cm2optics.lsv.toy), noise-free crops"},
         focal_surface=estimate_focal_surface(crops, grid_index, (xs, ys, zs)) if focal_surface else None,
         refine=refine,
+        per_lenslet=per_lenslet,
     )
     return lsv
 

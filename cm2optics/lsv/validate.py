@@ -320,6 +320,14 @@ def validate_model(
     if same:
         crops = extract_crops(index, model.geometry, model.patch_shape, progress=progress) * np.float32(model.scale)
         gi = index.grid_index()
+        if model.n_lenslets > 1 and all(len(model.lenslet_terms(j)) < model.rank for j in range(model.n_lenslets)):
+            message = (
+                "the model has a per-lenslet basis, but this check decomposes one basis of focus arrays (K terms in "
+                "all, not per lenslet): its held-out figures are not this model's (epsf_validate.predicted_nodes_nmse "
+                "takes the model's own basis)"
+            )
+            warnings.warn(message, stacklevel=2)
+            result["basis_warning"] = message
         result.update(_leave_one_out(model, crops, gi, _ranks(model, ranks, len(index) - 1), n_heldout, seed, progress))
         if model.rotate_aberrations or model.warp_shapes:  # the Gram-matrix check cannot turn or warp PSFs
             turn = None

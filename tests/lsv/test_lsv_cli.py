@@ -72,6 +72,25 @@ def test_build_json_model_and_report(model):
         assert (report.parent / name).stat().st_size > 1000
 
 
+def test_build_a_per_lenslet_basis(scan, tmp_path):
+    out = tmp_path / "per_lenslet.h5"
+    arguments = ["lsv", "build", str(scan), "--rank", "4", "--per-lenslet-basis", "--no-report", "--json"]
+    result = runner.invoke(app, arguments + ["--rotate", "off", "--warp", "off", "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    summary, model = json.loads(result.stdout), load_model(out)
+    assert summary["rank"] == model.rank == 9 * 4 and model.provenance["svd"]["basis"].startswith("per lenslet")
+    assert all(len(model.lenslet_terms(j)) == 4 for j in range(9))
+    assert 0 <= summary["nmse_calibration"] < 0.05
+    image = model.point_image(0.5, -0.7, 0.1)
+    assert image.sum() > 0 and np.isfinite(image).all()
+    with pytest.warns(UserWarning, match="per-lenslet basis"):  # validate's check is of another structure: said so
+        result = runner.invoke(
+            app, ["lsv", "validate", str(out), str(scan), "--json", "--no-subsample", "--heldout", "4"]
+        )
+    assert result.exit_code == 0, result.output
+    assert "one basis of focus arrays" in json.loads(result.stdout)["basis_warning"]
+
+
 def test_validate_json_on_the_calibration_scan(model, scan):
     path, _ = model
     result = runner.invoke(
