@@ -69,6 +69,15 @@ def make_net(config: NetConfig) -> tuple[CM2Net, int]:
     grid = config.synth.grid
     z = grid.axis_mm(0)
     planes = refocus_planes(imaging.source, (float(z[0]), float(z[-1])), config.refocus_planes)
+    if config.mix_forward_model:  # the network's refocusing serves both sources' views
+        mixed = refocus_planes(
+            forward_imaging(config.mix_config()).source, (float(z[0]), float(z[-1])), config.refocus_planes
+        )
+        if not np.array_equal(mixed.shifts_px, planes.shifts_px):
+            raise ValueError(
+                f"mix_forward_model = {config.mix_forward_model!r}: its refocusing shifts differ from forward_model's "
+                "(the network has one set)"
+            )
     border = config.border_px if config.border_px >= 0 else planes.max_shift_px
     if 2 * border >= config.synth.patch_px:
         raise ValueError(
