@@ -56,7 +56,7 @@ __all__ = [
 #: Offset between the training and validation data seeds.
 VALIDATION_SEED_OFFSET = 7919
 #: Offset between the training data seed and the mixed source's.
-MIX_SEED_OFFSET = 104729
+MIX_SEED_OFFSET = 1299709
 STREAM_PATCHES = 2  # the synth package's per-sample patch stream
 
 
