@@ -267,3 +267,21 @@ def test_cm2_train_ablation_trains_in_its_own_folder_and_exports(tmp_path: Path)
     assert loaded.config.ablation == "no-demix" and loaded.net.demix is None
     wrong = runner.invoke(app, ["train", str(config), "--ablation", "no-refocus"])
     assert wrong.exit_code == 2 and "--ablation no-refocus" in wrong.output and "Traceback" not in wrong.output
+
+
+def test_a_fine_tuning_on_the_same_views_takes_the_reference_histogram_of_its_init_weights(tmp_path):
+    from cm2optics.recon.net.train import make_net
+    from cm2optics.recon.net.weights import save_weights
+
+    base = tiny(tmp_path / "base", val_volumes=0)
+    marked = np.linspace(0.0, 2.0, 256) ** 2  # no run's views would give these quantiles
+    save_weights(make_net(base)[0], base, tmp_path / "init", histogram=marked)
+    same = base.with_changes(init_weights=str(tmp_path / "init"), seed=5, out_dir=str(tmp_path / "same"))
+    other = same.with_changes(synth=base.synth.with_changes(peak_photons=200.0), out_dir=str(tmp_path / "other"))
+    for config in (same, other):
+        train(config, max_steps=1)
+    histograms = [
+        torch.load(tmp_path / n / "checkpoint.pt", weights_only=False)["histogram"] for n in ("same", "other")
+    ]
+    np.testing.assert_array_equal(histograms[0], marked)  # the same model and recipe: taken
+    assert not np.allclose(histograms[1], marked)  # another recipe: rendered anew

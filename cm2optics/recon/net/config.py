@@ -84,6 +84,11 @@ class NetConfig:
     register_views: resample each view onto the model's affine geometry before the network
     (:mod:`~cm2optics.recon.net.register`: the lenslets' distortion differs, so off axis the nine
     views disagree by up to tens of pixels), in training and at inference alike;
+    mix_forward_model, mix_fraction, mix_synth: a second data source mixed into training — of
+    each epoch's ``train_volumes``, round(mix_fraction · train_volumes) (seeded choice) are imaged
+    through ``mix_forward_model`` with the recipe ``synth`` changed by the fields in ``mix_synth``
+    (e.g. a smaller field and views: fov_mm, view_px, patches_per_volume; the grid and patch size
+    stay the network's), from their own seed; the refocusing shifts must agree (empty / 0: none);
     curriculum_epochs: epochs over which the density grows linearly from
     curriculum_start_density (per mm²) to ``synth.density_per_mm2`` (0: no curriculum);
     target: ``occupancy`` (fraction of each voxel inside an emitter, the paper's binned balls)
@@ -121,6 +126,9 @@ class NetConfig:
     fresh_volumes: bool = True
     interleave_volumes: int = 1
     register_views: bool = False
+    mix_forward_model: str = ""
+    mix_fraction: float = 0.0
+    mix_synth: dict = field(default_factory=dict)
     curriculum_epochs: int = 0
     curriculum_start_density: tuple[float, float] = (5.0, 20.0)
     target: str = "occupancy"
@@ -173,6 +181,7 @@ class NetConfig:
         _int("interleave_volumes", self.interleave_volumes, 1, 10_000_000)
         if not isinstance(self.register_views, bool):
             raise ConfigError(f"register_views = {self.register_views!r}: must be true or false")
+        self._check_mix()
         _int("curriculum_epochs", self.curriculum_epochs, 0, 100_000)
         try:
             lo, hi = (float(v) for v in self.curriculum_start_density)
@@ -214,6 +223,40 @@ class NetConfig:
         if self.border_px >= 0 and 2 * self.border_px >= s.patch_px:
             raise ConfigError(f"border_px = {self.border_px}: leaves nothing of a {s.patch_px}-px patch")
 
+    def _check_mix(self) -> None:
+        if not isinstance(self.mix_forward_model, str):
+            raise ConfigError(f"mix_forward_model = {self.mix_forward_model!r}: must name a model file (or be empty)")
+        _float("mix_fraction", self.mix_fraction, 0.0, 1.0)
+        if not isinstance(self.mix_synth, dict):
+            raise ConfigError(f"mix_synth = {self.mix_synth!r}: must be a mapping of synth fields to change")
+        if bool(self.mix_forward_model) != (self.mix_fraction > 0):
+            raise ConfigError(
+                f"mix_forward_model = {self.mix_forward_model!r}, mix_fraction = {self.mix_fraction}: "
+                "a mixed source needs both (or neither)"
+            )
+        if self.mix_synth and not self.mix_forward_model:
+            raise ConfigError("mix_synth is set but mix_forward_model is empty")
+        fixed = sorted({"voxel_um", "depth_um", "patch_px"} & set(self.mix_synth))
+        if fixed:
+            raise ConfigError(f"mix_synth: {', '.join(fixed)} must stay the network's (the grid and patches)")
+        if self.mix_forward_model:
+            self.mix_config()  # its recipe must be valid
+
+    def mix_config(self) -> NetConfig:
+        """The config of the mixed source's volumes: its model, ``synth`` changed by ``mix_synth``."""
+        try:
+            synth = SynthConfig.from_dict({**self.synth.to_dict(), **self.mix_synth})
+        except (TypeError, ValueError) as error:
+            raise ConfigError(f"mix_synth: {error}") from None
+        return replace(
+            self,
+            forward_model=self.mix_forward_model,
+            synth=synth,
+            mix_forward_model="",
+            mix_fraction=0.0,
+            mix_synth={},
+        )
+
     # -- dictionaries, YAML, hash ---------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:
         out: dict[str, Any] = {}
@@ -249,7 +292,7 @@ class NetConfig:
     def hash(self) -> str:
         """SHA-256 (hex) of the fields that change the weights (not :data:`RUNTIME_FIELDS`; nor
         ``ablation`` when ``none`` nor an empty ``init_weights`` nor ``interleave_volumes`` of 1 nor
-        ``register_views`` when false, so that configs written before they existed keep their hash)."""
+        ``register_views`` when false nor the ``mix_*`` fields when there is no mixed source, so that configs written before they existed keep their hash)."""
         data = {k: v for k, v in self.to_dict().items() if k not in RUNTIME_FIELDS}
         if data["ablation"] == "none":
             del data["ablation"]
@@ -259,6 +302,9 @@ class NetConfig:
             del data["interleave_volumes"]
         if not data["register_views"]:
             del data["register_views"]
+        if not data["mix_forward_model"]:
+            for name in ("mix_forward_model", "mix_fraction", "mix_synth"):
+                del data[name]
         return hashlib.sha256(json.dumps(data, sort_keys=True, default=str).encode()).hexdigest()
 
     def with_changes(self, **changes: Any) -> NetConfig:

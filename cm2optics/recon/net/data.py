@@ -16,7 +16,10 @@ Order: per epoch the volumes are shuffled and each volume's patches shuffled (ge
 ``(seed, epoch)``), and consecutive patches share a volume (one synthesis serves them). The global
 batch at step s is items ``[s·B, (s+1)·B)``; DDP rank r of w takes the r-th contiguous B/w of it.
 Epoch e uses volumes ``e·train_volumes + v`` (``fresh_volumes``) or ``v``; the curriculum sets
-the density range per epoch. With ``interleave_volumes`` G > 1, consecutive batches cycle over
+the density range per epoch. With a mixed source (``mix_forward_model``), round(mix_fraction ·
+train_volumes) of an epoch's volume slots (drawn from ``(seed, epoch)``) are that source's volumes
+(:meth:`~cm2optics.recon.net.config.NetConfig.mix_config`: its own model and recipe, data seed
+``seed + MIX_SEED_OFFSET``, its own patches per volume). With ``interleave_volumes`` G > 1, consecutive batches cycle over
 groups of G volumes instead (batch j of a group from its volume j mod G), so that G DataLoader
 workers, which take the batches in turn, each render one volume of the group. Validation is a
 fixed set from a separate seed.
@@ -52,17 +55,21 @@ __all__ = [
 
 #: Offset between the training and validation data seeds.
 VALIDATION_SEED_OFFSET = 7919
+#: Offset between the training data seed and the mixed source's.
+MIX_SEED_OFFSET = 1299709
 STREAM_PATCHES = 2  # the synth package's per-sample patch stream
 
 
 @dataclass(frozen=True)
 class Item:
-    """One training patch: data seed, volume index, patch number, density range (per mm²)."""
+    """One training patch: data seed, volume index, patch number, density range (per mm²),
+    source (0: the config's forward model, 1: the mixed source)."""
 
     seed: int
     volume: int
     patch: int
     density: tuple[float, float]
+    source: int = 0
 
 
 def _analytic_lsv(preset: str, binning: int, grid_key: tuple, fov_mm: float, depth_um: float):
@@ -279,15 +286,17 @@ class PatchDataset(Dataset):
     def __init__(self, config: NetConfig, items: list[Item]):
         self.config = config
         self.items = list(items)
-        self._source: PatchSource | None = None
+        self._sources: dict[int, PatchSource] = {}
 
     def __len__(self) -> int:
         return len(self.items)
 
     def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
-        if self._source is None:  # made lazily: each DataLoader worker keeps its own cache
-            self._source = PatchSource(self.config)
-        return {k: torch.from_numpy(np.ascontiguousarray(v)) for k, v in self._source.patch(self.items[i]).items()}
+        item = self.items[i]
+        if item.source not in self._sources:  # made lazily: each DataLoader worker keeps its own cache
+            self._sources[item.source] = PatchSource(self.config.mix_config() if item.source else self.config)
+        patch = self._sources[item.source].patch(item)
+        return {k: torch.from_numpy(np.ascontiguousarray(v)) for k, v in patch.items()}
 
 
 def density_at(config: NetConfig, epoch: int) -> tuple[float, float]:
@@ -304,12 +313,18 @@ def density_at(config: NetConfig, epoch: int) -> tuple[float, float]:
 def epoch_items(config: NetConfig, epoch: int) -> list[Item]:
     """Every training item of ``epoch`` in its order (see the module docstring)."""
     rng = np.random.default_rng(np.random.SeedSequence([config.seed, epoch, 17]))
-    density = density_at(config, epoch)
     base = epoch * config.train_volumes if config.fresh_volumes else 0
-    per_volume = [
-        [Item(config.seed, int(base + v), int(k), density) for k in rng.permutation(config.synth.patches_per_volume)]
-        for v in rng.permutation(config.train_volumes)
-    ]
+    mixed = _mixed_slots(config, epoch)
+    sources = {0: config, 1: config.mix_config() if mixed else config}
+    per_volume = []
+    for v in rng.permutation(config.train_volumes):
+        source = int(v in mixed)
+        c = sources[source]
+        seed = config.seed + MIX_SEED_OFFSET * source
+        density = density_at(c, epoch)
+        per_volume.append(
+            [Item(seed, int(base + v), int(k), density, source) for k in rng.permutation(c.synth.patches_per_volume)]
+        )
     G = config.interleave_volumes
     return [
         item
@@ -332,8 +347,17 @@ def _interleaved(volumes: list[list[Item]], batch: int) -> list[Item]:
     return out + [item for items, n in zip(volumes, n_full, strict=True) for item in items[n * batch :]]
 
 
+def _mixed_slots(config: NetConfig, epoch: int) -> set[int]:
+    """The volume slots of ``epoch`` that the mixed source fills (none without one)."""
+    n = round(config.mix_fraction * config.train_volumes) if config.mix_forward_model else 0
+    rng = np.random.default_rng(np.random.SeedSequence([config.seed, epoch, 29]))
+    return {int(v) for v in rng.choice(config.train_volumes, n, replace=False)} if n else set()
+
+
 def steps_per_epoch(config: NetConfig) -> int:
-    return (config.train_volumes * config.synth.patches_per_volume) // config.batch_size
+    n_mixed = len(_mixed_slots(config, 0))
+    mixed = config.mix_config().synth.patches_per_volume * n_mixed if n_mixed else 0
+    return ((config.train_volumes - n_mixed) * config.synth.patches_per_volume + mixed) // config.batch_size
 
 
 def rank_items(config: NetConfig, items: list[Item], rank: int, world: int, start_step: int = 0) -> list[Item]:

@@ -69,6 +69,15 @@ def make_net(config: NetConfig) -> tuple[CM2Net, int]:
     grid = config.synth.grid
     z = grid.axis_mm(0)
     planes = refocus_planes(imaging.source, (float(z[0]), float(z[-1])), config.refocus_planes)
+    if config.mix_forward_model:  # the network's refocusing serves both sources' views
+        mixed = refocus_planes(
+            forward_imaging(config.mix_config()).source, (float(z[0]), float(z[-1])), config.refocus_planes
+        )
+        if not np.array_equal(mixed.shifts_px, planes.shifts_px):
+            raise ValueError(
+                f"mix_forward_model = {config.mix_forward_model!r}: its refocusing shifts differ from forward_model's "
+                "(the network has one set)"
+            )
     border = config.border_px if config.border_px >= 0 else planes.max_shift_px
     if 2 * border >= config.synth.patch_px:
         raise ValueError(
@@ -313,6 +322,24 @@ def _histogram(source: PatchSource, config: NetConfig, count: int = REFERENCE_VO
     return np.quantile(np.concatenate(values), np.linspace(0.0, 1.0, 256))
 
 
+def _inherited_histogram(config: NetConfig) -> np.ndarray | None:
+    """The reference histogram of ``init_weights`` when they were trained on this run's views (the
+    same forward model, recipe and registration: the same distribution of views), else None — a
+    fine-tuning run that goes on through the same data need not render the reference volumes again."""
+    if not config.init_weights:
+        return None
+    from cm2optics.recon.net.weights import load_weights
+
+    loaded = load_weights(config.init_weights)
+    own = loaded.config
+    same = (own.forward_model, own.synth, own.register_views) == (
+        config.forward_model,
+        config.synth,
+        config.register_views,
+    )
+    return loaded.histogram if same and loaded.histogram is not None else None
+
+
 # ----------------------------------------------------------------------------- run
 def _setup_distributed(device: str | None) -> tuple[int, int, torch.device]:
     world = int(os.environ.get("WORLD_SIZE", "1"))
@@ -374,7 +401,9 @@ def train(
         "hardware": _hardware(dev, world),
     }
     if rank == 0 and facts["histogram"] is None:
-        facts["histogram"] = [float(v) for v in _histogram(source, config)]
+        inherited = _inherited_histogram(config)
+        histogram = inherited if inherited is not None else _histogram(source, config)
+        facts["histogram"] = [float(v) for v in histogram]
     checkpoint = _checkpointer(out / CHECKPOINT, net, optimiser, scheduler, config, history, pos, rank, world, facts)
 
     while pos.epoch < config.epochs and not pos.stopped:
