@@ -25,6 +25,8 @@ def _problem(data: np.ndarray, groups: np.ndarray) -> SimpleNamespace:
         use=np.ones(len(data), bool),
         space=space,
         feature_groups=groups,
+        feature_kinds=np.zeros(len(data), int),  # every feature an energy
+        pixel_change=lambda before, after: (np.zeros(0), np.zeros(0), np.ones(0)),  # no pixels
         n_features=len(data),
         noise_known=True,
         features=lambda state: sum(np.asarray(v["model"], float) for v in state.values.values()),
