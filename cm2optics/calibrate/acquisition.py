@@ -228,10 +228,10 @@ def stage_errors(analysis: ResidualAnalysis, pixel_um: float, vertices_px: np.nd
     pixel pitch (µm), ``vertices_px`` the lenslets' vertices (:func:`frame_motion`); None when fewer than :data:`MIN_SHIFTED` frames depart from the scan's
     common offset by more than half :data:`STAGE_SHIFT_PX` (and :data:`SIGNIFICANCE` standard
     errors) or none by more than it; frames with fewer than :data:`MIN_AGREEING_FOCI` foci agreeing
-    are not judged."""
+    (or than the model's bright foci per frame, where it has fewer) are not judged."""
     motion = frame_motion(analysis, vertices_px)
     shifts = motion.shift_px
-    enough = min(MIN_AGREEING_FOCI, int(motion.foci.max()))
+    enough = min(MIN_AGREEING_FOCI, int(bright_foci(analysis).sum(axis=1).max()))  # what the design gives a frame
     known = np.flatnonzero(np.isfinite(shifts).all(axis=1) & (motion.foci >= enough))
     if len(known) < MIN_FRAMES:
         return None

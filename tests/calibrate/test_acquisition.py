@@ -97,20 +97,26 @@ def test_a_background_gradient_does_not_pull_the_centroids():
     assert local < 0.25 * np.nanmax(np.abs(plain - CENTRES[:, None, :]))
 
 
-@pytest.mark.parametrize(("peak", "seed"), [(100.0, 0), (100.0, 1), (60.0, 0)])
-def test_dim_foci_over_a_heavy_background_are_no_stage_error(peak, seed):
+@pytest.mark.parametrize("seed", [0, 1])
+def test_dim_foci_over_a_heavy_background_are_no_stage_error(seed):
     """Foci of 100-count peaks over a ramp of up to 600 counts: their centroids scatter by
     ≈ 0.5 px, which the scatter within each frame shows; the median shifts of some frames pass
-    0.3 px (what session 10's check read: a false warning on the background-gradient scan). At
-    60 counts some centroids land tens of px off: a frame whose own foci disagree that much
-    (seed 0: four foci over ±8 px, "shifted" 6.4 px against the pooled 1.7-px error) is judged
-    on its own scatter."""
-    analysis = lattice_analysis(peak, 600.0, seed)
+    0.3 px (what session 10's check read: a false warning on the background-gradient scan)."""
+    analysis = lattice_analysis(100.0, 600.0, seed)
     bright = np.where(bright_foci(analysis)[..., None], analysis.centroid_error_px, np.nan)
     plain = np.nanmedian(bright, axis=1)
     assert np.nanmax(np.linalg.norm(plain - np.nanmedian(plain, axis=0), axis=1)) > 0.3
     assert np.all(frame_motion(analysis).shift_se_px > 0.1)
     assert stage_errors(analysis, 19.2) is None
+
+
+@pytest.mark.parametrize("seed", [0, 4])
+def test_foci_too_dim_to_centre_are_no_stage_error(seed):
+    """Foci of 60-count peaks over the 600-count ramp: some centroids land tens of px off. Seed 0:
+    a frame whose four foci disagree over ±8 px "shifted" 6.4 px against a pooled error of 1.7
+    px (session 11's false warning) is judged on its own scatter; seed 4: no frame holds three
+    measurable foci of the nine the model makes bright, and none is judged on two."""
+    assert stage_errors(lattice_analysis(60.0, 600.0, seed), 19.2) is None
 
 
 def test_a_backlash_over_the_same_background_is_still_named():
