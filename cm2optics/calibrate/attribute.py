@@ -10,8 +10,11 @@ alongside); the one that lowers the Bayesian information criterion most is kept 
 by more than ``BIC_THRESHOLD`` and passes the guard (:func:`guard`: it removes at least
 ``MIN_EXCESS_SHARE`` of the χ² above the noise floor, and its fit matches the residual's pattern —
 it does not buy large gains at a few foci with losses at the others, neither in χ² nor counted
-focus by focus among those it acts on; else the next finalist is
-tried, and when none passes the rest of the residual is left unexplained); all kept parameters are then refitted jointly by Gauss–Newton
+focus by focus among those it acts on, and every observable it changes markedly (the foci's
+energies, centroids, widths, the background, the pixels themselves) holds at least half of that
+change in its residual, as a physical effect predicts all of them; else the next finalist is
+tried, and when none passes the rest of the residual is left unexplained); all kept parameters
+are then refitted jointly by Gauss–Newton
 with the simulator in the loop; and the search repeats until χ² reaches the noise floor or no
 candidate is significant. Uncertainties are the square roots of the covariance's diagonal,
 scaled by the reduced χ² where it exceeds 1.

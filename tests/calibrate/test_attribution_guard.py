@@ -10,10 +10,12 @@ import pytest
 
 from cm2optics.calibrate.attribute import (
     ACTS_CHI2,
+    CONFIRM_CHI2,
     MAX_CONTRADICTED_SHARE,
     MAX_WORSENED_SHARE,
     MIN_EXCESS_SHARE,
     State,
+    confirmation,
     guard,
 )
 
@@ -92,3 +94,56 @@ def test_an_effect_that_explains_the_sum_but_not_each_focus_fails():
     weak.values["t"] = {"model": np.array([-20.0, -1.0, -1.0, -1.0])}
     check = guard(_problem(np.array([-30.0, 0.0, 0.0, 0.0]), groups), before, weak)
     assert ACTS_CHI2 == 9.0 and check.contradicted_share == 0.0 and check.passed
+
+
+def test_the_confirmation_is_the_share_of_the_change_the_residual_holds():
+    """r = 0.3·Δ + a part orthogonal to Δ: a = 0.3, and the χ² falls by S·(2a − 1) (here rises)."""
+    change = np.array([2.0, -1.0, 0.0, 0.0])
+    residual = 0.3 * change + np.array([0.0, 0.0, 4.0, -3.0])
+    sigma = np.array([0.5, 0.5, 1.0, 1.0])
+    a, size = confirmation(residual, change, sigma)
+    assert a == pytest.approx(0.3) and size == pytest.approx(20.0)
+    fall = np.sum((residual / sigma) ** 2) - np.sum(((residual - change) / sigma) ** 2)
+    assert fall == pytest.approx(size * (2 * a - 1))
+    assert confirmation(np.ones(3), np.zeros(3), np.ones(3)) == (1.0, 0.0)  # no change: nothing to bear out
+
+
+def _with_pixels(problem: SimpleNamespace, residual: np.ndarray, change: np.ndarray) -> SimpleNamespace:
+    problem.pixel_change = lambda before, after: (residual, change, np.ones_like(change))
+    return problem
+
+
+def test_a_halo_fitted_to_a_ghost_is_not_borne_out_by_the_pixels():
+    """The features say yes (their χ² falls to the noise), but the pixels where the fit adds the
+    light (a ring about each focus: the change) are not those holding the residual (a spot aside:
+    a ghost): amplitude 0.1, and the change's χ² 80 ≥ CONFIRM_CHI2."""
+    data = np.array([5.0, 3.0, 0.0, 0.0, 0.0, 0.0])
+    ring = np.zeros(100)
+    ring[:20] = 2.0  # S = 80
+    ghost = np.zeros(100)
+    ghost[18:30] = 3.0  # overlaps the ring in 2 pixels: ⟨r, Δ⟩ = 12 → a = 0.15
+    after = _state([5.0, 3.0, 0, 0, 0, 0])
+    check = guard(_with_pixels(_problem(data, GROUPS), ghost, ring), _state(np.zeros(6)), after)
+    assert CONFIRM_CHI2 == 36.0 and check.amplitudes["pixels"] == pytest.approx(0.15)
+    assert check.unconfirmed == ["pixels"] and not check.passed
+    # the same fit where the light is where the fit puts it
+    check = guard(_with_pixels(_problem(data, GROUPS), ring + 0.1, ring), _state(np.zeros(6)), after)
+    assert check.amplitudes["pixels"] == pytest.approx(1.05) and check.passed
+
+
+def test_a_change_of_widths_the_data_do_not_show_fails():
+    """A tilt fitted as a proxy: it explains six foci's energies (kind 0) but also widens each
+    focus (kind 2) by 2.5 σ, which the data's widths do not show. Every focus gains on the whole
+    (16 in energy, 6.25 lost in width): the χ²-weighted checks pass; the widths' amplitude is 0."""
+    foci = np.tile(np.arange(6), 2)
+    data = np.concatenate([np.full(6, 4.0), np.zeros(6)])
+    problem = _problem(data, foci)
+    problem.feature_kinds = np.repeat([0, 2], 6)
+    after = _state(np.concatenate([np.full(6, 4.0), np.full(6, 2.5)]))
+    check = guard(problem, _state(np.zeros(12)), after)
+    assert check.excess_share >= MIN_EXCESS_SHARE and check.worsened_share == 0.0 and check.contradicted_share == 0.0
+    assert check.amplitudes == pytest.approx({"energy": 1.0, "width": 0.0})
+    assert check.unconfirmed == ["width"] and not check.passed
+    widened = _problem(np.concatenate([np.full(6, 4.0), np.full(6, 2.5)]), foci)
+    widened.feature_kinds = problem.feature_kinds
+    assert guard(widened, _state(np.zeros(12)), after).passed  # the data's foci widened too
