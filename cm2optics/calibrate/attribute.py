@@ -227,9 +227,8 @@ class Problem:
         self.feature_groups = np.concatenate(
             [focus, focus, focus, focus, n * foci + np.repeat(np.arange(n), BLOCKS**2)]
         )
-        self.feature_kinds = np.repeat(
-            np.arange(len(OBSERVABLES) - 1), [n * foci, 2 * n * foci, n * foci, n * BLOCKS**2]
-        )
+        self._sectors: np.ndarray | None = None
+        self.feature_kinds = np.repeat(np.arange(len(OBSERVABLES)), [n * foci, 2 * n * foci, n * foci, n * BLOCKS**2])
         self._rates: dict[tuple, np.ndarray] = {}
         self._image_rates: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
         self.expensive = frozenset(getattr(simulator, "retraced", ()))
@@ -348,13 +347,16 @@ class Problem:
             moved = True
         return moved
 
-    def pixel_change(self, before: State, after: State) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The data's residual under ``before``, the model's change from ``before`` to ``after``
-        and the pixels' noise σ (counts), over the valid pixels (1-D)."""
+    def pixel_change(self, before: State, after: State) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The data's residual under ``before``, the model's change from ``before`` to ``after``,
+        the pixels' noise σ (counts) and their direction from the nearest focus (:data:`SECTORS`),
+        over the valid pixels (1-D)."""
+        if self._sectors is None:
+            self._sectors = _sectors(self.counts.shape[-2:], self.space.centres)[self.valid]
         start = self.model_counts(before)
         change = self.model_counts(after)[self.valid] - start[self.valid]
         sigma = np.sqrt(self.noise.variance(start[self.valid] - np.float32(self.registration.dark_level)))
-        return (self.counts - start)[self.valid], change, sigma
+        return (self.counts - start)[self.valid], change, sigma, self._sectors
 
     def reweight(self, state: State) -> None:
         """The features' σ propagated from the model under ``state`` (the fit so far) instead of
@@ -373,6 +375,24 @@ class Problem:
     @property
     def n_features(self) -> int:
         return int(self.use.sum())
+
+
+def _sectors(shape: tuple[int, int], centres: np.ndarray) -> np.ndarray:
+    """(N, y, x) the direction of every pixel from its frame's nearest focus (``centres`` (N, J, 2)
+    (row, col) px): the index into :data:`SECTORS` (quarters about +col, +row, −col, −row)."""
+    rows = np.arange(shape[0], dtype=np.float32)[:, None]
+    cols = np.arange(shape[1], dtype=np.float32)[None, :]
+    out = np.zeros((len(centres), *shape), np.int8)
+    for i, frame in enumerate(centres):
+        nearest = np.full(shape, np.inf, np.float32)
+        d_row, d_col = np.zeros(shape, np.float32), np.zeros(shape, np.float32)
+        for r0, c0 in frame[np.isfinite(frame).all(axis=1)]:
+            d2 = (rows - r0) ** 2 + (cols - c0) ** 2
+            closer = d2 < nearest
+            nearest = np.where(closer, d2, nearest)
+            d_row, d_col = np.where(closer, rows - r0, d_row), np.where(closer, cols - c0, d_col)
+        out[i] = np.round(np.arctan2(d_row, d_col) / (np.pi / 2)).astype(np.int8) % 4
+    return out
 
 
 def _is_image_side(key: str) -> bool:
@@ -526,8 +546,11 @@ def _finalists(problem: Problem, scored: list, kept: list[str], bic, k_now: int)
 #: halo adds light around each focus, not 14 px aside — and a proxy fitted for one of them
 #: (a tilt for a shift or an energy pattern, a halo for a ghost) predicts the others wrong.
 CONFIRM_CHI2 = 36.0
-#: The observables of the confirmation: the feature kinds in their order, then the pixels.
-OBSERVABLES = ("energy", "centroid", "width", "background", "pixels")
+#: The observables of the confirmation: the feature kinds in their order; then the pixels, in four
+#: quarters by their direction from the nearest focus (a halo acts all round a focus: fitted to a
+#: ghost on one side, it is borne out there and not on the others).
+OBSERVABLES = ("energy", "centroid", "width", "background")
+SECTORS = ("right of", "below", "left of", "above")
 
 
 def confirmation(residual: np.ndarray, change: np.ndarray, sigma: np.ndarray) -> tuple[float, float]:
@@ -551,8 +574,8 @@ class Guard:
         width; a frame's background blocks) over χ² removed from those it makes better.
     contradicted_share: of the groups the new effect alone moves by ≥ ``ACTS_CHI2`` (its values
         set on ``before``), the share the fit makes worse (0 when it moves none).
-    amplitudes: per observable of :data:`OBSERVABLES` the fit changes by χ² ≥ ``CONFIRM_CHI2``,
-        the share of its change the data bear out (:func:`confirmation`; 1 for a right effect).
+    amplitudes: per observable (:data:`OBSERVABLES`, the pixels by :data:`SECTORS`) the fit
+        changes by χ² ≥ ``CONFIRM_CHI2``, the share of its change the data bear out (:func:`confirmation`; 1 for a right effect).
     """
 
     excess_share: float
@@ -596,12 +619,15 @@ def guard(problem: Problem, before: State, after: State) -> Guard:
     acts = np.bincount(group_of, weights=moved, minlength=len(groups)) >= ACTS_CHI2
     contradicted = float(np.mean(groups[acts] < 0)) if acts.any() else 0.0
     kinds = problem.feature_kinds[use]
-    checks = [
-        confirmation(r_before[kinds == k], (f_after - f_before)[use][kinds == k] / sigma[kinds == k], 1.0)
-        for k in range(len(OBSERVABLES) - 1)
-    ]
-    checks.append(confirmation(*problem.pixel_change(before, after)))
-    amplitudes = {name: a for name, (a, size) in zip(OBSERVABLES, checks, strict=True) if size >= CONFIRM_CHI2}
+    checks = {
+        name: confirmation(r_before[kinds == k], (f_after - f_before)[use][kinds == k] / sigma[kinds == k], 1.0)
+        for k, name in enumerate(OBSERVABLES)
+    }
+    residual, change, noise, sector = problem.pixel_change(before, after)
+    for k, where in enumerate(SECTORS):
+        part = sector == k
+        checks[f"pixels {where} the foci"] = confirmation(residual[part], change[part], noise[part])
+    amplitudes = {name: a for name, (a, size) in checks.items() if size >= CONFIRM_CHI2}
     return Guard(share, float(worse / better) if better > 0 else math.inf, contradicted, amplitudes)
 
 

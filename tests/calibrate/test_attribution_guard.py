@@ -15,6 +15,7 @@ from cm2optics.calibrate.attribute import (
     MAX_WORSENED_SHARE,
     MIN_EXCESS_SHARE,
     State,
+    _sectors,
     confirmation,
     guard,
 )
@@ -28,7 +29,7 @@ def _problem(data: np.ndarray, groups: np.ndarray) -> SimpleNamespace:
         space=space,
         feature_groups=groups,
         feature_kinds=np.zeros(len(data), int),  # every feature an energy
-        pixel_change=lambda before, after: (np.zeros(0), np.zeros(0), np.ones(0)),  # no pixels
+        pixel_change=lambda before, after: (np.zeros(0), np.zeros(0), np.ones(0), np.zeros(0, int)),  # no pixels
         n_features=len(data),
         noise_known=True,
         features=lambda state: sum(np.asarray(v["model"], float) for v in state.values.values()),
@@ -108,27 +109,37 @@ def test_the_confirmation_is_the_share_of_the_change_the_residual_holds():
     assert confirmation(np.ones(3), np.zeros(3), np.ones(3)) == (1.0, 0.0)  # no change: nothing to bear out
 
 
+def test_pixels_are_sorted_by_their_direction_from_the_nearest_focus():
+    sector = _sectors((7, 20), np.array([[[3.0, 3.0], [3.0, 15.0], [np.nan, np.nan]]]))[0]
+    assert [sector[3, 5], sector[5, 3], sector[3, 1], sector[1, 3]] == [0, 1, 2, 3]  # right, below, left, above
+    assert [sector[3, 13], sector[3, 17]] == [2, 0]  # about the second focus, nearer
+
+
 def _with_pixels(problem: SimpleNamespace, residual: np.ndarray, change: np.ndarray) -> SimpleNamespace:
-    problem.pixel_change = lambda before, after: (residual, change, np.ones_like(change))
+    """100 pixels, 25 in each quarter about the foci (right, below, left, above)."""
+    sector = np.repeat(np.arange(4), 25)
+    problem.pixel_change = lambda before, after: (residual, change, np.ones_like(change), sector)
     return problem
 
 
-def test_a_halo_fitted_to_a_ghost_is_not_borne_out_by_the_pixels():
-    """The features say yes (their χ² falls to the noise), but the pixels where the fit adds the
-    light (a ring about each focus: the change) are not those holding the residual (a spot aside:
-    a ghost): amplitude 0.1, and the change's χ² 80 ≥ CONFIRM_CHI2."""
+def test_a_halo_fitted_to_a_ghost_is_not_borne_out_all_round_the_foci():
+    """The features say yes (their χ² falls to the noise), and so do the pixels as a whole, but
+    the fit adds light all round each focus (a halo: the change, 2 σ in 10 pixels of each quarter,
+    χ² 40 per quarter) while the residual sits on one side (a ghost below, 6 σ in the halo's
+    pixels there): amplitude 3 below, 0 elsewhere, 0.75 over all the pixels."""
     data = np.array([5.0, 3.0, 0.0, 0.0, 0.0, 0.0])
-    ring = np.zeros(100)
-    ring[:20] = 2.0  # S = 80
+    halo = np.tile(np.r_[np.full(10, 2.0), np.zeros(15)], 4)
     ghost = np.zeros(100)
-    ghost[18:30] = 3.0  # overlaps the ring in 2 pixels: ⟨r, Δ⟩ = 12 → a = 0.15
+    ghost[25:35] = 6.0
+    assert confirmation(ghost, halo, np.ones(100))[0] == pytest.approx(0.75)
     after = _state([5.0, 3.0, 0, 0, 0, 0])
-    check = guard(_with_pixels(_problem(data, GROUPS), ghost, ring), _state(np.zeros(6)), after)
-    assert CONFIRM_CHI2 == 36.0 and check.amplitudes["pixels"] == pytest.approx(0.15)
-    assert check.unconfirmed == ["pixels"] and not check.passed
-    # the same fit where the light is where the fit puts it
-    check = guard(_with_pixels(_problem(data, GROUPS), ring + 0.1, ring), _state(np.zeros(6)), after)
-    assert check.amplitudes["pixels"] == pytest.approx(1.05) and check.passed
+    check = guard(_with_pixels(_problem(data, GROUPS), ghost, halo), _state(np.zeros(6)), after)
+    assert CONFIRM_CHI2 == 36.0 and check.amplitudes["pixels below the foci"] == pytest.approx(3.0)
+    assert check.unconfirmed == ["pixels right of the foci", "pixels left of the foci", "pixels above the foci"]
+    assert not check.passed
+    # the same fit where the light is all round the foci, as the halo puts it
+    check = guard(_with_pixels(_problem(data, GROUPS), halo + 0.1, halo), _state(np.zeros(6)), after)
+    assert check.amplitudes["pixels above the foci"] == pytest.approx(1.05) and check.passed
 
 
 def test_a_change_of_widths_the_data_do_not_show_fails():
