@@ -541,7 +541,9 @@ def _finalists(problem: Problem, scored: list, kept: list[str], bic, k_now: int)
 
 #: … and every observable the fit changes by a χ² of at least ``CONFIRM_CHI2`` (its amplitude there
 #: then known to ±1/6, so that ½ lies 3 σ from both 0 and 1) must bear the change out: the data's
-#: residual projected on it must hold at least half of it (the observable's χ² falls). A physical
+#: residual projected on it must hold at least half of it (the observable's χ² falls), or else the
+#: χ² such observables add be at most ``MAX_WORSENED_SHARE`` of what the others of their family
+#: remove (:attr:`Guard.unconfirmed`). A physical
 #: effect predicts every observable it moves — a tilted array defocuses its outer lenslets, a
 #: halo adds light around each focus, not 14 px aside — and a proxy fitted for one of them
 #: (a tilt for a shift or an energy pattern, a halo for a ghost) predicts the others wrong.
@@ -582,11 +584,25 @@ class Guard:
     worsened_share: float
     contradicted_share: float = 0.0
     amplitudes: dict[str, float] = field(default_factory=dict)
+    sizes: dict[str, float] = field(default_factory=dict)
 
     @property
     def unconfirmed(self) -> list[str]:
-        """The observables whose change the data do not bear out (amplitude below ½)."""
-        return [name for name, a in self.amplitudes.items() if a < 0.5]
+        """The observables whose change the data do not bear out (amplitude below ½), where what
+        they lose, Σ S·(1 − 2a), passes ``MAX_WORSENED_SHARE`` of what the others of their family
+        (the features; the pixels) gain, Σ S·(2a − 1): a second effect not yet fitted may hold a
+        little of one observable against the first, a proxy fails a marked part of its prediction."""
+        out = []
+        for family in (OBSERVABLES, tuple(f"pixels {where} the foci" for where in SECTORS)):
+            terms = {
+                name: self.sizes[name] * (2.0 * self.amplitudes[name] - 1.0)
+                for name in family
+                if name in self.amplitudes
+            }
+            lost = -sum(t for t in terms.values() if t < 0)
+            if lost > MAX_WORSENED_SHARE * sum(t for t in terms.values() if t > 0):
+                out += [name for name, t in terms.items() if t < 0]
+        return out
 
     @property
     def passed(self) -> bool:
@@ -627,8 +643,9 @@ def guard(problem: Problem, before: State, after: State) -> Guard:
     for k, where in enumerate(SECTORS):
         part = sector == k
         checks[f"pixels {where} the foci"] = confirmation(residual[part], change[part], noise[part])
-    amplitudes = {name: a for name, (a, size) in checks.items() if size >= CONFIRM_CHI2}
-    return Guard(share, float(worse / better) if better > 0 else math.inf, contradicted, amplitudes)
+    marked = {name: check for name, check in checks.items() if check[1] >= CONFIRM_CHI2}
+    amplitudes, sizes = {k: a for k, (a, _) in marked.items()}, {k: size for k, (_, size) in marked.items()}
+    return Guard(share, float(worse / better) if better > 0 else math.inf, contradicted, amplitudes, sizes)
 
 
 def attribute(problem: Problem, *, max_effects: int = 6, progress: Progress | None = None) -> Attribution:
