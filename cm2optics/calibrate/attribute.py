@@ -579,7 +579,8 @@ class Guard:
     contradicted_share: of the groups the new effect alone moves by ≥ ``ACTS_CHI2`` (its values
         set on ``before``), the share the fit makes worse (0 when it moves none).
     amplitudes: per observable (:data:`OBSERVABLES`, the pixels by :data:`SECTORS`) the fit
-        changes by χ² ≥ ``CONFIRM_CHI2``, the share of its change the data bear out (:func:`confirmation`; 1 for a right effect).
+        changes by χ² ≥ ``CONFIRM_CHI2``, the share of its change the data bear out
+        (:func:`confirmation`; 1 for a right effect), and ``sizes`` that change's χ² S.
     """
 
     excess_share: float
