@@ -16,9 +16,13 @@ together from the model by more than :data:`STAGE_SHIFT_PX` beyond the scan's co
 Optical effects move foci lenslet by lenslet or smoothly with the position; they are fitted
 before this is judged. Each frame's motion is fitted to its bright foci's centroid errors as a
 translation plus a change of the foci's spread (:func:`frame_motion`), with standard errors from
-the scatter of the foci about that fit pooled over the scan: the displacement of a frame whose
-foci are dim over a heavy background is noise, and is named only when it is
-:data:`SIGNIFICANCE` standard errors beyond the common offset.
+the scatter of the foci about that fit pooled over the scan, or the frame's own when its foci
+disagree more: the displacement of a frame whose foci are dim over a heavy background is noise,
+and is named only when it is :data:`SIGNIFICANCE` standard errors beyond the common offset.
+The change of spread is taken about the point the foci spread from when the source's depth
+changes: the foci of lenslet vertices v_j land at (1 + m)·v_j − m·S (S below the source), so a
+depth error moves each by δm·(v_j − S), about S — not about the foci's mean, which an off-axis
+source's foci do not surround. A z error therefore displaces no frame.
 
 A stage whose z steps are not the recorded ones (a z scale error) changes the foci's spread
 instead: the spread of a lenslet array's foci is 1 + m(z) times the lenslets' (m the chief-ray
@@ -44,6 +48,7 @@ __all__ = [
     "flux_drift",
     "frame_flux",
     "frame_motion",
+    "spread_centres",
     "spread_rate_per_mm",
     "stage_errors",
     "stage_z_scale",
@@ -126,12 +131,15 @@ class FrameMotion:
     foci: np.ndarray
 
 
-def frame_motion(analysis: ResidualAnalysis) -> FrameMotion:
+def frame_motion(analysis: ResidualAnalysis, vertices_px: np.ndarray | None = None) -> FrameMotion:
     """Fit each frame's centroid errors e_j = t + s·(m_j − m̄) over its bright foci (m_j the
     model's centroids, m̄ their mean) by least squares; the foci's scatter about the fit, pooled
-    over the scan (median absolute residual), gives the standard errors. A focus whose misfit is
-    beyond :data:`SIGNIFICANCE` times that scatter (a centroid that a background or a neighbour
-    pulled far off) is left out of its frame's fit, the worst first, down to two foci."""
+    over the scan (median absolute residual), or the frame's own where larger, gives the
+    standard errors. A focus whose misfit is beyond :data:`SIGNIFICANCE` times the pooled scatter
+    (a centroid that a background or a neighbour pulled far off) is left out of its frame's fit,
+    the worst first, down to two foci. With the lenslets' vertices ``vertices_px`` (J, 2) (row,
+    col) px (:func:`cm2optics.calibrate.tracer.lenslet_vertices_px`; NaN for none) the
+    translation is the one about the centre of spread (:func:`spread_centres`), not about m̄."""
     bright = bright_foci(analysis) & np.isfinite(analysis.centroid_error_px).all(axis=-1)
     frames = np.flatnonzero(bright.any(axis=1))
     errors = {i: analysis.centroid_error_px[i][bright[i]] for i in frames}
@@ -153,12 +161,41 @@ def frame_motion(analysis: ResidualAnalysis) -> FrameMotion:
         foci[i] = keep.sum()
     sigma = _pooled_scatter(fits.values())
     n = len(bright)
+    centres = np.full((n, 2), np.nan) if vertices_px is None else spread_centres(analysis, vertices_px)
     shift, shift_se = np.full((n, 2), np.nan), np.full(n, np.nan)
     expansion, expansion_se = np.full(n, np.nan), np.full(n, np.nan)
-    for i, (solution, variance, _) in fits.items():
-        shift[i], shift_se[i] = solution[:2], sigma * np.sqrt(variance[0])
-        expansion[i], expansion_se[i] = solution[2], sigma * np.sqrt(variance[2])
+    for i, (solution, variance, residual) in fits.items():
+        scatter = (
+            sigma
+            if residual is None
+            else max(sigma, float(np.sqrt(np.mean(residual**2) * len(residual) / (len(residual) - 3))))
+        )
+        shift[i], shift_se[i] = solution[:2], scatter * np.sqrt(variance[0])
+        expansion[i], expansion_se[i] = solution[2], scatter * np.sqrt(variance[2])
+        lever = analysis.model.centroid_px[i][bright[i]].mean(axis=0) - centres[i]
+        if np.isfinite(lever).all() and np.isfinite(solution[2]):  # e = t' + s·(m_j − S) = t' + s·(m̄ − S) + s·(m_j − m̄)
+            shift[i] = solution[:2] - solution[2] * lever
+            shift_se[i] = scatter * np.sqrt(variance[0] + float(lever @ lever) * variance[2])
     return FrameMotion(shift, shift_se, expansion, expansion_se, foci)
+
+
+def spread_centres(analysis: ResidualAnalysis, vertices_px: np.ndarray) -> np.ndarray:
+    """(N, 2) the sensor point each frame's foci spread from as the source's depth changes (row,
+    col) px: the model's centroids m_j fitted as a·v_j + b over the lenslets' vertices v_j
+    (foci (1 + m)·v_j − m·S: a = 1 + m, b = −m·S), S = b / (1 − a); NaN where fewer than three
+    foci are known or the foci do not spread (a ≈ 1)."""
+    out = np.full((len(analysis.positions_mm), 2), np.nan)
+    vertices = np.asarray(vertices_px, float)
+    for i, centroids in enumerate(analysis.model.centroid_px):
+        known = np.isfinite(centroids).all(axis=1) & np.isfinite(vertices).all(axis=1)
+        if known.sum() < 3:
+            continue
+        v, m = vertices[known], centroids[known]
+        dv = v - v.mean(axis=0)
+        a = float(np.sum(dv * (m - m.mean(axis=0))) / max(np.sum(dv**2), 1e-12))
+        if abs(1.0 - a) > 1e-3:
+            out[i] = (m.mean(axis=0) - a * v.mean(axis=0)) / (1.0 - a)
+    return out
 
 
 def _frame_fit(error: np.ndarray, spread: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
@@ -186,15 +223,15 @@ def _pooled_scatter(fits) -> float:
     return 1.4826 * float(np.median(np.abs(scatter))) * float(np.sqrt(len(scatter) / dof))
 
 
-def stage_errors(analysis: ResidualAnalysis, pixel_um: float) -> str | None:
+def stage_errors(analysis: ResidualAnalysis, pixel_um: float, vertices_px: np.ndarray | None = None) -> str | None:
     """A warning when frames are displaced as a whole (module docstring), ``pixel_um`` the binned
-    pixel pitch (µm); None when fewer than :data:`MIN_SHIFTED` frames depart from the scan's
+    pixel pitch (µm), ``vertices_px`` the lenslets' vertices (:func:`frame_motion`); None when fewer than :data:`MIN_SHIFTED` frames depart from the scan's
     common offset by more than half :data:`STAGE_SHIFT_PX` (and :data:`SIGNIFICANCE` standard
     errors) or none by more than it; frames with fewer than :data:`MIN_AGREEING_FOCI` foci agreeing
-    are not judged."""
-    motion = frame_motion(analysis)
+    (or than the model's bright foci per frame, where it has fewer) are not judged."""
+    motion = frame_motion(analysis, vertices_px)
     shifts = motion.shift_px
-    enough = min(MIN_AGREEING_FOCI, int(motion.foci.max()))
+    enough = min(MIN_AGREEING_FOCI, int(bright_foci(analysis).sum(axis=1).max()))  # what the design gives a frame
     known = np.flatnonzero(np.isfinite(shifts).all(axis=1) & (motion.foci >= enough))
     if len(known) < MIN_FRAMES:
         return None

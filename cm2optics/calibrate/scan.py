@@ -340,10 +340,11 @@ def calibrate_scan(
         _check_magnification(before)
         rate = _with_image_effects(corrected_job()[0], simulator, attribution)
     after = analyse_scan(data, rate, positions, centres, pitch, counts_per_electron=gain)
-    drift, stage = flux_drift(after), stage_errors(after, simulator.pixel_um)
+    vertices = lenslet_vertices_px(design, scan.meta.binning)
+    drift, stage = flux_drift(after), stage_errors(after, simulator.pixel_um, vertices)
     z_scale = stage_z_scale(after, spread_rate_per_mm(design, positions[:, 2]))
     background = background_structure(after, scan.exposure_ms)
-    gain_map = sensor_gain(after, lenslet_vertices_px(design, scan.meta.binning), per_frame=drift is not None)
+    gain_map = sensor_gain(after, vertices, per_frame=drift is not None)
     gain_warning = None if gain_map is None else describe_sensor_gain(gain_map, scan.meta.binning)
     for warning in (drift, stage, z_scale, gain_warning):
         if warning is not None:

@@ -30,6 +30,7 @@ def lattice_analysis(
     travel_px: float = 8.0,
     shift_px: np.ndarray | None = None,
     spread: np.ndarray | None = None,
+    spread_centre_px: np.ndarray | None = None,
     gain: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
     energy: np.ndarray | None = None,
     exposure_ms: np.ndarray | None = None,
@@ -37,14 +38,16 @@ def lattice_analysis(
     """Frames of the lattice at ``positions`` (N, 3) mm, moving ``travel_px`` per mm of source x, y
     (rows follow y), with foci of ``peak`` counts above a ramp of 0 → ``background`` counts
     across the columns. The data depart from the model by: a displacement of frame i by
-    ``shift_px[i]`` columns, a spread ``spread[i]`` × the model's, a sensor gain ``gain(rows,
+    ``shift_px[i]`` columns, a spread ``spread[i]`` × the model's (about ``spread_centre_px[i]``
+    (row, col) px; default the frame's lattice centre), a sensor gain ``gain(rows,
     cols)``, each focus's energy × ``energy`` (N, 9). Foci and ramp scale with ``exposure_ms`` (N,)
     (default 1 ms each)."""
     n = len(positions)
     exposure = np.ones(n) if exposure_ms is None else np.asarray(exposure_ms, float)
     centres = VERTICES[None] + travel_px * positions[:, None, 1::-1]  # (N, 9, 2) (row, col)
-    moved = 90.0 + LATTICE[None] * (np.ones(n) if spread is None else spread)[:, None, None]
-    moved = moved + travel_px * positions[:, None, 1::-1]
+    factor = (np.ones(n) if spread is None else spread)[:, None, None]
+    about = centres.mean(axis=1, keepdims=True) if spread_centre_px is None else spread_centre_px[:, None, :]
+    moved = about + factor * (centres - about)
     moved[..., 1] += 0.0 if shift_px is None else shift_px[:, None]
     rows, cols = np.mgrid[0 : SHAPE[0], 0 : SHAPE[1]]
 
