@@ -85,6 +85,49 @@ def test_rays_share_their_power_by_the_pixels_kernel_and_move_the_model_smoothly
     assert 0 < np.abs(moved - weights).sum() <= 400 * 4 * 2 * 1e-3 / 0.5
 
 
+def test_noise_only_maps_give_the_tent_kernels_correlation_and_chi2_of_n_degrees_of_freedom():
+    """400 noise-only maps on the comparison grid: a camera frame's Poisson counts (≈ 100 per
+    pixel, a gentle ramp) plus a traced model's Monte Carlo noise (Poisson, 3000 rays on average
+    spread evenly over 4.6 × 4.6 mm, each deposited by the tent kernel). The closed forms: each
+    centre's variance is the code's (counts / effective pixels + Σ weight² per ray), neighbours
+    along an axis correlate by ¼ and diagonally by 1/16; the whitened χ² has mean B and variance
+    2B; a smooth pattern (a constant) fitted to the noise lowers the whitened χ² by χ²(1), mean 1
+    — weighted by σ alone it lowered it by ≈ 2 (the correlation's (1 + 2·¼)² = 2.25 inside the
+    field), which made a smooth effect look twice as significant as it is."""
+    rng = np.random.default_rng(3)
+    draws, n, pixel_um, rays, reach, scale = 400, 120, 50.0, 3000, 2.3, 0.1
+    x = (np.arange(n) - (n - 1) / 2) * pixel_um / 1000
+    mean_image = np.broadcast_to(100 * (1 + 0.1 * x[None, :]), (n, n))
+    grid = bin_measured_map(mean_image, pixel_um, 0.5, 2.5)
+    assert np.abs(grid.centres_mm).max() + grid.bin_mm <= reach  # every used kernel inside the rays' square
+    frames = rng.poisson(mean_image, (draws, n, n)).astype(float)
+    norm = np.outer(grid.rows.sum(1), grid.cols.sum(1)).ravel()[grid.index]
+    camera = (grid.rows @ frames @ grid.cols.T).reshape(draws, -1)[:, grid.index] / norm
+    counts = rng.poisson(rays, draws)
+    points = rng.uniform(-reach, reach, (counts.sum(), 2))
+    traced, _ = tent_deposit(grid, points, np.repeat(np.arange(draws), counts), draws)
+    density = rays / (2 * reach) ** 2  # rays per mm²: E[Σ w] = density·h², E[Σ w²] = density·(2h/3)²
+    values = camera + scale * traced
+    expected = grid.values + scale * density * 0.25
+    variance = grid.values / grid.pixels + scale**2 * density * (2 * 0.5 / 3) ** 2
+    z = (values - expected) / np.sqrt(variance)
+    assert np.var(z, axis=0).mean() == pytest.approx(1.0, abs=0.04)
+    correlation = np.corrcoef(z.T)
+    step = np.abs(grid.index[:, None] - grid.index[None, :])
+    same_row = (grid.index[:, None] // grid.side) == (grid.index[None, :] // grid.side)
+    assert correlation[(step == 1) & same_row].mean() == pytest.approx(0.25, abs=0.02)
+    assert correlation[step == grid.side].mean() == pytest.approx(0.25, abs=0.02)
+    assert correlation[(step == grid.side + 1) | (step == grid.side - 1)].mean() == pytest.approx(1 / 16, abs=0.02)
+    white = grid.whiten(z.T).T
+    chi2 = (white**2).sum(1)
+    b = grid.values.size
+    assert chi2.mean() == pytest.approx(b, abs=3 * np.sqrt(2 * b / draws))
+    assert chi2.var() / (2 * b) == pytest.approx(1.0, abs=0.25)
+    smooth = grid.whiten(np.ones(b))
+    assert np.mean((white @ smooth) ** 2 / (smooth @ smooth)) == pytest.approx(1.0, abs=0.21)
+    assert np.mean(z.sum(1) ** 2 / b) > 1.5
+
+
 class _NoisyTemplates:
     """Two units' traced maps on B bins as Poisson counts of ``rays`` per unit of ``expected``
     (power per ray 1/rays), against ``data`` without noise (the camera's shot noise negligible)."""
@@ -94,7 +137,9 @@ class _NoisyTemplates:
     def __init__(self, expected: np.ndarray, rays: int, rng: np.random.Generator, data: np.ndarray):
         self.counts = rng.poisson(expected * rays)
         self.per_ray = 1.0 / rays
-        self.measured = SimpleNamespace(values_at=lambda offset: data, pixels=np.full(data.size, 1e12))
+        self.measured = SimpleNamespace(
+            values_at=lambda offset: data, pixels=np.full(data.size, 1e12), whiten=lambda x: x
+        )  # independent bins
 
     def maps(self, geometry):
         return self.counts * self.per_ray, self.counts * self.per_ray**2
