@@ -515,9 +515,7 @@ class _Fit:
         out = np.clip(out, low, high)
         return out, self.chi2(slots, out)
 
-    def jacobian(
-        self, slots: list[_Slot], theta: np.ndarray, central: bool = False
-    ) -> tuple[np.ndarray, np.ndarray]:
+    def jacobian(self, slots: list[_Slot], theta: np.ndarray, central: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """(B, k) forward (or central) differences of the model less the data and the residual,
         both over σ and decorrelated (:meth:`MeasuredMap.whiten`): the linear least squares of
         the generalised χ²."""
