@@ -662,12 +662,12 @@ def _radial_profile(measured: MeasuredMap, values: np.ndarray, width_mm: float) 
 
 
 def _unexplained(
-    measured: MeasuredMap, residual: np.ndarray, sigma: np.ndarray, design: SystemDesign, chi2_red: float
+    measured: MeasuredMap, residual: np.ndarray, sigma: np.ndarray, design: SystemDesign, chi2_red: float, dof: int
 ) -> list[dict[str, Any]]:
     """The signature of a residual left above the noise: where its smoothed peak lies, its sign,
     the LED unit on that side and its share of the map's energy. Empty below the noise floor:
-    ``CHI2_FLOOR``, or 3 σ of χ²_red's own spread (1 + 3√(2/dof)) where a map has few bins."""
-    dof = residual.size - 3
+    ``CHI2_FLOOR``, or 3 σ of χ²_red's own spread (1 + 3√(2/dof)) where a map has few bins (the
+    generalised χ² of a matching model is χ²(dof), dof = bins − fitted values)."""
     if chi2_red <= max(CHI2_FLOOR, 1 + 3 * math.sqrt(2 / dof)):
         return []
     from scipy.ndimage import uniform_filter
@@ -848,7 +848,7 @@ def calibrate_illumination(
         "nmse_after": _nmse(data, after),
         "chi2_before": round(chi2_before, 5),
         "chi2_after": round(chi2_after, 5),
-        "unexplained": _unexplained(measured, data - after, np.sqrt(var_after), design, chi2_after),
+        "unexplained": _unexplained(measured, data - after, np.sqrt(var_after), design, chi2_after, n - len(slots)),
         "registration": _registration(slots, theta, cov, inflate),
         "steps": steps,
         "uniformity_cv": {
