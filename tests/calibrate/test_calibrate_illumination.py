@@ -10,9 +10,10 @@ relative LED flux ± 0.1 on cm2-v2 (± 0.19 on V1 at 200 000 model rays, whose e
 flux less well: 3× the spread measured over 15 runs), unit tilt ± 1° about each axis (± 0.5° for
 the pair's tilt with 1 000 000 model rays), collimator decentre ± 0.05 mm, offset ± 0.08 mm on
 cm2-v2 (V1's map does not fix it). Detection limit (BENCHMARKS.md): a 2° tilt is not named at
-400 000 model rays. Of the effect matrix (every effect alone at two magnitudes) only the 0.25-mm
-collimator decentre is here (slow); the other cases and the clean maps of ten seeds have not
-passed a run yet (BENCHMARKS.md).
+400 000 model rays. Of the effect matrix (every effect alone at two magnitudes) the 0.25-mm
+collimator decentre is here (slow) and the 0.15-mm one as a strict xfail (below the noise at
+500 000 model rays once χ² counts the tent kernel's correlation); the other cases and the clean
+maps of ten seeds have not passed a run yet (BENCHMARKS.md).
 """
 
 from __future__ import annotations
@@ -264,12 +265,28 @@ def test_cli_names_a_tilted_unit_and_a_dim_led_and_writes_a_valid_corrected_desi
 # Illumination effects alone (the tool not told which) on cm2-v2, the design as built traced with
 # 4 000 000 rays (8× the model's 500 000), a camera frame of 2000 counts per pixel (Poisson): the
 # map's noise is the truth trace's, ≈ 1/8 of the model's own Monte Carlo variance per bin, as on a
-# real map, where the camera's shot noise is far below the model's. Only the cases that passed a
-# run are here (BENCHMARKS.md: flux-0.7, flux-1.4, the tilts, decenter-0.15 and the ten clean seeds
-# did not, or got no verdict yet). Tolerances (module docstring): decentre ± 0.05 mm.
+# real map, where the camera's shot noise is far below the model's. Only the cases with a verdict
+# are here (BENCHMARKS.md, session 12: flux-0.7, tilt-3x3y and decenter-0.25 were still running with
+# the generalised χ² at the session's end; flux-1.4 and tilt-4x got no run). Tolerances (module
+# docstring): decentre ± 0.05 mm.
+
+_BELOW_NOISE = pytest.mark.xfail(
+    strict=True,
+    reason="not met (BENCHMARKS.md, session 12): at 500 000 model rays with the generalised χ² a 0.15-mm "
+    "decentre is at the detection limit — χ²_red 1.281 before, as on a clean map (1.286), each unit's "
+    "decentre refitted and rejected by the held-out trace (ΔBIC −25.8, −6.8, −15.3): no effect named",
+)
 
 #: case → (as-built changes, relative fluxes, the effect key expected, its parameters, tolerance)
 SINGLE = {
+    "decenter-0.15": pytest.param(
+        {"collimator_decenter_mm": [[0, 0], [0.15, 0], [0, 0], [0, 0]]},
+        None,
+        ("collimator_decenter", 1),
+        {"dx_mm": 0.15, "dy_mm": 0.0},
+        0.05,
+        marks=_BELOW_NOISE,
+    ),
     "decenter-0.25": (
         {"collimator_decenter_mm": [[0, -0.25], [0, 0], [0, 0], [0, 0]]},
         None,
@@ -282,9 +299,12 @@ SINGLE = {
 
 @pytest.mark.slow
 @pytest.mark.timeout(3600)  # 1751 s at load 6–17 on 2 cores (2026-11-26)
-@pytest.mark.parametrize("case", sorted(SINGLE))
-def test_each_illumination_effect_alone_is_named_and_measured(v2, case):
-    changes, flux, key, truth, tolerance = SINGLE[case]
+@pytest.mark.parametrize(
+    ("changes", "flux", "key", "truth", "tolerance"),
+    list(SINGLE.values()),
+    ids=list(SINGLE),
+)
+def test_each_illumination_effect_alone_is_named_and_measured(v2, changes, flux, key, truth, tolerance):
     built = v2.with_changes({f"illumination_as_built.{k}": v for k, v in changes.items()})
     units = unit_pixel_maps(built, rays=4_000_000, offset_mm=OFFSET_MM)
     doc = calibrate_illumination(measured_map(units, flux=flux, mean_counts=2000.0), 50.0, v2, rays=500_000).document
