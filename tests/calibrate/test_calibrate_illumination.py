@@ -266,10 +266,10 @@ def test_cli_names_a_tilted_unit_and_a_dim_led_and_writes_a_valid_corrected_desi
 # 4 000 000 rays (8× the model's 500 000), a camera frame of 2000 counts per pixel (Poisson): the
 # map's noise is the truth trace's, ≈ 1/8 of the model's own Monte Carlo variance per bin, as on a
 # real map, where the camera's shot noise is far below the model's. Only the cases with a verdict
-# are here (BENCHMARKS.md, session 12: flux-0.7 passed with the generalised χ², 363 s of CPU;
-# tilt-3x3y and decenter-0.25 were still running at the session's end, decenter-0.25 passed with
-# session 11's χ²; flux-1.4 and tilt-4x got no run). Tolerances (module docstring): flux ± 0.1,
-# decentre ± 0.05 mm.
+# are here (BENCHMARKS.md, session 12, the generalised χ²: flux-0.7 passed, 363 s of CPU;
+# decenter-0.25 passed, dy −0.200 mm, at the tolerance's edge, 551 s of CPU; tilt-3x3y and
+# decenter-0.15 failed; flux-1.4 and tilt-4x got no run). Tolerances (module docstring): flux ± 0.1,
+# tilt ± 1°, decentre ± 0.05 mm.
 
 _BELOW_NOISE = pytest.mark.xfail(
     strict=True,
@@ -278,9 +278,23 @@ _BELOW_NOISE = pytest.mark.xfail(
     "decentre refitted and rejected by the held-out trace (ΔBIC −25.8, −6.8, −15.3): no effect named",
 )
 
+_TILT_SHORT = pytest.mark.xfail(
+    strict=True,
+    reason="not met (BENCHMARKS.md, session 12): led_tilt[3] named alone but (2.78 ± 0.15°, 1.86 ± 0.17°) "
+    "against (3°, 3°), the offset x at +0.198 mm (truth +0.1) and χ²_red 1.35 left unexplained",
+)
+
 #: case → (as-built changes, relative fluxes, the effect key expected, its parameters, tolerance)
 SINGLE = {
     "flux-0.7": ({}, (0.7, 1, 1, 1), ("led_flux", 0), {"flux": 0.7}, 0.1),
+    "tilt-3x3y": pytest.param(
+        {"led_tilt_deg": [[0, 0], [0, 0], [0, 0], [3, 3]]},
+        None,
+        ("led_tilt", 3),
+        {"tilt_x_deg": 3.0, "tilt_y_deg": 3.0},
+        1.0,
+        marks=_TILT_SHORT,
+    ),
     "decenter-0.15": pytest.param(
         {"collimator_decenter_mm": [[0, 0], [0.15, 0], [0, 0], [0, 0]]},
         None,
