@@ -18,9 +18,14 @@ Registration (nuisance, always free): one global scale (the exposure, the dye's 
 the camera's gain are unknown) and one lateral offset (x, y, mm; the camera's centre on the
 axis). Noise: shot noise of the camera, ``counts_per_electron × model`` per pixel (averaged
 over the kernel's effective number of pixels, (Σw)²/Σw²), plus the model's own Monte Carlo
-variance (every ray's power times its weight, squared, per centre), so that χ² ≈ 1 when the
-model matches the data to the noise (neighbouring centres share pixels and rays: their noise is
-correlated by ≈ 0.25).
+variance (every ray's power times its weight, squared, per centre). Neighbouring centres share
+pixels and rays, so their noise is correlated — by ¼ one pitch apart along an axis, 1/16
+diagonally (:data:`TENT_NEIGHBOUR_CORRELATION`) — and χ² is the generalised one, the residual over
+σ decorrelated by that correlation's Cholesky factor: a matching model's χ² is then χ² of n − k
+degrees of freedom, and the BIC, the uncertainties and the "unexplained" floor hold. (Weighted by
+σ alone, a smooth residual's χ² reads up to (1 + 2·¼)² = 2.25× too large: a smooth pattern's
+noise averaged over many centres is that of box bins, while each centre's σ is 1/1.5 of a box
+bin's; measured on noise-only maps, the test.)
 
 Effects (:func:`illumination_effects`, the fields of
 :class:`~cm2optics.design.as_built_illumination.IlluminationAsBuilt`): ``led_flux`` (a unit's
@@ -193,6 +198,8 @@ class MeasuredMap:
     and columns on the grid's centres. index: (B,) flat index of each used centre in the (n, n)
     grid. pixels: (B,) effective pixels per used centre, (Σw)²/Σw². centres_mm: (B, 2) used
     centres (x, y), mm. values: (B,) kernel-weighted mean counts per pixel, no offset.
+    correlation_factor: the lower Cholesky factor of the used centres' noise correlation
+    (:func:`tent_correlation`), in scipy's banded lower form.
     """
 
     image: np.ndarray
@@ -205,6 +212,7 @@ class MeasuredMap:
     pixels: np.ndarray
     centres_mm: np.ndarray
     values: np.ndarray
+    correlation_factor: np.ndarray
 
     @property
     def side(self) -> int:
@@ -224,11 +232,51 @@ class MeasuredMap:
             shift(self.image, (-offset_mm[1] / self.pixel_mm, -offset_mm[0] / self.pixel_mm), order=1, mode="nearest")
         )
 
+    def whiten(self, normalised: np.ndarray) -> np.ndarray:
+        """(B,) or (B, k) residuals divided by their σ, decorrelated: L⁻¹·x, L the Cholesky factor of
+        the centres' correlation, so that noise comes out independent with unit variance."""
+        from scipy.linalg import solve_banded
+
+        bandwidth = self.correlation_factor.shape[0] - 1
+        return solve_banded((bandwidth, 0), self.correlation_factor, normalised)
+
     def grid(self, values: np.ndarray) -> np.ndarray:
         """(n, n) image (y, x) of per-centre ``values``, NaN outside the used centres."""
         out = np.full(self.side * self.side, np.nan)
         out[self.index] = values
         return out.reshape(self.side, self.side)
+
+
+#: Correlation of the noise of two centres one pitch h apart along an axis, for pixels or rays spread
+#: evenly under the tent kernel t: ∫t(x)·t(x − h)dx / ∫t(x)²dx = (h/6) / (2h/3); the kernel is the product
+#: of one tent per axis, so diagonal neighbours share 1/16, and centres further apart share nothing.
+TENT_NEIGHBOUR_CORRELATION = 0.25
+
+
+def tent_correlation(index: np.ndarray, side: int) -> np.ndarray:
+    """The noise correlation of the centres at ``index`` (flat, ascending) of a ``side`` × ``side``
+    grid, as the lower Cholesky factor of the (B, B) matrix in scipy's banded lower form
+    (row d holds the d-th subdiagonal). The whole grid's correlation is positive definite (its
+    eigenvalues are ≥ (1 − 2·¼)² = ¼), so is every subset's."""
+    from scipy.linalg import cholesky_banded
+
+    position = np.full(side * side, -1)
+    position[index] = np.arange(index.size)
+    row, col = np.divmod(index, side)
+    pairs = []  # (positions of centres, of their later neighbours at this step, the correlation)
+    for dy, dx in ((0, 1), (1, -1), (1, 0), (1, 1)):
+        inside = (row + dy < side) & (col + dx >= 0) & (col + dx < side)
+        later = np.full(index.size, -1)
+        later[inside] = position[(row[inside] + dy) * side + col[inside] + dx]
+        mine = np.flatnonzero(later >= 0)
+        value = TENT_NEIGHBOUR_CORRELATION ** (abs(dy) + abs(dx))
+        pairs.append((mine, later[mine], value))
+    bandwidth = max([int((j - i).max()) for i, j, _ in pairs if i.size] + [0])
+    banded = np.zeros((bandwidth + 1, index.size))
+    banded[0] = 1.0
+    for i, j, value in pairs:
+        banded[j - i, i] = value
+    return cholesky_banded(banded, lower=True)
 
 
 def bin_measured_map(image: np.ndarray, pixel_um: float, bin_mm: float, radius_mm: float) -> MeasuredMap:
@@ -269,6 +317,7 @@ def bin_measured_map(image: np.ndarray, pixel_um: float, bin_mm: float, radius_m
         pixels,
         np.column_stack([cx.ravel()[index], cy.ravel()[index]]),
         np.empty(0),
+        tent_correlation(index, n),
     )
     return dataclasses.replace(grid, values=grid.weighted(image))
 
@@ -424,17 +473,19 @@ class _Fit:
         return self.maps.measured.values_at(offset) - pred, var
 
     def chi2(self, slots: list[_Slot], theta: np.ndarray) -> float:
+        """Generalised χ²: the residual over its σ, decorrelated (:meth:`MeasuredMap.whiten`)."""
         residual, var = self.residual(slots, theta)
-        return float(np.sum(residual**2 / var))
+        return float(np.sum(self.maps.measured.whiten(residual / np.sqrt(var)) ** 2))
 
     def profiled(self, slots: list[_Slot], theta: np.ndarray, template_noise: bool = False) -> tuple[np.ndarray, float]:
         """``theta`` with its linear values — the scale and the free relative fluxes — solved in
-        closed form (weighted least squares, the noise of the prediction at ``theta``) for its
-        geometry and offset, and the χ² there. ``template_noise``: the least squares corrected for
-        the Monte Carlo noise of the traced maps it weights (the errors-in-variables moment
-        correction: the normal matrix less each basis map's expected Σ w²·variance), which
-        otherwise pulls a relative flux towards the others' (BENCHMARKS.md: LED 2 at 0.5 on V1 reads
-        0.60 ± 0.01 over 16 model seeds at 200 000 rays)."""
+        closed form (generalised least squares, the noise of the prediction at ``theta`` and the
+        centres' correlation) for its geometry and offset, and the χ² there. ``template_noise``: the
+        least squares corrected for the Monte Carlo noise of the traced maps it weights (the
+        errors-in-variables moment correction: the normal matrix less each basis map's expected
+        noise, Σ w²·variance — whitening leaves it so where σ changes little between neighbouring
+        centres, Σⱼ Rᵢⱼ(R⁻¹)ⱼᵢ = 1), which otherwise pulls a relative flux towards the others'
+        (BENCHMARKS.md: LED 2 at 0.5 on V1 reads 0.60 ± 0.01 over 16 model seeds at 200 000 rays)."""
         _, offset, flux, geometry = self.unpack(slots, theta)
         maps, variance = self.maps.maps(geometry)
         _, var = self.predict(slots, theta)
@@ -445,15 +496,15 @@ class _Fit:
         basis = np.array(basis + [maps[u] for u in free_units])
         weight = 1.0 / np.sqrt(var)
         data = self.maps.measured.values_at(offset)
-        a = basis * weight
+        a = self.maps.measured.whiten((basis * weight).T).T
         if template_noise:
             noise = [flux[fixed] ** 2 @ variance[fixed]] if fixed.any() else []
             normal = a @ a.T - np.diag(np.array(noise + [variance[u] for u in free_units]) @ weight**2)
             if not np.linalg.eigvalsh(normal).min() > 0:
                 return theta, math.nan  # the maps' noise swamps what fixes these fluxes: no correction
-            coef = np.linalg.solve(normal, a @ (data * weight))
+            coef = np.linalg.solve(normal, a @ self.maps.measured.whiten(data * weight))
         else:
-            coef = np.linalg.lstsq(a.T, data * weight, rcond=None)[0]
+            coef = np.linalg.lstsq(a.T, self.maps.measured.whiten(data * weight), rcond=None)[0]
         out = theta.copy()
         scale = coef[0] if fixed.any() else theta[0]
         out[0] = scale
@@ -464,11 +515,10 @@ class _Fit:
         out = np.clip(out, low, high)
         return out, self.chi2(slots, out)
 
-    def jacobian(
-        self, slots: list[_Slot], theta: np.ndarray, central: bool = False
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(B, k) forward (or central) differences of the model less the data, the residual and
-        the weights 1/σ."""
+    def jacobian(self, slots: list[_Slot], theta: np.ndarray, central: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """(B, k) forward (or central) differences of the model less the data and the residual,
+        both over σ and decorrelated (:meth:`MeasuredMap.whiten`): the linear least squares of
+        the generalised χ²."""
         residual, var = self.residual(slots, theta)
         jac = np.empty((residual.size, len(slots)))
         for i, slot in enumerate(slots):
@@ -477,7 +527,9 @@ class _Fit:
             step[i] = h
             below = self.residual(slots, theta - step)[0] if central else residual
             jac[:, i] = (below - self.residual(slots, theta + step)[0]) / (2 * h if central else h)
-        return jac, residual, 1.0 / np.sqrt(var)
+        sigma = np.sqrt(var)
+        whiten = self.maps.measured.whiten
+        return whiten(jac / sigma[:, None]), whiten(residual / sigma)
 
     def refine(
         self, slots: list[_Slot], theta: np.ndarray, central: bool = False
@@ -488,8 +540,8 @@ class _Fit:
         high = np.array([s.parameter.high for s in slots])
         chi2 = self.chi2(slots, theta)
         for _ in range(ITERATIONS):
-            jac, residual, w = self.jacobian(slots, theta, central)
-            delta = np.linalg.lstsq(jac * w[:, None], residual * w, rcond=None)[0]
+            a, b = self.jacobian(slots, theta, central)
+            delta = np.linalg.lstsq(a, b, rcond=None)[0]
             for shrink in (1.0, 0.5, 0.25, 0.125):
                 trial = np.clip(theta + shrink * delta, low, high)
                 trial_chi2 = self.chi2(slots, trial)
@@ -501,8 +553,8 @@ class _Fit:
             theta, chi2 = trial, trial_chi2
             if improved < 1e-4 * chi2 + 1e-6:
                 break
-        jac, _, w = self.jacobian(slots, theta, central)
-        cov = np.linalg.pinv((jac * w[:, None]).T @ (jac * w[:, None]))
+        a, _ = self.jacobian(slots, theta, central)
+        cov = np.linalg.pinv(a.T @ a)
         return theta, chi2, cov
 
 
@@ -538,8 +590,7 @@ def _candidate_scores(
     """BIC of each candidate fitted (linearised at ``theta``) beside the slots already free."""
     trial_slots = slots + [s for c in candidates for s in _effect_slots(c)]
     trial_theta = np.concatenate([theta] + [_current(fit, slots, theta, c) for c in candidates])
-    jac, residual, w = fit.jacobian(trial_slots, trial_theta)
-    a, b = jac * w[:, None], residual * w
+    a, b = fit.jacobian(trial_slots, trial_theta)
     base = list(range(len(slots)))
     scores = []
     at = len(slots)
@@ -611,12 +662,12 @@ def _radial_profile(measured: MeasuredMap, values: np.ndarray, width_mm: float) 
 
 
 def _unexplained(
-    measured: MeasuredMap, residual: np.ndarray, sigma: np.ndarray, design: SystemDesign, chi2_red: float
+    measured: MeasuredMap, residual: np.ndarray, sigma: np.ndarray, design: SystemDesign, chi2_red: float, dof: int
 ) -> list[dict[str, Any]]:
     """The signature of a residual left above the noise: where its smoothed peak lies, its sign,
     the LED unit on that side and its share of the map's energy. Empty below the noise floor:
-    ``CHI2_FLOOR``, or 3 σ of χ²_red's own spread (1 + 3√(2/dof)) where a map has few bins."""
-    dof = residual.size - 3
+    ``CHI2_FLOOR``, or 3 σ of χ²_red's own spread (1 + 3√(2/dof)) where a map has few bins (the
+    generalised χ² of a matching model is χ²(dof), dof = bins − fitted values)."""
     if chi2_red <= max(CHI2_FLOOR, 1 + 3 * math.sqrt(2 / dof)):
         return []
     from scipy.ndimage import uniform_filter
@@ -797,7 +848,7 @@ def calibrate_illumination(
         "nmse_after": _nmse(data, after),
         "chi2_before": round(chi2_before, 5),
         "chi2_after": round(chi2_after, 5),
-        "unexplained": _unexplained(measured, data - after, np.sqrt(var_after), design, chi2_after),
+        "unexplained": _unexplained(measured, data - after, np.sqrt(var_after), design, chi2_after, n - len(slots)),
         "registration": _registration(slots, theta, cov, inflate),
         "steps": steps,
         "uniformity_cv": {
@@ -814,7 +865,10 @@ def calibrate_illumination(
             "model_before": _radial_profile(measured, before, ring),
             "model_after": _radial_profile(measured, after, ring),
         },
-        "noise_model": f"shot noise, {counts_per_electron:g} counts per electron, plus the model's Monte Carlo variance",
+        "noise_model": (
+            f"shot noise, {counts_per_electron:g} counts per electron, plus the model's Monte Carlo variance; "
+            "neighbouring centres correlated by the tent kernel (1/4 along an axis, 1/16 diagonally): generalised χ²"
+        ),
         "setup": {
             "pixel_um": pixel_um,
             "map_shape": list(image.shape),

@@ -10,9 +10,10 @@ relative LED flux ± 0.1 on cm2-v2 (± 0.19 on V1 at 200 000 model rays, whose e
 flux less well: 3× the spread measured over 15 runs), unit tilt ± 1° about each axis (± 0.5° for
 the pair's tilt with 1 000 000 model rays), collimator decentre ± 0.05 mm, offset ± 0.08 mm on
 cm2-v2 (V1's map does not fix it). Detection limit (BENCHMARKS.md): a 2° tilt is not named at
-400 000 model rays. Of the effect matrix (every effect alone at two magnitudes) only the 0.25-mm
-collimator decentre is here (slow); the other cases and the clean maps of ten seeds have not
-passed a run yet (BENCHMARKS.md).
+400 000 model rays. Of the effect matrix (every effect alone at two magnitudes) LED 0 at 70 % and
+the 0.25-mm collimator decentre are here (slow) and the 0.15-mm one as a strict xfail (below the noise at
+500 000 model rays once χ² counts the tent kernel's correlation); the other cases and the clean
+maps of ten seeds have not passed a run yet (BENCHMARKS.md).
 """
 
 from __future__ import annotations
@@ -85,6 +86,49 @@ def test_rays_share_their_power_by_the_pixels_kernel_and_move_the_model_smoothly
     assert 0 < np.abs(moved - weights).sum() <= 400 * 4 * 2 * 1e-3 / 0.5
 
 
+def test_noise_only_maps_give_the_tent_kernels_correlation_and_chi2_of_n_degrees_of_freedom():
+    """400 noise-only maps on the comparison grid: a camera frame's Poisson counts (≈ 100 per
+    pixel, a gentle ramp) plus a traced model's Monte Carlo noise (Poisson, 3000 rays on average
+    spread evenly over 4.6 × 4.6 mm, each deposited by the tent kernel). The closed forms: each
+    centre's variance is the code's (counts / effective pixels + Σ weight² per ray), neighbours
+    along an axis correlate by ¼ and diagonally by 1/16; the whitened χ² has mean B and variance
+    2B; a smooth pattern (a constant) fitted to the noise lowers the whitened χ² by χ²(1), mean 1
+    — weighted by σ alone it lowered it by ≈ 2 (the correlation's (1 + 2·¼)² = 2.25 inside the
+    field), which made a smooth effect look twice as significant as it is."""
+    rng = np.random.default_rng(3)
+    draws, n, pixel_um, rays, reach, scale = 400, 120, 50.0, 3000, 2.3, 0.1
+    x = (np.arange(n) - (n - 1) / 2) * pixel_um / 1000
+    mean_image = np.broadcast_to(100 * (1 + 0.1 * x[None, :]), (n, n))
+    grid = bin_measured_map(mean_image, pixel_um, 0.5, 2.5)
+    assert np.abs(grid.centres_mm).max() + grid.bin_mm <= reach  # every used kernel inside the rays' square
+    frames = rng.poisson(mean_image, (draws, n, n)).astype(float)
+    norm = np.outer(grid.rows.sum(1), grid.cols.sum(1)).ravel()[grid.index]
+    camera = (grid.rows @ frames @ grid.cols.T).reshape(draws, -1)[:, grid.index] / norm
+    counts = rng.poisson(rays, draws)
+    points = rng.uniform(-reach, reach, (counts.sum(), 2))
+    traced, _ = tent_deposit(grid, points, np.repeat(np.arange(draws), counts), draws)
+    density = rays / (2 * reach) ** 2  # rays per mm²: E[Σ w] = density·h², E[Σ w²] = density·(2h/3)²
+    values = camera + scale * traced
+    expected = grid.values + scale * density * 0.25
+    variance = grid.values / grid.pixels + scale**2 * density * (2 * 0.5 / 3) ** 2
+    z = (values - expected) / np.sqrt(variance)
+    assert np.var(z, axis=0).mean() == pytest.approx(1.0, abs=0.04)
+    correlation = np.corrcoef(z.T)
+    step = np.abs(grid.index[:, None] - grid.index[None, :])
+    same_row = (grid.index[:, None] // grid.side) == (grid.index[None, :] // grid.side)
+    assert correlation[(step == 1) & same_row].mean() == pytest.approx(0.25, abs=0.02)
+    assert correlation[step == grid.side].mean() == pytest.approx(0.25, abs=0.02)
+    assert correlation[(step == grid.side + 1) | (step == grid.side - 1)].mean() == pytest.approx(1 / 16, abs=0.02)
+    white = grid.whiten(z.T).T
+    chi2 = (white**2).sum(1)
+    b = grid.values.size
+    assert chi2.mean() == pytest.approx(b, abs=3 * np.sqrt(2 * b / draws))
+    assert chi2.var() / (2 * b) == pytest.approx(1.0, abs=0.25)
+    smooth = grid.whiten(np.ones(b))
+    assert np.mean((white @ smooth) ** 2 / (smooth @ smooth)) == pytest.approx(1.0, abs=0.21)
+    assert np.mean(z.sum(1) ** 2 / b) > 1.5
+
+
 class _NoisyTemplates:
     """Two units' traced maps on B bins as Poisson counts of ``rays`` per unit of ``expected``
     (power per ray 1/rays), against ``data`` without noise (the camera's shot noise negligible)."""
@@ -94,7 +138,9 @@ class _NoisyTemplates:
     def __init__(self, expected: np.ndarray, rays: int, rng: np.random.Generator, data: np.ndarray):
         self.counts = rng.poisson(expected * rays)
         self.per_ray = 1.0 / rays
-        self.measured = SimpleNamespace(values_at=lambda offset: data, pixels=np.full(data.size, 1e12))
+        self.measured = SimpleNamespace(
+            values_at=lambda offset: data, pixels=np.full(data.size, 1e12), whiten=lambda x: x
+        )  # independent bins
 
     def maps(self, geometry):
         return self.counts * self.per_ray, self.counts * self.per_ray**2
@@ -219,12 +265,44 @@ def test_cli_names_a_tilted_unit_and_a_dim_led_and_writes_a_valid_corrected_desi
 # Illumination effects alone (the tool not told which) on cm2-v2, the design as built traced with
 # 4 000 000 rays (8× the model's 500 000), a camera frame of 2000 counts per pixel (Poisson): the
 # map's noise is the truth trace's, ≈ 1/8 of the model's own Monte Carlo variance per bin, as on a
-# real map, where the camera's shot noise is far below the model's. Only the cases that passed a
-# run are here (BENCHMARKS.md: flux-0.7, flux-1.4, the tilts, decenter-0.15 and the ten clean seeds
-# did not, or got no verdict yet). Tolerances (module docstring): decentre ± 0.05 mm.
+# real map, where the camera's shot noise is far below the model's. Only the cases with a verdict
+# are here (BENCHMARKS.md, session 12, the generalised χ²: flux-0.7 passed, 363 s of CPU;
+# decenter-0.25 passed, dy −0.200 mm, at the tolerance's edge, 551 s of CPU; tilt-3x3y and
+# decenter-0.15 failed; flux-1.4 and tilt-4x got no run). Tolerances (module docstring): flux ± 0.1,
+# tilt ± 1°, decentre ± 0.05 mm.
+
+_BELOW_NOISE = pytest.mark.xfail(
+    strict=True,
+    reason="not met (BENCHMARKS.md, session 12): at 500 000 model rays with the generalised χ² a 0.15-mm "
+    "decentre is at the detection limit — χ²_red 1.281 before, as on a clean map (1.286), each unit's "
+    "decentre refitted and rejected by the held-out trace (ΔBIC −25.8, −6.8, −15.3): no effect named",
+)
+
+_TILT_SHORT = pytest.mark.xfail(
+    strict=True,
+    reason="not met (BENCHMARKS.md, session 12): led_tilt[3] named alone but (2.78 ± 0.15°, 1.86 ± 0.17°) "
+    "against (3°, 3°), the offset x at +0.198 mm (truth +0.1) and χ²_red 1.35 left unexplained",
+)
 
 #: case → (as-built changes, relative fluxes, the effect key expected, its parameters, tolerance)
 SINGLE = {
+    "flux-0.7": ({}, (0.7, 1, 1, 1), ("led_flux", 0), {"flux": 0.7}, 0.1),
+    "tilt-3x3y": pytest.param(
+        {"led_tilt_deg": [[0, 0], [0, 0], [0, 0], [3, 3]]},
+        None,
+        ("led_tilt", 3),
+        {"tilt_x_deg": 3.0, "tilt_y_deg": 3.0},
+        1.0,
+        marks=_TILT_SHORT,
+    ),
+    "decenter-0.15": pytest.param(
+        {"collimator_decenter_mm": [[0, 0], [0.15, 0], [0, 0], [0, 0]]},
+        None,
+        ("collimator_decenter", 1),
+        {"dx_mm": 0.15, "dy_mm": 0.0},
+        0.05,
+        marks=_BELOW_NOISE,
+    ),
     "decenter-0.25": (
         {"collimator_decenter_mm": [[0, -0.25], [0, 0], [0, 0], [0, 0]]},
         None,
@@ -236,10 +314,13 @@ SINGLE = {
 
 
 @pytest.mark.slow
-@pytest.mark.timeout(3600)  # 1751 s at load 6–17 on 2 cores (2026-11-26)
-@pytest.mark.parametrize("case", sorted(SINGLE))
-def test_each_illumination_effect_alone_is_named_and_measured(v2, case):
-    changes, flux, key, truth, tolerance = SINGLE[case]
+@pytest.mark.timeout(5400)  # flux-0.7: 3491 s wall, 363 s CPU at load 10–24 on 2 cores (2026-11-26)
+@pytest.mark.parametrize(
+    ("changes", "flux", "key", "truth", "tolerance"),
+    list(SINGLE.values()),
+    ids=list(SINGLE),
+)
+def test_each_illumination_effect_alone_is_named_and_measured(v2, changes, flux, key, truth, tolerance):
     built = v2.with_changes({f"illumination_as_built.{k}": v for k, v in changes.items()})
     units = unit_pixel_maps(built, rays=4_000_000, offset_mm=OFFSET_MM)
     doc = calibrate_illumination(measured_map(units, flux=flux, mean_counts=2000.0), 50.0, v2, rays=500_000).document
