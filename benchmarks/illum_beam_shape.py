@@ -27,7 +27,7 @@ from illum_ray_families import reference_inputs
 
 from cm2optics.design import load_preset
 from cm2optics.formats.outputs import OutputError, check_output
-from cm2optics.illumination.bounds import _blur, etendue_blur_rad, uniform_beam_bound
+from cm2optics.illumination.bounds import blur_directions, etendue_blur_rad, uniform_beam_bound
 from cm2optics.illumination.geometry import build_scene, collimator_from_design
 from cm2optics.illumination.tracer import trace
 from cm2optics.optics.layout import led_poses
@@ -72,7 +72,7 @@ def blurred(design, centres_tan: np.ndarray, profile: np.ndarray, samples: int, 
     tan_xy = centres_tan[pick] + rng.uniform(-side / 2, side / 2, (samples, 2))
     direction = np.column_stack([tan_xy, np.ones(samples)])
     direction /= np.linalg.norm(direction, axis=1, keepdims=True)
-    turned = _blur(direction, etendue_blur_rad(design), rng)
+    turned = blur_directions(direction, etendue_blur_rad(design), rng)
     return turned[:, :2] / turned[:, 2:]
 
 

@@ -625,10 +625,8 @@ def guard(problem: Problem, before: State, after: State) -> Guard:
     acts = np.bincount(group_of, weights=moved, minlength=len(groups)) >= ACTS_CHI2
     contradicted = float(np.mean(groups[acts] < 0)) if acts.any() else 0.0
     kinds = problem.feature_kinds[use]
-    checks = {
-        name: confirmation(r_before[kinds == k], (f_after - f_before)[use][kinds == k] / sigma[kinds == k], 1.0)
-        for k, name in enumerate(OBSERVABLES)
-    }
+    change = (f_after - f_before)[use] / sigma
+    checks = {name: confirmation(r_before[kinds == k], change[kinds == k], 1.0) for k, name in enumerate(OBSERVABLES)}
     residual, change, noise, sector = problem.pixel_change(before, after)
     for k, where in enumerate(SECTORS):
         part = sector == k

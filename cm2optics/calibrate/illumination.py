@@ -867,7 +867,8 @@ def calibrate_illumination(
         },
         "noise_model": (
             f"shot noise, {counts_per_electron:g} counts per electron, plus the model's Monte Carlo variance; "
-            "neighbouring centres correlated by the tent kernel (1/4 along an axis, 1/16 diagonally): generalised χ²"
+            f"neighbouring centres correlated by the tent kernel (1/{1 / TENT_NEIGHBOUR_CORRELATION:g} along an axis, "
+            f"1/{1 / TENT_NEIGHBOUR_CORRELATION**2:g} diagonally): generalised χ²"
         ),
         "setup": {
             "pixel_um": pixel_um,

@@ -38,6 +38,7 @@ from cm2optics.optics import first_order
 __all__ = [
     "THROUGHPUT_STEP_NM",
     "FREE_AIM_GRID",
+    "blur_directions",
     "etendue_blur_rad",
     "etendue_bound",
     "filter_share_by_angle",
@@ -156,7 +157,7 @@ def etendue_blur_rad(design: SystemDesign) -> float:
     return math.asin(min(1.0, math.sqrt(design.led.emitter_mm**2 / (4 * ax * ay))))
 
 
-def _blur(directions: np.ndarray, half_angle_rad: float, rng: np.random.Generator) -> np.ndarray:
+def blur_directions(directions: np.ndarray, half_angle_rad: float, rng: np.random.Generator) -> np.ndarray:
     """Each unit vector of ``directions`` (…, 3) turned to a random direction within the cone of
     ``half_angle_rad`` (rad) around it, uniform in projected solid angle (uniform radiance)."""
     if half_angle_rad <= 0.0:
@@ -230,7 +231,7 @@ def _footprints(
     local_start = np.zeros((components, rays, 3))
     local_start[..., 2] = aperture_z
     if finite_source:
-        local = _blur(local / np.linalg.norm(local, axis=-1, keepdims=True), etendue_blur_rad(design), rng)
+        local = blur_directions(local / np.linalg.norm(local, axis=-1, keepdims=True), etendue_blur_rad(design), rng)
         local_start[..., 0] = rng.uniform(-ax, ax, (components, rays))
         local_start[..., 1] = rng.uniform(-ay, ay, (components, rays))
     power = np.ones((components, rays))
