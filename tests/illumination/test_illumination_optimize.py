@@ -266,19 +266,19 @@ def test_etendue_blur_and_its_sampling(v2):
     """sin α = √(A_emitter / A_aperture): 1 mm² through the 3.4 × 3.4-mm aperture gives
     asin(1/3.4) = 17.1°. The blurred directions fill that cone with uniform radiance: the share
     within β of the axis is sin²β / sin²α."""
-    from cm2optics.illumination.bounds import _blur, etendue_blur_rad
+    from cm2optics.illumination.bounds import blur_directions, etendue_blur_rad
 
     alpha = etendue_blur_rad(v2)
     assert math.sin(alpha) == pytest.approx(1.0 / 3.4, rel=1e-12)
     rng = np.random.default_rng(3)
-    out = _blur(np.tile([0.0, 0.0, 1.0], (200_000, 1)), alpha, rng)
+    out = blur_directions(np.tile([0.0, 0.0, 1.0], (200_000, 1)), alpha, rng)
     assert np.linalg.norm(out, axis=1) == pytest.approx(1.0, abs=1e-12)
     polar = np.arccos(np.clip(out[:, 2], -1, 1))
     assert polar.max() <= alpha + 1e-12
     beta = alpha / 2
     assert np.mean(polar <= beta) == pytest.approx(math.sin(beta) ** 2 / math.sin(alpha) ** 2, abs=0.005)
     assert np.abs(out[:, :2].mean(axis=0)).max() < 0.003  # symmetric about the axis
-    tilted = _blur(np.tile([0.0, math.sin(0.5), math.cos(0.5)], (50_000, 1)), alpha, rng)
+    tilted = blur_directions(np.tile([0.0, math.sin(0.5), math.cos(0.5)], (50_000, 1)), alpha, rng)
     angle = np.arccos(np.clip(tilted @ [0.0, math.sin(0.5), math.cos(0.5)], -1, 1))
     assert angle.max() <= alpha + 1e-12
 
