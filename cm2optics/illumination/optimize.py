@@ -117,6 +117,14 @@ FREEFORM_TERMS = (3, 4, 6, 7, 11)
 FREEFORM_PARAMETERS: dict[str, tuple[float, float]] = {
     f"collimator.lens_freeform_um[{j}]": (-15.0, 15.0) for j in FREEFORM_TERMS
 }
+#: The TIR wall's departure from revolution (:attr:`cm2optics.design.Collimator.tir_cos2`,
+#: ``tir_cos4``: its radial departure from the entry ring scaled by 1 + c₂ cos 2φ + c₄ cos 4φ,
+#: dimensionless), swept with ``tir_azimuthal``: c₂ makes the beam elliptical (across / in the
+#: unit's plane of tilt), c₄ widens the wall into the flange's corners (c₄ < 0) or its sides.
+TIR_AZIMUTHAL_PARAMETERS: dict[str, tuple[float, float]] = {
+    "collimator.tir_cos2": (-0.25, 0.25),
+    "collimator.tir_cos4": (-0.25, 0.25),
+}
 #: Best candidates traced again with 4× the rays before one is chosen.
 CONFIRMED = 4
 #: Segments per turn of the revolved mesh in the sweep (the written STL uses 256).
@@ -124,16 +132,21 @@ SWEEP_SEGMENTS = 128
 
 
 def search_box(
-    free_aim: bool, freeform: bool = False, fixed_profile: bool = False, cone_wall: bool = False
+    free_aim: bool,
+    freeform: bool = False,
+    fixed_profile: bool = False,
+    cone_wall: bool = False,
+    tir_azimuthal: bool = False,
 ) -> dict[str, tuple[float, float]]:
     """The swept parameters and their ranges: the collimator's profile (unless ``fixed_profile``;
     :data:`CONE_PARAMETERS` with ``cone_wall``), the units' placement with ``free_aim``, the
-    lens's Zernike terms with ``freeform``."""
+    lens's Zernike terms with ``freeform``, the TIR wall's azimuthal terms with ``tir_azimuthal``."""
     profile = CONE_PARAMETERS if cone_wall else PARAMETERS
     return {
         **({} if fixed_profile else profile),
         **(AIM_PARAMETERS if free_aim else {}),
         **(FREEFORM_PARAMETERS if freeform else {}),
+        **(TIR_AZIMUTHAL_PARAMETERS if tir_azimuthal else {}),
     }
 
 
@@ -175,7 +188,12 @@ def candidate_collimator(design: SystemDesign, values: dict[str, float], segment
     profile = collimator_profile(candidate)
     mesh = CollimatorMesh(
         f"{design.name} (optimised)",
-        revolve_profile(profile, segments, candidate.collimator.lens_freeform_um),
+        revolve_profile(
+            profile,
+            segments,
+            candidate.collimator.lens_freeform_um,
+            (candidate.collimator.tir_cos2, candidate.collimator.tir_cos4),
+        ),
         candidate.collimator.material,
     )
     return candidate, mesh, profile
