@@ -122,8 +122,8 @@ FREEFORM_PARAMETERS: dict[str, tuple[float, float]] = {
 #: dimensionless), swept with ``tir_azimuthal``: c₂ makes the beam elliptical (across / in the
 #: unit's plane of tilt), c₄ widens the wall into the flange's corners (c₄ < 0) or its sides.
 TIR_AZIMUTHAL_PARAMETERS: dict[str, tuple[float, float]] = {
-    "collimator.tir_cos2": (-0.25, 0.25),
-    "collimator.tir_cos4": (-0.25, 0.25),
+    "collimator.tir_cos2": (-0.2, 0.2),
+    "collimator.tir_cos4": (-0.1, 0.1),
 }
 #: Best candidates traced again with 4× the rays before one is chosen.
 CONFIRMED = 4
@@ -397,6 +397,7 @@ def optimize_collimator(
     cone_wall: bool = False,
     robust: RobustScoring | None = None,
     sbr_floor: SBRFloor | None = None,
+    tir_azimuthal: bool = False,
 ) -> dict[str, Any]:
     """Run the sweep (see the module docstring) and write ``design.yaml``, ``collimator.stl``,
     ``collimator.step``, ``irradiance.png`` and ``sweep.json`` into ``out_dir``; returns the
@@ -411,6 +412,7 @@ def optimize_collimator(
     fixed_profile: keep the design's profile (:data:`PARAMETERS` not swept): refine its
         placement and/or freeform terms.
     cone_wall: sweep the profile with the prescribed TIR wall (:data:`CONE_PARAMETERS`).
+    tir_azimuthal: sweep the TIR wall's departure from revolution too (:data:`TIR_AZIMUTHAL_PARAMETERS`).
     inputs: paths of the LED's angular profile, spectrum and the excitation filter's coating
     table (each None: the design's model), used by every trace and by the bounds.
     robust: rank every candidate (and choose among the confirmed ones) on its expected figures
@@ -427,9 +429,9 @@ def optimize_collimator(
     candidates: list[dict[str, Any]] = []
     start = time.perf_counter()
     try:
-        box = search_box(free_aim, freeform, fixed_profile, cone_wall)
+        box = search_box(free_aim, freeform, fixed_profile, cone_wall, tir_azimuthal)
         if not box:
-            raise ValueError("nothing to sweep: a fixed profile needs free aim and/or freeform terms")
+            raise ValueError("nothing to sweep: a fixed profile needs free aim, freeform or TIR azimuthal terms")
         _sweep(
             client,
             base,
@@ -489,6 +491,7 @@ def optimize_collimator(
         "printability": checks,
         "free_aim": free_aim,
         "freeform": freeform,
+        "tir_azimuthal": tir_azimuthal,
         "fixed_profile": fixed_profile,
         "assembly_interferences": assembly,
         "base_plate_min_wall_mm": best.get("base_plate_min_wall_mm"),
