@@ -108,22 +108,25 @@ def test_cad_part_is_watertight_printable_and_carries_the_wall(enclosed):
     from cm2optics.cad.tessellate import export_stl
 
     profile = collimator_profile(enclosed)
-    meshes = {}
+    meshes, volumes = {}, {}
     for terms in ((0.05, -0.2), (0.2, -0.2)):
         design = enclosed.with_changes({"collimator.tir_cos2": terms[0], "collimator.tir_cos4": terms[1]})
+        solid = build_collimator(design).val()
+        volumes[terms] = solid.Volume()  # the B-rep's own (the STL's chords move it by ~0.01 mm³)
         with tempfile.TemporaryDirectory() as folder:
-            export_stl(build_collimator(design).val(), Path(folder) / "c.stl", 0.002)
+            export_stl(solid, Path(folder) / "c.stl", 0.002)
             meshes[terms] = trimesh.load_mesh(Path(folder) / "c.stl", force="mesh")
     report = check_mesh(meshes[(0.05, -0.2)])
     assert report.watertight and report.winding_consistent
     assert report.min_wall_mm >= enclosed.mechanics.min_wall_mm - 1e-3
-    change = meshes[(0.2, -0.2)].volume - meshes[(0.05, -0.2)].volume
+    change = volumes[(0.2, -0.2)] - volumes[(0.05, -0.2)]
     expected = _wall_volume_change_mm3(profile, 0.2, -0.2, False) - _wall_volume_change_mm3(profile, 0.05, -0.2, False)
     assert change == pytest.approx(expected, rel=0.02)
     v = meshes[(0.2, -0.2)].vertices
     query = trimesh.proximity.ProximityQuery(meshes[(0.2, -0.2)])
     for mirror in ([-1, 1, 1], [1, -1, 1]):
-        assert np.max(np.abs(query.signed_distance(v[::50] * mirror))) < 2e-3
+        # within twice the STL's 2-µm chord tolerance (a c₂ = 0.2 wall moves ≈ 0.17 mm between φ = 0 and 90°)
+        assert np.max(np.abs(query.signed_distance(v[::50] * mirror))) < 4e-3
 
 
 @pytest.mark.slow
