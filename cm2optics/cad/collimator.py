@@ -16,6 +16,10 @@ wider than the cavity, approximated by a B-spline surface, extruded downwards in
 cut, inside the cavity's cylinder, from the revolved body with its cavity filled. The cavity
 wall stays the cylinder ``r = a`` (the sag of :func:`~cm2optics.optics.freeform.displace_lens`
 moves its points along it); the STL, the STEP file and the tracer all carry this solid.
+
+A non-revolved TIR wall (``collimator.tir_cos2``, ``tir_cos4``) is one smooth lofted face through
+closed periodic splines at heights of the wall, extruded up into the flange; the cavity (the
+revolved lens, or the freeform one) is cut from it.
 """
 
 from __future__ import annotations
@@ -30,7 +34,12 @@ import trimesh
 from scipy.interpolate import CubicSpline
 
 from cm2optics.design import Collimator, SystemDesign
-from cm2optics.optics.collimator import CollimatorProfile, collimator_profile, profile_from_parameters
+from cm2optics.optics.collimator import (
+    CollimatorProfile,
+    collimator_profile,
+    profile_from_parameters,
+    tir_wall_scale,
+)
 from cm2optics.optics.freeform import lens_sag_mm
 
 SPLINE_POINTS = 41
@@ -48,6 +57,9 @@ FREEFORM_GRID_MARGIN = 1.05
 
 FREEFORM_FIT_TOLERANCE_MM = 1e-5
 """Tolerance of the B-spline fit to the grid points, mm (10 nm)."""
+
+ANAMORPHIC_AZIMUTHS = 96
+"""Points per closed section of a non-revolved TIR wall (its periodic spline passes through them)."""
 
 
 def _spline_points(points: np.ndarray) -> list[tuple[float, float]]:
@@ -112,10 +124,70 @@ def _built_collimator(collimator: Collimator, peak_nm: float) -> cq.Workplane:
     export, the tracer and the reports all ask for it (callers only place or tessellate it,
     never change it)."""
     profile = profile_from_parameters(collimator, peak_nm)
+    if collimator.tir_is_freeform:
+        body = _anamorphic_body(profile, collimator.tir_cos2, collimator.tir_cos4)
+        cavity = (
+            _freeform_cavity(profile, collimator.lens_freeform_um)
+            if collimator.is_freeform
+            else _revolved_cavity(profile)
+        )
+        return _one_solid(body.cut(cavity).clean())
     if not collimator.is_freeform:
         return _revolved_collimator(profile)
     body = _revolved_collimator(profile, filled=True).val()
     return _one_solid(body.cut(_freeform_cavity(profile, collimator.lens_freeform_um)).clean())
+
+
+def _anamorphic_body(profile: CollimatorProfile, cos2: float, cos4: float) -> cq.Shape:
+    """The optical body without its cavity, its TIR wall not revolved: a smooth loft through
+    ``SPLINE_POINTS`` closed periodic splines (``ANAMORPHIC_AZIMUTHS`` points each) at heights of
+    the wall, each ``r(φ) = r_e + (r(z) − r_e) · (1 + cos2 cos 2φ + cos4 cos 4φ)`` (mm), the top
+    section extruded up into the square flange, fused with it."""
+    tir = np.column_stack([profile.tir_r_mm, profile.tir_z_mm])
+    pick = np.unique(np.round(np.linspace(0, len(tir) - 1, SPLINE_POINTS)).astype(int))
+    phi = 2.0 * np.pi * np.arange(ANAMORPHIC_AZIMUTHS) / ANAMORPHIC_AZIMUTHS
+    scale = tir_wall_scale(cos2, cos4, phi)
+    entry = profile.outer_radius_entry_mm
+    wires = []
+    for r, z in tir[pick]:
+        radius = entry + (r - entry) * scale
+        points = [
+            cq.Vector(float(q * np.cos(p)), float(q * np.sin(p)), float(z)) for q, p in zip(radius, phi, strict=True)
+        ]
+        wires.append(cq.Wire.assembleEdges([cq.Edge.makeSpline(points, periodic=True)]))
+    wall = cq.Solid.makeLoft(wires, ruled=False)
+    rise = (profile.flange_bottom_z_mm + profile.exit_z_mm) / 2 - float(tir[-1, 1])
+    step = cq.Solid.extrudeLinear(cq.Face.makeFromWires(wires[-1]), cq.Vector(0.0, 0.0, rise))
+    side = profile.footprint_mm
+    flange = cq.Solid.makeBox(
+        side,
+        side,
+        profile.exit_z_mm - profile.flange_bottom_z_mm,
+        cq.Vector(-side / 2, -side / 2, profile.flange_bottom_z_mm),
+    )
+    return _one_solid(wall.fuse(step, flange).clean()).val()
+
+
+def _revolved_cavity(profile: CollimatorProfile) -> cq.Solid:
+    """The cavity of the revolved lens as a solid: the lens (vertex flat, spline) over the cylinder
+    ``r = a``, from 0.5 mm below the entry plane (LED frame, mm)."""
+    a, g = profile.cavity_radius_mm, profile.entry_z_mm
+    flat = np.sqrt(2.0 * profile.lens_vertex_radius_mm * VERTEX_FLAT_SAG_MM)
+    keep = profile.lens_r_mm > 2.0 * flat
+    lens = np.vstack(
+        [[flat, profile.lens_height_mm(flat)], np.column_stack([profile.lens_r_mm[keep], profile.lens_z_mm[keep]])]
+    )[::-1]
+    tangents = [_unit((-1.0, -profile.lens_slope(r))) for r in (lens[0, 0], lens[-1, 0])]
+    sketch = (
+        cq.Workplane("XZ")
+        .moveTo(0.0, g - 0.5)
+        .lineTo(a, g - 0.5)
+        .lineTo(*lens[0])
+        .spline(_spline_points(lens)[1:], tangents=tangents, includeCurrent=True)
+        .lineTo(0.0, lens[-1, 1])
+        .close()
+    )
+    return sketch.revolve(360.0, (0.0, 0.0, 0.0), (0.0, 1.0, 0.0)).val()
 
 
 def _revolved_collimator(profile: CollimatorProfile, filled: bool = False) -> cq.Workplane:

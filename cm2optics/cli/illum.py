@@ -368,6 +368,15 @@ def optimize(
             "(led_gap_mm 0–0.1), instead of the wall designed for the LED's centre.",
         ),
     ] = False,
+    tir_azimuthal: Annotated[
+        bool,
+        typer.Option(
+            "--tir-azimuthal",
+            help="Sweep the TIR wall's departure from revolution too (collimator.tir_cos2 ±0.2, tir_cos4 ±0.1: "
+            "its radial departure from the entry ring scaled by 1 + c2 cos 2φ + c4 cos 4φ); walls that leave "
+            "the square footprint are infeasible.",
+        ),
+    ] = False,
     led_profile: LedProfileOption = None,
     led_spectrum: LedSpectrumOption = None,
     filter_table: FilterTableOption = None,
@@ -485,8 +494,8 @@ def optimize(
             as_json,
         )
         return
-    if fixed_profile and not (free_aim or freeform):
-        raise UserError("--fixed-profile leaves nothing to sweep: add --free-aim and/or --freeform")
+    if fixed_profile and not (free_aim or freeform or tir_azimuthal):
+        raise UserError("--fixed-profile leaves nothing to sweep: add --free-aim, --freeform and/or --tir-azimuthal")
     if fixed_profile and cone_wall:
         raise UserError("--cone-wall sweeps the profile: it cannot go with --fixed-profile")
     design = load_preset(preset)
@@ -508,6 +517,7 @@ def optimize(
         cone_wall=cone_wall,
         robust=RobustScoring(robust_samples, tolerances, seed) if robust_samples else None,
         sbr_floor=sbr_floor,
+        tir_azimuthal=tir_azimuthal,
     )
     summary = {k: v for k, v in result.items() if k != "candidates"}  # every candidate is in sweep.json
     _echo_optimized(

@@ -76,6 +76,16 @@ class Collimator:
         ``tir_max_radius_mm`` or the flange. The designed wall collimates a point source but
         needs r ≈ 2.3–3.3 mm once the cavity encloses the 1-mm emitter; a cone of ≈ 30° inside
         the 4-mm footprint is what the authors' part does. The lens's rays keep their design.
+    tir_cos2, tir_cos4: the TIR wall departs from revolution (dimensionless, each within ±0.4,
+        ``|tir_cos2| + |tir_cos4| ≤ 0.5``): at azimuth φ of the LED frame (from its x axis, which
+        lies across the unit's plane of tilt; y lies in it) the wall's radial departure from its
+        entry ring is scaled, ``r(z, φ) = r_e + (r(z) − r_e)(1 + tir_cos2 cos 2φ + tir_cos4 cos 4φ)``
+        (``r_e = cavity_radius_mm + entry_wall_mm``, ``r(z)`` the revolved wall, designed or
+        prescribed, and its step up to the flange). A scale above 1 makes the wall flatter there
+        (it spreads its rays less), below 1 steeper. The scale stays ≥ 0.5, so the wall still
+        widens upwards at every φ (no overhang); it must fit the square footprint at every φ
+        (:func:`cm2optics.optics.collimator.tir_wall_reach_mm`). 0 and 0 (the default, left out
+        of the YAML): the revolved wall. :mod:`cm2optics.optics.freeform`.
     """
 
     material: Material
@@ -95,11 +105,18 @@ class Collimator:
     tir_max_radius_mm: float = 0.0
     tir_cone_deg: float = 0.0
     tir_cone_curvature_per_mm: float = 0.0
+    tir_cos2: float = 0.0
+    tir_cos4: float = 0.0
 
     @property
     def is_freeform(self) -> bool:
         """Whether the lens departs from revolution (a non-zero Zernike coefficient)."""
         return any(c != 0.0 for c in self.lens_freeform_um)
+
+    @property
+    def tir_is_freeform(self) -> bool:
+        """Whether the TIR wall departs from revolution (``tir_cos2`` or ``tir_cos4`` non-zero)."""
+        return self.tir_cos2 != 0.0 or self.tir_cos4 != 0.0
 
     @property
     def collimates(self) -> bool:
@@ -149,6 +166,14 @@ class Collimator:
             self.tir_cone_curvature_per_mm,
             self.tir_cone_deg != 0.0 or self.tir_cone_curvature_per_mm == 0.0,
             "needs tir_cone_deg > 0",
+        )
+        in_range(self, "tir_cos2", -0.4, 0.4)
+        in_range(self, "tir_cos4", -0.4, 0.4)
+        check(
+            "tir_cos2",
+            self.tir_cos2,
+            abs(self.tir_cos2) + abs(self.tir_cos4) <= 0.5,
+            f"|tir_cos2| + |tir_cos4| must be ≤ 0.5 (tir_cos4 = {self.tir_cos4}): the wall must widen upwards at every azimuth",
         )
 
 

@@ -274,6 +274,9 @@ class SystemDesign:
         if self.collimator is not None and self.collimator.tir_cone_deg == 0.0:
             del data["collimator"]["tir_cone_deg"]  # so does the designed wall
             del data["collimator"]["tir_cone_curvature_per_mm"]
+        if self.collimator is not None and not self.collimator.tir_is_freeform:
+            del data["collimator"]["tir_cos2"]  # a revolved wall keeps old files and hashes
+            del data["collimator"]["tir_cos4"]
         changed = self.as_built.changed()
         if changed:
             data["as_built"] = changed

@@ -117,6 +117,14 @@ FREEFORM_TERMS = (3, 4, 6, 7, 11)
 FREEFORM_PARAMETERS: dict[str, tuple[float, float]] = {
     f"collimator.lens_freeform_um[{j}]": (-15.0, 15.0) for j in FREEFORM_TERMS
 }
+#: The TIR wall's departure from revolution (:attr:`cm2optics.design.Collimator.tir_cos2`,
+#: ``tir_cos4``: its radial departure from the entry ring scaled by 1 + c₂ cos 2φ + c₄ cos 4φ,
+#: dimensionless), swept with ``tir_azimuthal``: c₂ makes the beam elliptical (across / in the
+#: unit's plane of tilt), c₄ widens the wall into the flange's corners (c₄ < 0) or its sides.
+TIR_AZIMUTHAL_PARAMETERS: dict[str, tuple[float, float]] = {
+    "collimator.tir_cos2": (-0.2, 0.2),
+    "collimator.tir_cos4": (-0.1, 0.1),
+}
 #: Best candidates traced again with 4× the rays before one is chosen.
 CONFIRMED = 4
 #: Segments per turn of the revolved mesh in the sweep (the written STL uses 256).
@@ -124,16 +132,21 @@ SWEEP_SEGMENTS = 128
 
 
 def search_box(
-    free_aim: bool, freeform: bool = False, fixed_profile: bool = False, cone_wall: bool = False
+    free_aim: bool,
+    freeform: bool = False,
+    fixed_profile: bool = False,
+    cone_wall: bool = False,
+    tir_azimuthal: bool = False,
 ) -> dict[str, tuple[float, float]]:
     """The swept parameters and their ranges: the collimator's profile (unless ``fixed_profile``;
     :data:`CONE_PARAMETERS` with ``cone_wall``), the units' placement with ``free_aim``, the
-    lens's Zernike terms with ``freeform``."""
+    lens's Zernike terms with ``freeform``, the TIR wall's azimuthal terms with ``tir_azimuthal``."""
     profile = CONE_PARAMETERS if cone_wall else PARAMETERS
     return {
         **({} if fixed_profile else profile),
         **(AIM_PARAMETERS if free_aim else {}),
         **(FREEFORM_PARAMETERS if freeform else {}),
+        **(TIR_AZIMUTHAL_PARAMETERS if tir_azimuthal else {}),
     }
 
 
@@ -175,7 +188,12 @@ def candidate_collimator(design: SystemDesign, values: dict[str, float], segment
     profile = collimator_profile(candidate)
     mesh = CollimatorMesh(
         f"{design.name} (optimised)",
-        revolve_profile(profile, segments, candidate.collimator.lens_freeform_um),
+        revolve_profile(
+            profile,
+            segments,
+            candidate.collimator.lens_freeform_um,
+            (candidate.collimator.tir_cos2, candidate.collimator.tir_cos4),
+        ),
         candidate.collimator.material,
     )
     return candidate, mesh, profile
@@ -379,6 +397,7 @@ def optimize_collimator(
     cone_wall: bool = False,
     robust: RobustScoring | None = None,
     sbr_floor: SBRFloor | None = None,
+    tir_azimuthal: bool = False,
 ) -> dict[str, Any]:
     """Run the sweep (see the module docstring) and write ``design.yaml``, ``collimator.stl``,
     ``collimator.step``, ``irradiance.png`` and ``sweep.json`` into ``out_dir``; returns the
@@ -393,6 +412,7 @@ def optimize_collimator(
     fixed_profile: keep the design's profile (:data:`PARAMETERS` not swept): refine its
         placement and/or freeform terms.
     cone_wall: sweep the profile with the prescribed TIR wall (:data:`CONE_PARAMETERS`).
+    tir_azimuthal: sweep the TIR wall's departure from revolution too (:data:`TIR_AZIMUTHAL_PARAMETERS`).
     inputs: paths of the LED's angular profile, spectrum and the excitation filter's coating
     table (each None: the design's model), used by every trace and by the bounds.
     robust: rank every candidate (and choose among the confirmed ones) on its expected figures
@@ -409,9 +429,9 @@ def optimize_collimator(
     candidates: list[dict[str, Any]] = []
     start = time.perf_counter()
     try:
-        box = search_box(free_aim, freeform, fixed_profile, cone_wall)
+        box = search_box(free_aim, freeform, fixed_profile, cone_wall, tir_azimuthal)
         if not box:
-            raise ValueError("nothing to sweep: a fixed profile needs free aim and/or freeform terms")
+            raise ValueError("nothing to sweep: a fixed profile needs free aim, freeform or TIR azimuthal terms")
         _sweep(
             client,
             base,
@@ -471,6 +491,7 @@ def optimize_collimator(
         "printability": checks,
         "free_aim": free_aim,
         "freeform": freeform,
+        "tir_azimuthal": tir_azimuthal,
         "fixed_profile": fixed_profile,
         "assembly_interferences": assembly,
         "base_plate_min_wall_mm": best.get("base_plate_min_wall_mm"),

@@ -75,8 +75,32 @@ __all__ = [
     "collimator_profile",
     "cone_wall",
     "profile_from_parameters",
+    "tir_wall_reach_mm",
+    "tir_wall_scale",
     "trace_meridional",
 ]
+
+#: Azimuths at which the reach of a non-revolved TIR wall is checked against the footprint.
+_REACH_AZIMUTHS = np.linspace(0.0, 2.0 * np.pi, 1440, endpoint=False)
+
+
+def tir_wall_scale(cos2: float, cos4: float, phi_rad: np.ndarray | float) -> np.ndarray | float:
+    """``1 + cos2 · cos 2φ + cos4 · cos 4φ``: the factor on the TIR wall's radial departure from
+    its entry ring at azimuth ``phi_rad`` (rad, from the LED frame's x axis) of
+    :attr:`cm2optics.design.Collimator.tir_cos2` and ``tir_cos4`` (dimensionless)."""
+    return 1.0 + cos2 * np.cos(2.0 * np.asarray(phi_rad)) + cos4 * np.cos(4.0 * np.asarray(phi_rad))
+
+
+def tir_wall_reach_mm(
+    entry_radius_mm: float, end_radius_mm: float, cos2: float, cos4: float, phi_rad: np.ndarray | None = None
+) -> float:
+    """How far the TIR wall's top reaches towards the square footprint's sides, mm: the largest
+    ``r(φ) · max(|cos φ|, |sin φ|)`` with ``r(φ) = r_e + (r_end − r_e) · scale(φ)`` (radii mm). The
+    wall fits a footprint of side ``s`` when this is below ``s / 2``; for the revolved wall it is
+    ``r_end``."""
+    phi = _REACH_AZIMUTHS if phi_rad is None else np.asarray(phi_rad)
+    radius = entry_radius_mm + (end_radius_mm - entry_radius_mm) * tir_wall_scale(cos2, cos4, phi)
+    return float(np.max(radius * np.maximum(np.abs(np.cos(phi)), np.abs(np.sin(phi)))))
 
 
 class Surface(IntEnum):
@@ -371,16 +395,32 @@ def enclosed_profile(
             collimator.height_mm,
             f"the TIR surface ends at z = {z_end:.3f} mm, above the flange's underside: needs ≥ {z_end + collimator.flange_mm - g:.3f} mm",
         )
-    if np.max(tir_r) >= collimator.footprint_mm / 2:
+    if np.max(tir_r) > r_end + 1e-9:
+        raise DesignError(
+            "collimator", "TIR wall", "the TIR wall bulges beyond its end radius (not printable as revolved)"
+        )
+    entry_radius = a + collimator.entry_wall_mm
+    if not collimator.tir_is_freeform and np.max(tir_r) >= collimator.footprint_mm / 2:
         raise DesignError(
             "collimator.footprint_mm",
             collimator.footprint_mm,
             f"the TIR surface reaches r = {np.max(tir_r):.3f} mm: the footprint must exceed {2 * np.max(tir_r):.3f} mm",
         )
-    if np.max(tir_r) > r_end + 1e-9:
-        raise DesignError(
-            "collimator", "TIR wall", "the TIR wall bulges beyond its end radius (not printable as revolved)"
-        )
+    if collimator.tir_is_freeform:
+        reach = tir_wall_reach_mm(entry_radius, r_end, collimator.tir_cos2, collimator.tir_cos4)
+        if reach >= collimator.footprint_mm / 2:
+            raise DesignError(
+                "collimator.tir_cos2",
+                collimator.tir_cos2,
+                f"with tir_cos4 = {collimator.tir_cos4} the TIR wall (revolved end r = {r_end:.3f} mm) reaches "
+                f"{reach:.3f} mm towards the flange's sides: the footprint must exceed {2 * reach:.3f} mm",
+            )
+        if abs(tir_r[0] - entry_radius) > 1e-6 or abs(tir_z[0] - g) > 1e-6:
+            raise DesignError(
+                "collimator.tir_cos2",
+                collimator.tir_cos2,
+                "a non-revolved TIR wall needs the wall to start on the entry ring (led_gap_mm = 0 or a cone wall)",
+            )
     return CollimatorProfile(
         refractive_index=n,
         wavelength_nm=float(wavelength_nm),

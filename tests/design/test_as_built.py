@@ -16,7 +16,7 @@ from cm2optics.design.coerce import to_plain
 
 def _hash_without_as_built(design: SystemDesign) -> str:
     """The parameter hash as it was before the section (and ``illumination_as_built``, ``led_array.aim_mm``,
-    ``collimator.lens_freeform_um``, the TIR wall's ``tir_max_radius_mm`` and cone) existed: every part but as_built, the aim only where it is
+    ``collimator.lens_freeform_um``, the TIR wall's ``tir_max_radius_mm``, cone and azimuthal terms) existed: every part but as_built, the aim only where it is
     not the field's centre, the lens's Zernike terms only where one is not zero."""
     data = to_plain(design)
     del data["as_built"], data["illumination_as_built"]
@@ -24,7 +24,7 @@ def _hash_without_as_built(design: SystemDesign) -> str:
         del data["led_array"]["aim_mm"]
     if data["collimator"] is not None and not any(data["collimator"]["lens_freeform_um"]):
         del data["collimator"]["lens_freeform_um"]
-    for wall in ("tir_max_radius_mm", "tir_cone_deg", "tir_cone_curvature_per_mm"):
+    for wall in ("tir_max_radius_mm", "tir_cone_deg", "tir_cone_curvature_per_mm", "tir_cos2", "tir_cos4"):
         if data["collimator"] is not None and data["collimator"][wall] == 0.0:
             del data["collimator"][wall]
     return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()[:16]

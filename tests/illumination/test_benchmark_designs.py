@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from cm2optics.design import load_preset
-from cm2optics.optics.collimator import collimator_profile
+from cm2optics.optics.collimator import collimator_profile, tir_wall_reach_mm
 from cm2optics.optics.layout import unit_clashes
 
 DESIGNS = sorted((Path(__file__).resolve().parents[2] / "benchmarks" / "designs").glob("*.yaml"))
@@ -27,6 +27,10 @@ def test_kept_designs_build_and_clear_the_housing(path):
     collimator = design.collimator
     profile = collimator_profile(design)  # a DesignError when the wall leaves the footprint or the height
     assert profile.tir_r_mm.max() < collimator.footprint_mm / 2
+    reach = tir_wall_reach_mm(
+        profile.outer_radius_entry_mm, profile.tir_r_mm[-1], collimator.tir_cos2, collimator.tir_cos4
+    )
+    assert reach < collimator.footprint_mm / 2  # a wall that departs from revolution fits at every azimuth
     assert profile.tir_z_mm.max() <= profile.flange_bottom_z_mm + 1e-9
     assert design.led_array.excitation_gap_mm == pytest.approx(collimator.led_gap_mm + collimator.height_mm)
     assert unit_clashes(design) == []
