@@ -41,11 +41,13 @@ from cm2optics.lsv.model import LSVModel
 from cm2optics.lsv.preprocess import Geometry, extract_crops, prepared_image
 from cm2optics.lsv.rotation import AzimuthTurn
 
-__all__ = ["TERMS", "held_frames", "leave_out_nodes"]
+__all__ = ["TARGET", "TERMS", "held_frames", "leave_out_nodes"]
 
 Progress = Callable[[str, int, int], None]
 #: Terms (per lenslet for a per-lenslet model) at which the figure is also reported.
 TERMS = (16, 32, 64, 128, 256)
+#: The issue's leave-one-out target (node NMSE); ``nodes_at_or_below_target`` counts the nodes within it.
+TARGET = 0.08
 
 
 def held_frames(
@@ -174,6 +176,8 @@ def leave_out_nodes(
             "nmse_per_node": figures["rank_per_node"],
             "nmse_full_per_node": figures["full_per_node"],
             "n_heldout": figures["n_heldout"],
+            "nodes_at_or_below_target": sum(v <= TARGET for v in figures["rank_per_node"]),
+            "target": TARGET,
         }
     else:
         keep = np.ones(len(gi), bool)

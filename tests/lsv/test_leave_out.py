@@ -79,5 +79,6 @@ def test_refit_of_a_node_model_leaves_the_held_out_nodes_out_of_its_fit_and_its_
     floor = leave_one_out_pixels(crops, index.grid_index(), index.grid_axes_mm(), targets, eps, 1, held=held)
     assert out["nmse_full"] == pytest.approx(floor["at_node_full"], rel=1e-9)
     assert out["nmse"] >= 0 and len(out["nmse_per_lenslet"]) == 9 and set(out["nmse_vs_terms"]) == {"3"}
+    assert out["nodes_at_or_below_target"] == sum(v <= 0.08 for v in out["nmse_per_node"])
     zero = leave_out_nodes(model, scan, n_heldout=3, node_psfs=node_model(0.0))
     assert zero["nmse_full"] == pytest.approx(1.0) and zero["nmse"] == pytest.approx(1.0)
