@@ -30,10 +30,12 @@ Progress = Callable[[str, int, int], None]
 __all__ = [
     "Decomposition",
     "decompose",
+    "basis_gram",
     "decompose_per_lenslet",
     "gram",
     "lenslet_bases",
     "numerical_rank",
+    "lenslet_blocks",
     "products",
     "project",
     "streamed_decompose",
@@ -163,9 +165,17 @@ def _right_vectors(X: np.ndarray, singular: np.ndarray, vectors: np.ndarray) -> 
 COLUMN_CHUNK = 16384
 
 
-def products(X: np.ndarray, basis: np.ndarray) -> np.ndarray:
-    """``X · Bᵀ`` (n, K) in float64 of rows ``X`` (n, D) and a basis ``B`` (K, D), accumulated over
-    column chunks so that neither is converted to float64 whole."""
+def lenslet_blocks(basis: np.ndarray) -> list[np.ndarray] | None:
+    """For a basis (K, J, h, w) whose every term has light in one lenslet at most (a per-lenslet
+    basis, :func:`decompose_per_lenslet`), the term indices of each lenslet; else None."""
+    K, J = basis.shape[:2]
+    lit = np.stack([np.abs(basis[:, j]).reshape(K, -1).max(axis=1) > 0 for j in range(J)], axis=1)
+    if J == 1 or (lit.sum(axis=1) > 1).any():
+        return None
+    return [np.flatnonzero(lit[:, j]) for j in range(J)]
+
+
+def _dense_products(X: np.ndarray, basis: np.ndarray) -> np.ndarray:
     out = np.zeros((len(X), len(basis)))
     for start in range(0, basis.shape[1], COLUMN_CHUNK):
         columns = slice(start, start + COLUMN_CHUNK)
@@ -173,14 +183,38 @@ def products(X: np.ndarray, basis: np.ndarray) -> np.ndarray:
     return out
 
 
+def products(X: np.ndarray, basis: np.ndarray, blocks: list[np.ndarray] | None = None) -> np.ndarray:
+    """``X · Bᵀ`` (n, K) in float64 of rows ``X`` (n, J, h, w) and a basis ``B`` (K, J, h, w),
+    accumulated over column chunks so that neither is converted to float64 whole; with ``blocks``
+    (:func:`lenslet_blocks`) lenslet by lenslet, skipping the products with dark lenslets."""
+    if blocks is None:
+        return _dense_products(X.reshape(len(X), -1), basis.reshape(len(basis), -1))
+    out = np.zeros((len(X), len(basis)))
+    for j, terms in enumerate(blocks):
+        if len(terms):
+            out[:, terms] = _dense_products(X[:, j].reshape(len(X), -1), basis[terms, j].reshape(len(terms), -1))
+    return out
+
+
+def basis_gram(basis: np.ndarray, blocks: list[np.ndarray] | None = None) -> np.ndarray:
+    """``B · Bᵀ`` (K, K) in float64 of a basis (K, J, h, w); with ``blocks`` block by block."""
+    if blocks is None:
+        return gram(basis.reshape(len(basis), -1))
+    G = np.zeros((len(basis), len(basis)))
+    for j, terms in enumerate(blocks):
+        if len(terms):
+            G[np.ix_(terms, terms)] = gram(basis[terms, j].reshape(len(terms), -1))
+    return G
+
+
 def project(crops: np.ndarray | CropStore, basis: np.ndarray) -> np.ndarray:
     """(N, K) coefficients of ``crops`` (N, J, h, w) on an orthonormal ``basis`` (K, J, h, w), in float64 sums."""
-    B = basis.reshape(len(basis), -1)
+    blocks = lenslet_blocks(basis)
     coefficients = np.zeros((len(crops), len(basis)))
     for first, block in position_chunks(crops):
         for start in range(0, len(block), 64):
             rows = block[start : start + 64]
-            coefficients[first + start : first + start + len(rows)] = products(rows.reshape(len(rows), -1), B)
+            coefficients[first + start : first + start + len(rows)] = products(rows, basis, blocks)
     return coefficients.astype(np.float32)
 
 
