@@ -16,6 +16,8 @@ prediction placed at the node's exact sub-pixel focus
   (the model's focal surface, turn and warp as built), the basis decomposed from the other nodes'
   crops (:func:`~cm2optics.lsv.epsf_validate.leave_one_out_pixels`).
 
+The imaging geometry (the chief rays, from which the crops are registered and each frame's
+sub-pixel focus is taken) and a crops model's focal surface are the build's, fitted to all nodes.
 Either way the basis has the model's structure: one basis of K focus arrays, or each lenslet
 its own K terms (:func:`~cm2optics.lsv.decompose.lenslet_bases`, a per-lenslet model). Node NMSE
 Σ_j ‖p_j − y_j‖² / Σ_j ‖y_j‖²; its mean and median over the held-out nodes, per lenslet, full rank
