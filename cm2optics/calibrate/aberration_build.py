@@ -40,6 +40,81 @@ def _node_positions(grid_index: np.ndarray, axes: tuple[np.ndarray, np.ndarray, 
     return np.stack([np.asarray(axes[k], float)[gi[:, k]] for k in range(3)], -1)
 
 
+def _fit_lenslets(
+    design: Any,
+    crops: np.ndarray | CropStore,
+    positions: np.ndarray,
+    fit_nodes: np.ndarray,
+    axes_z_mm: np.ndarray,
+    geometry: Geometry,
+    oversample: int,
+    pixel_um: float,
+    seed: int,
+    progress: Progress | None,
+) -> tuple[dict[int, Any], dict[str, Any]]:
+    """Per lenslet the model fitted to the nodes ``fit_nodes`` (indices into ``positions`` (N, 3)
+    mm and ``crops``) alone: the design's pupils traced there, the placement fitted to their crops
+    within :data:`PLACEMENT_FIELD_SHARE` of the scanned half-width; None for a lenslet with too few
+    lit nodes. Returns the models and a record per lenslet."""
+    from cm2optics.emission.psf import EmissionModel
+    from cm2optics.emission.source import calibration_pinhole
+
+    if oversample < 2 or oversample % 2:
+        raise ValueError(f"--aberration-model needs fine crops (an ePSF scan, even --oversample ≥ 2), not {oversample}")
+    J = crops.shape[1]
+    shape = crops.shape[2:]
+    sample_mm = pixel_um / oversample / 1000.0
+    fit_nodes = np.asarray(fit_nodes)
+    pupils = trace_pupils(
+        EmissionModel(design, calibration_pinhole()), positions[fit_nodes], seed=seed, progress=progress
+    )
+    half_width = np.abs(positions[:, :2]).max(axis=0)
+    near = np.all(np.abs(positions[:, :2]) <= PLACEMENT_FIELD_SHARE * half_width + 1e-9, axis=1)
+    candidates = np.intersect1d(np.flatnonzero(near), fit_nodes)
+    axes_mm = lenslet_axes(geometry, np.asarray(axes_z_mm, float))
+    need = 2 * placement_features(np.zeros(3)).size
+    models: dict[int, Any] = {}
+    record: dict[str, Any] = {}
+    for j in range(J):
+        own = pupils.get(j, [])
+        lit = [n for n in candidates if crops[(int(n), j)].sum() > 0]
+        if len(own) < need or len(lit) < need:  # too few lit nodes to fit: the lenslet's PSFs stay zero
+            models[j] = None
+            record[j] = {"pupils": len(own), "placement_nodes": len(lit), "fitted": False}
+            continue
+        model = fit_lenslet_model(own, tuple(axes_mm[j]), shape, sample_mm, oversample)
+        models[j] = fit_placement(model, [crops[(int(n), j)] for n in lit], positions[lit])
+        record[j] = {"pupils": len(own), "placement_nodes": len(lit), "fitted": True}
+        if progress is not None:
+            progress("aberration model (lenslets fitted)", j + 1, J)
+    return models, record
+
+
+def _dense_positions(positions: np.ndarray, dense: int, seed: int) -> np.ndarray:
+    """``dense`` seeded random positions (mm) uniform over the box of the nodes ``positions``."""
+    rng = np.random.default_rng(seed)
+    return rng.uniform(positions.min(axis=0), positions.max(axis=0), (dense, 3))
+
+
+def _render(
+    models: dict[int, Any],
+    at: np.ndarray,
+    shape: tuple[int, ...],
+    memory_bytes: int,
+    progress: Progress | None,
+    what: str,
+) -> np.ndarray | CropStore:
+    """(len(at), J, h, w) the lenslet ``models``' PSFs at the positions ``at`` (mm); zero for a lenslet not fitted."""
+    out = crop_array((len(at), len(models), *shape), memory_bytes)
+    for j, model in models.items():
+        if model is not None:
+            for m in range(len(at)):
+                out[m, j] = model.predict(at[m])
+        if progress is not None:
+            progress(what, j + 1, len(models))
+    return out
+
+
 def aberration_psfs(
     design: Any,
     crops: np.ndarray | CropStore,
@@ -51,45 +126,31 @@ def aberration_psfs(
     *,
     dense: int = 1000,
     seed: int = 0,
+    held_out: np.ndarray | None = None,
     progress: Progress | None = None,
     memory_bytes: int,
 ) -> tuple[np.ndarray | CropStore, np.ndarray | CropStore, dict[str, Any]]:
     """The model's PSFs at the nodes (N, J, h, w) and at ``dense`` random positions (dense, J, h,
     w), on the fine grid of ``crops`` (``pixel_um`` / ``oversample`` per sample), and a record of
-    the fit. ``design``: the :class:`~cm2optics.design.SystemDesign` whose pupils are traced."""
-    from cm2optics.emission.psf import EmissionModel
-    from cm2optics.emission.source import calibration_pinhole
-
-    if oversample < 2 or oversample % 2:
-        raise ValueError(f"--aberration-model needs fine crops (an ePSF scan, even --oversample ≥ 2), not {oversample}")
+    the fit. ``design``: the :class:`~cm2optics.design.SystemDesign` whose pupils are traced.
+    ``held_out``: node indices (H,) left out of the fit (neither their pupils nor their crops
+    enter it); the node PSFs returned are then those of the held-out nodes alone (H, J, h, w), the
+    model's predictions there (:func:`cm2optics.lsv.leave_out.leave_out_nodes`)."""
     positions = _node_positions(grid_index, axes)
-    N, J = crops.shape[:2]
+    N = len(positions)
+    keep = np.ones(N, bool)
+    if held_out is not None:
+        keep[np.asarray(held_out)] = False
+    models, lenslets = _fit_lenslets(
+        design, crops, positions, np.flatnonzero(keep), axes[2], geometry, oversample, pixel_um, seed, progress
+    )
     shape = crops.shape[2:]
-    sample_mm = pixel_um / oversample / 1000.0
-    pupils = trace_pupils(EmissionModel(design, calibration_pinhole()), positions, seed=seed, progress=progress)
-    half_width = np.abs(positions[:, :2]).max(axis=0)
-    near = np.all(np.abs(positions[:, :2]) <= PLACEMENT_FIELD_SHARE * half_width + 1e-9, axis=1)
-    rng = np.random.default_rng(seed)
-    low, high = positions.min(axis=0), positions.max(axis=0)
-    dense_positions = rng.uniform(low, high, (dense, 3))
-    node_psfs = crop_array((N, J, *shape), memory_bytes)
-    dense_psfs = crop_array((dense, J, *shape), memory_bytes)
-    axes_mm = lenslet_axes(geometry, np.asarray(axes[2], float))
-    need = 2 * placement_features(np.zeros(3)).size
-    record: dict[str, Any] = {"dense_positions": dense, "seed": seed, "lenslets": {}}
-    for j in range(J):
-        own = pupils.get(j, [])
-        lit = [n for n in np.flatnonzero(near) if crops[(int(n), j)].sum() > 0]
-        if len(own) < need or len(lit) < need:  # too few lit nodes to fit: the lenslet's PSFs stay zero
-            record["lenslets"][j] = {"pupils": len(own), "placement_nodes": len(lit), "fitted": False}
-            continue
-        model = fit_lenslet_model(own, tuple(axes_mm[j]), shape, sample_mm, oversample)
-        model = fit_placement(model, [crops[(int(n), j)] for n in lit], positions[lit])
-        for n in range(N):
-            node_psfs[n, j] = model.predict(positions[n])
-        for m in range(dense):
-            dense_psfs[m, j] = model.predict(dense_positions[m])
-        record["lenslets"][j] = {"pupils": len(own), "placement_nodes": len(lit), "fitted": True}
-        if progress is not None:
-            progress("aberration model (lenslets)", j + 1, J)
+    at_nodes = positions if held_out is None else positions[np.asarray(held_out)]
+    node_psfs = _render(models, at_nodes, shape, memory_bytes, progress, "aberration model (node PSFs)")
+    dense_psfs = _render(
+        models, _dense_positions(positions, dense, seed), shape, memory_bytes, progress, "aberration model (basis PSFs)"
+    )
+    record: dict[str, Any] = {"dense_positions": dense, "seed": seed, "lenslets": lenslets}
+    if held_out is not None:
+        record["held_out_nodes"] = int(N - keep.sum())
     return node_psfs, dense_psfs, record

@@ -275,6 +275,21 @@ def _aberration_model(design: Any, dense: int) -> Any:
     return functools.partial(aberration_psfs, design, dense=dense)
 
 
+def _refit_node_model(model: Any, preset: str | None) -> Any:
+    """validate --refit's node model: the build's aberration model (its design, random positions and
+    seed) for a model built with --aberration-model, else None."""
+    record = model.provenance.get("node_psfs")
+    if record is None:
+        return None
+    from cm2optics.calibrate.aberration_build import aberration_psfs
+    from cm2optics.design import load_preset
+
+    name = preset or model.provenance.get("options", {}).get("design") or "cm2-v2"
+    return functools.partial(
+        aberration_psfs, load_preset(name), dense=int(record["dense_positions"]), seed=int(record.get("seed", 0))
+    )
+
+
 def _build_paths(
     scan_dir: Path, out: Path | None, report_dir: Path | None, no_report: bool, preset: str, overwrite: bool
 ) -> tuple[Path, Path]:
@@ -375,6 +390,22 @@ def validate(
         bool, typer.Option("--no-subsample", help="Skip the sparser-grid (2× lateral / 2× axial) models.")
     ] = False,
     seed: Annotated[int, typer.Option("--seed", help="Seed of the held-out sample.")] = 0,
+    refit: Annotated[
+        bool,
+        typer.Option(
+            "--refit",
+            help="Also leave-one-out in pixels with the model's build redone without the --heldout nodes: the node "
+            "model (--aberration-model) refitted and the basis (per lenslet for a per-lenslet model) decomposed "
+            "without them, each node predicted at its exact sub-pixel focus in its own frame (JSON key leave_out).",
+        ),
+    ] = False,
+    preset: Annotated[
+        str | None,
+        typer.Option("--preset", help="Design whose pupils --refit traces (default: the model's own, from its build)."),
+    ] = None,
+    memory_gb: Annotated[
+        float, typer.Option("--memory-gb", help="--refit: crops larger than this stay on disk.")
+    ] = 4.0,
     as_json: JsonOption = False,
 ) -> None:
     """Error of a model at scan positions it was not built from.
@@ -382,15 +413,21 @@ def validate(
     On its own calibration scan: leave-one-out (each held-out node predicted from its neighbours
     with the SVD redone without it). On another scan: the model's image of each position against
     the measured one. Both: against K, and for models built on a 2× sparser grid laterally or
-    axially. JSON keys include nmse_heldout, nmse_heldout_vs_rank, nmse_subsampled.
+    axially. With --refit (the calibration scan only): the issue's leave-one-out in pixels of the
+    model as built, the node model and basis fitted again without the held-out nodes. JSON keys
+    include nmse_heldout, nmse_heldout_vs_rank, nmse_subsampled; with --refit leave_out (nmse,
+    nmse_median, nmse_full, nmse_per_lenslet, nmse_vs_terms).
     """
     from cm2optics.lsv.model import load_model
     from cm2optics.lsv.validate import validate_model
 
     if heldout < 1 or max_positions < 1:
         raise UserError("--heldout and --max-positions must be ≥ 1")
+    if not memory_gb > 0:
+        raise UserError(f"--memory-gb = {memory_gb}: must be > 0")
     wanted = parse_int_list(ranks or None, name="--ranks", low=1, example="8,16,32,64")
     model = load_model(model_path)
+    node_psfs = _refit_node_model(model, preset) if refit else None
     with _progress(not as_json) as progress:
         result = validate_model(
             model,
@@ -402,6 +439,20 @@ def validate(
             seed=seed,
             progress=progress,
         )
+        if refit:
+            from cm2optics.lsv.leave_out import leave_out_nodes
+
+            if result["method"] != "leave-one-out":
+                raise UserError(f"--refit needs the model's own calibration scan; {scan_dir} is another scan")
+            result["leave_out"] = leave_out_nodes(
+                model,
+                scan_dir,
+                n_heldout=heldout,
+                seed=seed,
+                node_psfs=node_psfs,
+                memory_bytes=int(memory_gb * 1024**3),
+                progress=progress,
+            )
     if as_json:
         print(json.dumps(result, indent=2, ensure_ascii=False))
         return
@@ -411,6 +462,12 @@ def validate(
     for k, v in result["nmse_heldout_vs_rank"].items():
         table.add_row(k, "—" if v is None else f"{v:.4g}")
     _out.print(table)
+    leave_out = result.get("leave_out")
+    if leave_out:
+        _out.print(
+            f"leave-one-out in pixels, refitted ({leave_out['basis']}, {leave_out['n_heldout']} nodes): NMSE mean "
+            f"{leave_out['nmse']:.4g} (median {leave_out['nmse_median']:.4g}), full rank {leave_out['nmse_full']:.4g}"
+        )
     if "nmse_subsampled" in result:
         sub = result["nmse_subsampled"]
         _out.print(

@@ -31,9 +31,12 @@ from cm2optics.formats.volume import VolumeGrid
 from cm2optics.lsv.crop_store import DEFAULT_MEMORY_BYTES, CropStore, position_chunks
 from cm2optics.lsv.decompose import (
     Decomposition,
+    basis_gram,
     decompose,
     decompose_per_lenslet,
+    lenslet_blocks,
     numerical_rank,
+    products,
     project,
     trim_window,
 )
@@ -602,16 +605,18 @@ def node_nmse(decomposition: Decomposition, crops: np.ndarray | CropStore) -> tu
     estimated ePSF basis). Float64 sums over a few positions at a time: ``‖x‖² − 2 c·(B x) + cᵀ G c``."""
     if decomposition.basis.shape[1:] != crops.shape[1:]:
         return None
-    basis = decomposition.basis.reshape(decomposition.rank, -1).astype(np.float64)
+    basis = decomposition.basis
+    blocks = lenslet_blocks(basis)
     norms = np.zeros(len(crops))
     projections = np.zeros((len(crops), len(basis)))
-    gram = basis @ basis.T
+    gram = basis_gram(basis, blocks)
     for first, block in position_chunks(crops):
         for start in range(0, len(block), FLOAT64_ROWS):
-            x = block[start : start + FLOAT64_ROWS].reshape(-1, basis.shape[1]).astype(np.float64)
+            x = block[start : start + FLOAT64_ROWS]
             rows = slice(first + start, first + start + len(x))
-            norms[rows] = np.einsum("np,np->n", x, x)
-            projections[rows] = x @ basis.T
+            flat = x.reshape(len(x), -1)
+            norms[rows] = np.einsum("np,np->n", flat, flat, dtype=np.float64)
+            projections[rows] = products(x, basis, blocks)
     c = decomposition.coefficients.astype(np.float64)
     errors = np.clip(
         norms - 2.0 * np.einsum("nk,nk->n", c, projections) + np.einsum("nk,kl,nl->n", c, gram, c), 0, None
@@ -647,13 +652,13 @@ def keep_node_flux(decomposition: Decomposition, crops: np.ndarray | CropStore) 
     ePSF scan the K = 64 model's node fluxes were 0.5–1.2 of their crops'). ``crops`` (N, J, h, w)
     on the basis's grid or a whole-pixel one (an estimated ePSF basis): flux = sum × the sample
     area. Returns the decomposition and each node's flux ratio before (N,)."""
-    basis = decomposition.basis.reshape(decomposition.rank, -1).astype(np.float64)
+    basis = decomposition.basis
     area = (crops.shape[-2] * crops.shape[-1]) / (decomposition.basis.shape[-2] * decomposition.basis.shape[-1])
-    b = basis.sum(axis=1) * area  # (K,) flux of each basis PSF in the crops' samples
+    b = basis.reshape(len(basis), -1).sum(axis=1, dtype=np.float64) * area  # (K,) flux of each basis PSF
     target = np.concatenate([block.sum(axis=(1, 2, 3), dtype=np.float64) for _, block in position_chunks(crops)])
     c = decomposition.coefficients.astype(np.float64)
     modelled = c @ b
-    direction = np.linalg.lstsq(basis @ basis.T, b, rcond=None)[0]  # G⁻¹ b
+    direction = np.linalg.lstsq(basis_gram(basis, lenslet_blocks(basis)), b, rcond=None)[0]  # G⁻¹ b
     denominator = float(b @ direction)
     if not denominator > 0:
         return decomposition, np.ones(len(c))

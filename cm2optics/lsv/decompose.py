@@ -30,8 +30,13 @@ Progress = Callable[[str, int, int], None]
 __all__ = [
     "Decomposition",
     "decompose",
+    "basis_gram",
     "decompose_per_lenslet",
+    "gram",
+    "lenslet_bases",
     "numerical_rank",
+    "lenslet_blocks",
+    "products",
     "project",
     "streamed_decompose",
     "trim_window",
@@ -88,17 +93,12 @@ def decompose_per_lenslet(crops: np.ndarray | CropStore, rank: int, progress: Pr
     N, J = crops.shape[:2]
     lenslet_of, singular, coefficients, blocks = [], [], [], []
     norms = np.zeros(N)
-    for j in range(J):
-        X = np.asarray(crops[:, j : j + 1]).reshape(N, -1)
-        s, vectors, n = _gram_svd(X)
-        K = _kept_rank(s, rank, N)
-        blocks.append(_right_vectors(X, s[:K], vectors[:, :K]))
+    for j, (block, s, c, n) in enumerate(_lenslet_svds(crops, rank, progress)):
+        blocks.append(block)
         lenslet_of.append(np.full(len(s), j))
         singular.append(s)
-        coefficients.append(vectors * s)
+        coefficients.append(c)
         norms += n
-        if progress:
-            progress("per-lenslet SVD (lenslets)", j + 1, J)
     kept = [len(b) for b in blocks]
     term = np.concatenate([np.arange(len(s)) for s in singular])
     lenslet_of, singular = np.concatenate(lenslet_of), np.concatenate(singular)
@@ -111,6 +111,31 @@ def decompose_per_lenslet(crops: np.ndarray | CropStore, rank: int, progress: Pr
         basis[i, j] = blocks[j][k].reshape(crops.shape[2:])
     all_coefficients = np.concatenate(coefficients, axis=1)[:, order]
     return _decomposition(basis, all_coefficients, singular[order], norms)
+
+
+def _lenslet_svds(
+    crops: np.ndarray | CropStore, rank: int, progress: Progress | None
+) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+    """Per lenslet j of ``crops`` (N, J, h, w): its kept right singular vectors (K_j, h·w) float64,
+    all its singular values (N,), its coefficients (N, N) and its crops' squared norms (N,)."""
+    N, J = crops.shape[:2]
+    for j in range(J):
+        X = np.asarray(crops[:, j : j + 1]).reshape(N, -1)
+        s, vectors, n = _gram_svd(X)
+        K = _kept_rank(s, rank, N)
+        yield _right_vectors(X, s[:K], vectors[:, :K]), s, vectors * s, n
+        if progress:
+            progress("per-lenslet SVD (lenslets)", j + 1, J)
+
+
+def lenslet_bases(crops: np.ndarray | CropStore, rank: int, progress: Progress | None = None) -> list[np.ndarray]:
+    """Each lenslet's own orthonormal basis (K_j, h, w) float32 of its foci ``crops[:, j]`` (N, J,
+    h, w): the blocks of :func:`decompose_per_lenslet` kept apart (J·K·h·w numbers, not J²·K·h·w),
+    ``rank`` terms each at most, in the order of their singular values."""
+    shape = crops.shape[2:]
+    return [
+        block.reshape((len(block),) + shape).astype(np.float32) for block, *_ in _lenslet_svds(crops, rank, progress)
+    ]
 
 
 def _gram_svd(X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -135,16 +160,61 @@ def _right_vectors(X: np.ndarray, singular: np.ndarray, vectors: np.ndarray) -> 
     return basis
 
 
+#: Columns (pixels) of a basis converted to float64 at a time: a large basis (a per-lenslet one at
+#: K = 128 is 1152 focus arrays) is never held whole in float64.
+COLUMN_CHUNK = 16384
+
+
+def lenslet_blocks(basis: np.ndarray) -> list[np.ndarray] | None:
+    """For a basis (K, J, h, w) whose every term has light in one lenslet at most (a per-lenslet
+    basis, :func:`decompose_per_lenslet`), the term indices of each lenslet; else None."""
+    K, J = basis.shape[:2]
+    lit = np.stack([np.abs(basis[:, j]).reshape(K, -1).max(axis=1) > 0 for j in range(J)], axis=1)
+    if J == 1 or (lit.sum(axis=1) > 1).any():
+        return None
+    return [np.flatnonzero(lit[:, j]) for j in range(J)]
+
+
+def _dense_products(X: np.ndarray, basis: np.ndarray) -> np.ndarray:
+    out = np.zeros((len(X), len(basis)))
+    for start in range(0, basis.shape[1], COLUMN_CHUNK):
+        columns = slice(start, start + COLUMN_CHUNK)
+        out += X[:, columns].astype(np.float64) @ basis[:, columns].astype(np.float64).T
+    return out
+
+
+def products(X: np.ndarray, basis: np.ndarray, blocks: list[np.ndarray] | None = None) -> np.ndarray:
+    """``X · Bᵀ`` (n, K) in float64 of rows ``X`` (n, J, h, w) and a basis ``B`` (K, J, h, w),
+    accumulated over column chunks so that neither is converted to float64 whole; with ``blocks``
+    (:func:`lenslet_blocks`) lenslet by lenslet, skipping the products with dark lenslets."""
+    if blocks is None:
+        return _dense_products(X.reshape(len(X), -1), basis.reshape(len(basis), -1))
+    out = np.zeros((len(X), len(basis)))
+    for j, terms in enumerate(blocks):
+        if len(terms):
+            out[:, terms] = _dense_products(X[:, j].reshape(len(X), -1), basis[terms, j].reshape(len(terms), -1))
+    return out
+
+
+def basis_gram(basis: np.ndarray, blocks: list[np.ndarray] | None = None) -> np.ndarray:
+    """``B · Bᵀ`` (K, K) in float64 of a basis (K, J, h, w); with ``blocks`` block by block."""
+    if blocks is None:
+        return gram(basis.reshape(len(basis), -1))
+    G = np.zeros((len(basis), len(basis)))
+    for j, terms in enumerate(blocks):
+        if len(terms):
+            G[np.ix_(terms, terms)] = gram(basis[terms, j].reshape(len(terms), -1))
+    return G
+
+
 def project(crops: np.ndarray | CropStore, basis: np.ndarray) -> np.ndarray:
     """(N, K) coefficients of ``crops`` (N, J, h, w) on an orthonormal ``basis`` (K, J, h, w), in float64 sums."""
-    B = basis.reshape(len(basis), -1).astype(np.float64)
+    blocks = lenslet_blocks(basis)
     coefficients = np.zeros((len(crops), len(basis)))
     for first, block in position_chunks(crops):
-        for start in range(0, len(block), 32):
-            rows = block[start : start + 32]
-            coefficients[first + start : first + start + len(rows)] = (
-                rows.reshape(len(rows), -1).astype(np.float64) @ B.T
-            )
+        for start in range(0, len(block), 64):
+            rows = block[start : start + 64]
+            coefficients[first + start : first + start + len(rows)] = products(rows, basis, blocks)
     return coefficients.astype(np.float32)
 
 
@@ -169,7 +239,7 @@ def _decomposition(
     per_psf = 1.0 - cumulative[valid] / norms[valid, None]
     nmse_per_psf = np.clip(per_psf, 0, None).mean(axis=0) if valid.any() else np.zeros(len(captured))
     return Decomposition(
-        basis=basis.astype(np.float32),
+        basis=basis.astype(np.float32, copy=False),
         coefficients=coefficients[:, :K].astype(np.float32),
         singular_values=singular,
         nmse=np.clip(nmse, 0, None),

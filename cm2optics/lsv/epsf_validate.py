@@ -33,7 +33,14 @@ from cm2optics.lsv.interpolate import axis_coordinate, tent_pairs
 from cm2optics.lsv.rotation import AzimuthTurn
 from cm2optics.lsv.warp import displacement_blend
 
-__all__ = ["heldout_nodes", "leave_one_out_pixels", "predicted_nodes_nmse", "turn_check", "undithered_axis"]
+__all__ = [
+    "heldout_nodes",
+    "leave_one_out_pixels",
+    "predicted_nodes_nmse",
+    "projector",
+    "turn_check",
+    "undithered_axis",
+]
 
 
 def undithered_axis(values_mm: np.ndarray, px_per_mm: float, within_px: float) -> np.ndarray:
@@ -66,12 +73,65 @@ def _place(patch: np.ndarray, eps: np.ndarray, S: int) -> np.ndarray:
     return place_epsf(patch, (eps[0], eps[1]), S) if S > 1 else _shift_patch(patch, (eps[0], eps[1]))
 
 
+def _frame_errors(prediction: np.ndarray, frame: np.ndarray, eps: np.ndarray, S: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per lenslet ‖p_j − y_j‖² and ‖y_j‖² (J,) of the PSFs ``prediction`` (J, h·S, w·S) placed at
+    the foci's sub-pixel fractions ``eps`` (J, 2) against the node's ``frame`` (J, h+3, w+3)."""
+    placed = np.stack([_place(prediction[j], eps[j], S) for j in range(len(prediction))])
+    y = np.asarray(frame, np.float64)
+    return ((placed - y) ** 2).sum(axis=(1, 2)), (y**2).sum(axis=(1, 2))
+
+
 def _frame_nmse(prediction: np.ndarray, frame: np.ndarray, eps: np.ndarray, S: int) -> float:
     """Σ_j ‖p_j − y_j‖² / Σ_j ‖y_j‖² of the PSFs ``prediction`` (J, h·S, w·S) placed at the foci's
     sub-pixel fractions ``eps`` (J, 2) against the node's ``frame`` (J, h+3, w+3)."""
-    placed = np.stack([_place(prediction[j], eps[j], S) for j in range(len(prediction))])
-    y = np.asarray(frame, np.float64)
-    return float(((placed - y) ** 2).sum() / max((y**2).sum(), 1e-300))
+    error, norm = _frame_errors(prediction, frame, eps, S)
+    return float(error.sum() / max(norm.sum(), 1e-300))
+
+
+#: A lenslet's focus counts as lit in a node's frame (for the per-lenslet figures) where its
+#: energy is above this share of the node's brightest focus.
+LIT_SHARE = 1e-6
+
+
+def projector(basis: np.ndarray | list[np.ndarray], terms: int | None = None):
+    """x (J, h, w) → its orthogonal projection on ``basis``: one basis of focus arrays (K, J, h, w)
+    (its first ``terms``), or per-lenslet bases ``[(K_j, h, w)]`` (each lenslet's first ``terms``
+    projected on its own), orthonormal, in float64."""
+    if isinstance(basis, np.ndarray):
+        B = basis[:terms].reshape(len(basis[:terms]), -1).astype(np.float64)
+
+        def project(x: np.ndarray) -> np.ndarray:
+            return (B.T @ (B @ x.reshape(-1).astype(np.float64))).reshape(x.shape)
+
+        return project
+    blocks = [b[:terms].reshape(len(b[:terms]), -1).astype(np.float64) for b in basis]
+
+    def project_lenslets(x: np.ndarray) -> np.ndarray:
+        out = np.zeros(x.shape)
+        for j, B in enumerate(blocks):
+            out[j] = (B.T @ (B @ x[j].reshape(-1).astype(np.float64))).reshape(x.shape[1:])
+        return out
+
+    return project_lenslets
+
+
+def _summary(errors: list[tuple[np.ndarray, np.ndarray]], name: str) -> dict[str, Any]:
+    """Per-node NMSE (Σ_j over the lenslets), its mean and median, and each lenslet's own mean
+    and median over the nodes where it is lit (:data:`LIT_SHARE`), keys prefixed ``name``."""
+    per_node = [float(e.sum() / max(n.sum(), 1e-300)) for e, n in errors]
+    J = len(errors[0][0]) if errors else 0
+    lenslet: list[list[float]] = [[] for _ in range(J)]
+    for e, n in errors:
+        for j in np.flatnonzero(n > LIT_SHARE * n.max()):
+            lenslet[j].append(float(e[j] / n[j]))
+    return {
+        name: float(np.mean(per_node)) if per_node else None,
+        f"{name}_per_node": per_node,
+        f"{name}_median": float(np.median(per_node)) if per_node else None,
+        f"{name}_per_lenslet": [float(np.mean(v)) if v else None for v in lenslet],
+        f"{name}_per_lenslet_median": [float(np.median(v)) if v else None for v in lenslet],
+        f"{name}_per_lenslet_nodes": [len(v) for v in lenslet],
+    }
 
 
 def predicted_nodes_nmse(
@@ -80,19 +140,38 @@ def predicted_nodes_nmse(
     eps: np.ndarray,
     held: np.ndarray,
     oversample: int,
-    basis: np.ndarray | None = None,
+    basis: np.ndarray | list[np.ndarray] | None = None,
+    terms: tuple[int, ...] = (),
 ) -> dict[str, Any]:
     """Held-out NMSE, as :func:`leave_one_out_pixels` measures it, of node PSFs predicted by a
     model fitted without them: ``predictions`` (H, J, h·S, w·S) of the nodes ``held`` (H,),
     registered as the crops, against ``targets``/``eps`` (N, …) as there; with ``basis`` (K, J,
-    h·S, w·S, orthonormal) also projected on it first (``rank``). Per node and the means."""
-    full = [_frame_nmse(p, targets[n], eps[n], oversample) for p, n in zip(predictions, held, strict=True)]
-    out: dict[str, Any] = {"full": float(np.mean(full)), "full_per_node": full, "n_heldout": len(full)}
+    h·S, w·S, orthonormal; or per-lenslet bases ``[(K_j, h·S, w·S)]``, :func:`projector`) also
+    projected on it first (``rank``), and on its first k terms (per lenslet) for each k of
+    ``terms`` (``rank_vs_terms``). Per node, the mean and median, and per lenslet."""
+    full = [_frame_errors(p, targets[n], eps[n], oversample) for p, n in zip(predictions, held, strict=True)]
+    out: dict[str, Any] = _summary(full, "full") | {"n_heldout": len(full)}
     if basis is not None:
-        B = basis.reshape(len(basis), -1).astype(np.float64)
-        projected = [(B.T @ (B @ p.reshape(-1).astype(np.float64))).reshape(p.shape) for p in predictions]
-        rank = [_frame_nmse(p, targets[n], eps[n], oversample) for p, n in zip(projected, held, strict=True)]
-        out |= {"rank": float(np.mean(rank)), "rank_per_node": rank, "K": int(len(basis))}
+        project = projector(basis)
+        rank = [
+            _frame_errors(project(p), targets[n], eps[n], oversample) for p, n in zip(predictions, held, strict=True)
+        ]
+        out |= _summary(rank, "rank")
+        if isinstance(basis, np.ndarray):
+            out["K"] = int(len(basis))
+        else:
+            out["K"] = int(sum(len(b) for b in basis))
+            out["K_per_lenslet"] = [int(len(b)) for b in basis]
+        vs: dict[str, float] = {}
+        for k in terms:
+            truncated = projector(basis, k)
+            errors = [
+                _frame_nmse(truncated(p), targets[n], eps[n], oversample)
+                for p, n in zip(predictions, held, strict=True)
+            ]
+            vs[str(k)] = float(np.mean(errors))
+        if vs:
+            out["rank_vs_terms"] = vs
     return out
 
 
@@ -179,7 +258,7 @@ def leave_one_out_pixels(
     *,
     rank: int = 64,
     held: np.ndarray,
-    basis: np.ndarray | None = None,
+    basis: np.ndarray | list[np.ndarray] | None = None,
     surface: FocalSurface | None = None,
     turn: AzimuthTurn | None = None,
     warp: bool = False,
@@ -187,8 +266,9 @@ def leave_one_out_pixels(
     """Held-out NMSE (module docstring) of the node PSFs ``crops`` (N, J, h·S, w·S) registered on
     the chief rays, against ``targets`` (N, J, h+3, w+3): each node's frame whose pixel (1 +
     h//2, 1 + w//2) holds the chief ray's integer part, ``eps`` (N, J, 2) its fraction.
-    ``held``: the held-out nodes. ``basis``: a rank-K basis (K, J, h·S, w·S) to project on
-    (default: the SVD of the nodes not held out). ``surface``: each lenslet's best-focus surface;
+    ``held``: the held-out nodes. ``basis``: a rank-K basis (K, J, h·S, w·S) to project on, or
+    per-lenslet bases ``[(K_j, h·S, w·S)]`` (:func:`projector`; default: the SVD of the nodes not
+    held out). ``surface``: each lenslet's best-focus surface;
     with it a lateral neighbour's PSF is taken at the same defocus from the local best focus
     (``z − z_best(x_n, y_n) + z_best(x_a, y_a)``, its axial stack interpolated linearly), as
     :func:`cm2optics.lsv.interpolate.defocus_nodes` does. ``turn``: each lateral neighbour's PSFs
@@ -201,11 +281,7 @@ def leave_one_out_pixels(
     keep[held] = False
     if basis is None:
         basis = decompose(crops[keep], rank).basis
-    B = basis.reshape(len(basis), -1).astype(np.float64)
-
-    def project(x: np.ndarray) -> np.ndarray:
-        flat = x.reshape(-1).astype(np.float64)
-        return (B.T @ (B @ flat)).reshape(x.shape)
+    project = projector(basis)
 
     row_of = {tuple(k): n for n, k in enumerate(np.asarray(grid_index))}
     out: dict[str, list[float]] = {
@@ -229,10 +305,13 @@ def leave_one_out_pixels(
         for name, prediction in predictions.items():
             per_axis[name].append(nmse(project(prediction), n))
     result = {k: float(np.mean(v)) if v else None for k, v in out.items()}
+    result["interpolated_rank_median"] = (
+        float(np.median(out["interpolated_rank"])) if out["interpolated_rank"] else None
+    )
     result["per_axis_rank"] = {k: float(np.mean(v)) if v else None for k, v in per_axis.items()}
     result["n_heldout"] = int(len(out["interpolated_rank"]))
     result["oversample"] = S
-    result["rank"] = int(len(basis))
+    result["rank"] = int(len(basis)) if isinstance(basis, np.ndarray) else int(sum(len(b) for b in basis))
     if result["at_node_full"] is not None:
         result["parts"] = {
             "sub_pixel_phase": result["at_node_full"],

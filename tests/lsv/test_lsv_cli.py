@@ -85,10 +85,15 @@ def test_build_a_per_lenslet_basis(scan, tmp_path):
     assert image.sum() > 0 and np.isfinite(image).all()
     with pytest.warns(UserWarning, match="per-lenslet basis"):  # validate's check is of another structure: said so
         result = runner.invoke(
-            app, ["lsv", "validate", str(out), str(scan), "--json", "--no-subsample", "--heldout", "4"]
+            app, ["lsv", "validate", str(out), str(scan), "--json", "--no-subsample", "--heldout", "4", "--refit"]
         )
     assert result.exit_code == 0, result.output
-    assert "one basis of focus arrays" in json.loads(result.stdout)["basis_warning"]
+    data = json.loads(result.stdout)
+    assert "one basis of focus arrays" in data["basis_warning"]
+    # --refit: the model's own structure, its basis decomposed per lenslet without the held-out nodes
+    leave_out = data["leave_out"]
+    assert leave_out["basis"] == "per lenslet, 4 terms each" and leave_out["n_heldout"] == 4
+    assert 0 <= leave_out["nmse"] < 1 and leave_out["nmse_median"] >= 0 and leave_out["nmse_full"] >= 0
 
 
 def test_validate_json_on_the_calibration_scan(model, scan):
@@ -264,6 +269,7 @@ def test_simulate_volume_per_lenslet_and_lsi(model, tmp_path):
         (["lsv", "build", "{scan}", "--aberration-model", "100"], "--aberration-model needs an ePSF basis"),
         (["lsv", "validate", "/no/model.h5", "{scan}"], "no such model file"),
         (["lsv", "validate", "{model}", "{scan}", "--ranks", "a,b"], "--ranks"),
+        (["lsv", "validate", "{model}", "{scan}", "--refit", "--memory-gb", "0"], "--memory-gb = 0.0: must be > 0"),
         (["simulate", "--model", "{model}", "--out", "x.tif"], "exactly one of --volume and --emitters"),
         (["simulate", "--model", "{model}", "--emitters", "/no/e.csv", "--out", "x.tif"], "no such emitter file"),
         (["simulate", "--model", "{model}", "--volume", "{scan}/scan.yaml", "--out", "x.tif"], "unknown volume format"),

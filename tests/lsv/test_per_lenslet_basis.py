@@ -128,3 +128,15 @@ def test_an_epsf_estimated_from_whole_pixel_frames_refuses_a_per_lenslet_basis()
             frames=(None, None),  # whole-pixel frames: the ePSF basis would be estimated jointly
             per_lenslet=True,
         )
+
+
+def test_lenslet_by_lenslet_products_and_gram_equal_the_dense_ones():
+    from cm2optics.lsv.decompose import basis_gram, lenslet_blocks, products
+
+    crops = _lenslet_crops(seed=2)
+    basis = decompose_per_lenslet(crops, rank=3).basis
+    blocks = lenslet_blocks(basis)
+    assert [len(b) for b in blocks] == [2, 3, 1] and lenslet_blocks(decompose(crops, 3).basis) is None
+    np.testing.assert_allclose(products(crops, basis, blocks), products(crops, basis), rtol=1e-10, atol=1e-10)
+    np.testing.assert_allclose(basis_gram(basis, blocks), basis_gram(basis), rtol=1e-10, atol=1e-10)
+    np.testing.assert_allclose(basis_gram(basis, blocks), np.eye(6), atol=1e-5)

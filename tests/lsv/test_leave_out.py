@@ -1,0 +1,84 @@
+"""`cm2 lsv validate --refit`: leave-one-out in pixels with the build redone without the held-out
+nodes, on a tiny analytic scan (whole pixels): the plumbing against closed forms and against
+:func:`~cm2optics.lsv.epsf_validate.leave_one_out_pixels` on the same nodes."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from cm2optics.formats.scan import open_scan
+from cm2optics.lsv.build import build_model
+from cm2optics.lsv.decompose import lenslet_bases
+from cm2optics.lsv.epsf_validate import heldout_nodes, leave_one_out_pixels
+from cm2optics.lsv.leave_out import held_frames, leave_out_nodes
+from cm2optics.lsv.preprocess import extract_crops
+from cm2optics.lsv.toy import AnalyticCM2, write_analytic_scan
+
+
+@pytest.fixture(scope="module")
+def built(v2, tmp_path_factory):
+    analytic = AnalyticCM2.from_design(v2, binning=8, sigma0_um=19.2)
+    axis = np.linspace(-3, 3, 4)
+    scan = write_analytic_scan(
+        tmp_path_factory.mktemp("leave_out") / "scan", analytic, axis, axis, np.linspace(-0.3, 0.3, 3), binning=8
+    )
+    result = build_model(scan, rank=3, per_lenslet_basis=True, rotate=False, warp=False, design=v2)
+    return scan, result.model
+
+
+def test_refit_of_the_crops_is_leave_one_out_pixels_on_per_lenslet_bases(built):
+    scan, model = built
+    out = leave_out_nodes(model, scan, n_heldout=3, seed=1)
+    assert out["basis"] == "per lenslet, 3 terms each" and out["n_heldout"] == 3 and out["oversample"] == 1
+    index = open_scan(scan)
+    gi = index.grid_index()
+    held = heldout_nodes(gi, 3, 1)
+    assert out["held_out_nodes"] == held.tolist()
+    patch = model.provenance["options"]["patch_px"]
+    crops = extract_crops(index, model.geometry, (patch, patch))
+    targets, eps = held_frames(index, model.geometry, held, (patch, patch))
+    keep = np.ones(len(gi), bool)
+    keep[held] = False
+    bases = lenslet_bases(crops[keep], 3)
+    assert all(len(b) == 3 for b in bases)
+    expected = leave_one_out_pixels(
+        crops, gi, index.grid_axes_mm(), targets, eps, 1, held=held, basis=bases, surface=model.focal_surface
+    )
+    assert out["nmse"] == pytest.approx(expected["interpolated_rank"], rel=1e-9)
+    assert out["nmse_full"] == pytest.approx(expected["interpolated_full"], rel=1e-9)
+    assert 0 < out["nmse_full"] < 1
+
+
+def test_refit_of_a_node_model_leaves_the_held_out_nodes_out_of_its_fit_and_its_basis(built):
+    scan, model = built
+    model = replace(model, provenance={**model.provenance, "node_psfs": {"dense_positions": 0}})
+    index = open_scan(scan)
+    held = heldout_nodes(index.grid_index(), 3, 0)
+    seen = {}
+
+    def node_model(scale):
+        def node_psfs(crops, grid_index, axes, geometry, S, pixel_um, *, held_out, progress, memory_bytes):
+            seen["held_out"] = np.asarray(held_out).tolist()
+            others = np.setdiff1d(np.arange(len(crops)), held_out)
+            # a model that knows each held-out node exactly (its own registered crop), basis from the others
+            return scale * np.asarray(crops)[held_out], np.asarray(crops)[others], {"dense_positions": len(others)}
+
+        return node_psfs
+
+    with pytest.raises(ValueError, match="needs it"):
+        leave_out_nodes(model, scan, n_heldout=3)
+    out = leave_out_nodes(model, scan, n_heldout=3, node_psfs=node_model(1.0))
+    assert seen["held_out"] == held.tolist()
+    # the floor: the node's own crop placed back at its sub-pixel focus (Keys, whole pixels)
+    patch = model.provenance["options"]["patch_px"]
+    crops = extract_crops(index, model.geometry, (patch, patch))
+    targets, eps = held_frames(index, model.geometry, held, (patch, patch))
+    floor = leave_one_out_pixels(crops, index.grid_index(), index.grid_axes_mm(), targets, eps, 1, held=held)
+    assert out["nmse_full"] == pytest.approx(floor["at_node_full"], rel=1e-9)
+    assert out["nmse"] >= 0 and len(out["nmse_per_lenslet"]) == 9 and set(out["nmse_vs_terms"]) == {"3"}
+    assert out["nodes_at_or_below_target"] == sum(v <= 0.08 for v in out["nmse_per_node"])
+    zero = leave_out_nodes(model, scan, n_heldout=3, node_psfs=node_model(0.0))
+    assert zero["nmse_full"] == pytest.approx(1.0) and zero["nmse"] == pytest.approx(1.0)
