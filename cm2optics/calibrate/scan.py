@@ -235,6 +235,10 @@ def _fit_record(subset: np.ndarray, attribution: Attribution, problem: Problem) 
             for s in attribution.steps
         ],
         "registration": attribution.registration.to_dict(),
+        # the sensor's smooth gain, fitted as a nuisance beside the effects (attribute.FLAT_FIELD), or None
+        "flat_field": None
+        if attribution.flat_field is None
+        else {k: round(float(v), 5) for k, v in attribution.flat_field.items()},
     }
 
 
