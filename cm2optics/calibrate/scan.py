@@ -31,7 +31,14 @@ from warnings import catch_warnings, simplefilter
 
 import numpy as np
 
-from cm2optics.calibrate.acquisition import bright_foci, flux_drift, spread_rate_per_mm, stage_errors, stage_z_scale
+from cm2optics.calibrate.acquisition import (
+    bright_foci,
+    flux_drift,
+    spread_rate_per_mm,
+    stage_errors,
+    stage_xy_map,
+    stage_z_scale,
+)
 from cm2optics.calibrate.attribute import Attribution, Problem, attribute
 from cm2optics.calibrate.background import BackgroundStructure, background_entry, background_structure
 from cm2optics.calibrate.defects import defective_pixels, describe_defects, fill_defects
@@ -347,10 +354,11 @@ def calibrate_scan(
     vertices = lenslet_vertices_px(design, scan.meta.binning)
     drift, stage = flux_drift(after), stage_errors(after, simulator.pixel_um, vertices)
     z_scale = stage_z_scale(after, spread_rate_per_mm(design, positions[:, 2]))
+    xy_map = stage_xy_map(after, vertices)
     background = background_structure(after, scan.exposure_ms)
     gain_map = sensor_gain(after, vertices, per_frame=drift is not None)
     gain_warning = None if gain_map is None else describe_sensor_gain(gain_map, scan.meta.binning)
-    for warning in (drift, stage, z_scale, gain_warning):
+    for warning in (drift, stage, xy_map, z_scale, gain_warning):
         if warning is not None:
             say(f"warning: {warning}")
             warnings.append(warning)
@@ -369,11 +377,17 @@ def calibrate_scan(
         "before": before.to_dict(),
         "after": after.to_dict(),
     }
-    if stage is not None or z_scale is not None:  # the source was elsewhere: every residual of those frames shows it
+    if (
+        stage is not None or z_scale is not None or xy_map is not None
+    ):  # the source was elsewhere: its residuals show it
         for entry in document["unexplained"]:
             found = [
                 text
-                for text, warning in (("frames displaced as a whole", stage), ("a z scale error", z_scale))
+                for text, warning in (
+                    ("frames displaced as a whole", stage),
+                    ("the stage's x, y axes", xy_map),
+                    ("a z scale error", z_scale),
+                )
                 if warning
             ]
             entry["description"] += (
