@@ -9,6 +9,10 @@ the fit, each frame's flux is the median data/model energy ratio of its bright f
 follow the acquisition order (the scan's file order) closely and change by more than
 :data:`DRIFT_CHANGE` over the scan, the report says so.
 
+Frames whose recorded exposure is wrong (or during which the source flickered) have every bright
+focus brighter or dimmer by one common factor beyond what the foci of the frame scatter by
+among themselves, at no trend along the order (:func:`frame_flux_errors`).
+
 Likewise every focus of a frame moves together when the source was not where ``positions.csv``
 says (stage backlash, a position error): after the fit, a frame whose bright foci are displaced
 together from the model by more than :data:`STAGE_SHIFT_PX` beyond the scan's common offset
@@ -55,6 +59,7 @@ __all__ = [
     "bright_foci",
     "flux_drift",
     "frame_flux",
+    "frame_flux_errors",
     "frame_motion",
     "spread_centres",
     "spread_rate_per_mm",
@@ -73,6 +78,9 @@ DRIFT_RANK = 0.8
 DRIFT_CHANGE = 0.05
 #: Fewer frames than this give no verdict.
 MIN_FRAMES = 6
+#: A frame whose flux departs from the scan's by less than this share is not named (exposures are
+#: recorded to ≈ 1 %; an optical misfit left by the fit moves a frame's foci by a few % each).
+FRAME_FLUX_MIN = 0.03
 #: A frame whose bright foci are displaced together by more than this, px, beyond the scan's
 #: common offset was not taken where its position says…
 STAGE_SHIFT_PX = 0.3
@@ -127,6 +135,39 @@ def flux_drift(analysis: ResidualAnalysis) -> str | None:
         f"during the scan, which no effect of the optics does; effects that change the foci's energy "
         f"(source_profile, vignetting, lenslet_transmission) may hold part of it: re-take the scan or "
         f"normalise each frame by a reference measurement of the source"
+    )
+
+
+def frame_flux_errors(analysis: ResidualAnalysis) -> str | None:
+    """A warning naming the frames whose flux (:func:`frame_flux`) departs from the scan's median
+    by at least :data:`FRAME_FLUX_MIN` and :data:`SIGNIFICANCE` standard errors: the standard error
+    of a frame's median ratio is 1.253·σ/√n over its n bright foci, σ the foci's scatter about
+    their frame's median pooled over the scan (1.4826 × the median absolute departure); frames
+    with fewer than :data:`MIN_AGREEING_FOCI` bright foci are not judged. None when no frame is
+    named or fewer than :data:`MIN_FRAMES` are judged."""
+    bright = bright_foci(analysis) & np.isfinite(analysis.energy_ratio)
+    flux = frame_flux(analysis)
+    counts = bright.sum(axis=1)
+    judged = np.flatnonzero(np.isfinite(flux) & (counts >= MIN_AGREEING_FOCI))
+    if len(judged) < MIN_FRAMES:
+        return None
+    departures = np.concatenate([analysis.energy_ratio[i][bright[i]] / flux[i] - 1.0 for i in judged])
+    sigma = 1.4826 * float(np.median(np.abs(departures)))
+    common = float(np.median(flux[judged]))
+    change = flux[judged] / common - 1.0
+    se = 1.253 * sigma / np.sqrt(counts[judged])
+    named = (np.abs(change) >= FRAME_FLUX_MIN) & (np.abs(change) >= SIGNIFICANCE * se)
+    if not named.any():
+        return None
+    order = np.argsort(-np.abs(np.where(named, change, 0.0)))[: int(named.sum())]
+    listed = ", ".join(f"{analysis.files[judged[k]]} {change[k]:+.1%}" for k in order[:8])
+    more = f" and {int(named.sum()) - 8} more" if named.sum() > 8 else ""
+    return (
+        f"{int(named.sum())} of {len(judged)} frames are brighter or dimmer as a whole than the scan's flux says, "
+        f"every bright focus by one common factor ({listed}{more}; the foci of a frame scatter by "
+        f"{sigma:.1%} among themselves): their recorded exposures are wrong or the source's power changed "
+        f"between frames, which no effect of the optics does; the unexplained residual is read against each "
+        f"frame's own flux"
     )
 
 

@@ -34,6 +34,7 @@ import numpy as np
 from cm2optics.calibrate.acquisition import (
     bright_foci,
     flux_drift,
+    frame_flux_errors,
     spread_rate_per_mm,
     stage_errors,
     stage_xy_map,
@@ -233,6 +234,22 @@ def _summary(
     }
 
 
+def _widening_caveat(attribution: Attribution, source: PointSource, binning: int) -> str | None:
+    """A caveat when the fit named ``pixel_crosstalk``: on foci a pixel or two wide, sharing signal
+    with the neighbouring pixels widens every focus as a calibration source larger than declared
+    does (its image, m·d across, blurs every focus alike), and the two are not told apart by the
+    foci's widths; None when no crosstalk was named."""
+    found = attribution.effects.get("pixel_crosstalk")
+    if found is None:
+        return None
+    return (
+        f"pixel_crosstalk ({found['fraction']:.3f} between the {binning}×-binned pixels) widens every focus as a "
+        f"calibration source larger than the declared {source.diameter_um:g} µm would (or any blur common to "
+        f"every lenslet and depth): the foci's widths do not tell the two apart; check the source's size "
+        f"(scan.yaml source_diameter_um) before reading it as the sensor's"
+    )
+
+
 def _fit_record(subset: np.ndarray, attribution: Attribution, problem: Problem) -> dict[str, Any]:
     """How the attribution went: the positions it traced, its steps, its registration."""
     return {
@@ -353,12 +370,15 @@ def calibrate_scan(
     after = analyse_scan(data, rate, positions, centres, pitch, counts_per_electron=gain)
     vertices = lenslet_vertices_px(design, scan.meta.binning)
     drift, stage = flux_drift(after), stage_errors(after, simulator.pixel_um, vertices)
+    exposures = frame_flux_errors(after) if drift is None else None  # a drift already reads each frame's own flux
+    own_flux = drift is not None or exposures is not None
     z_scale = stage_z_scale(after, spread_rate_per_mm(design, positions[:, 2]))
     xy_map = stage_xy_map(after, vertices)
     background = background_structure(after, scan.exposure_ms)
-    gain_map = sensor_gain(after, vertices, per_frame=drift is not None)
+    gain_map = sensor_gain(after, vertices, per_frame=own_flux)
     gain_warning = None if gain_map is None else describe_sensor_gain(gain_map, scan.meta.binning)
-    for warning in (drift, stage, xy_map, z_scale, gain_warning):
+    widened = _widening_caveat(attribution, source, scan.meta.binning)
+    for warning in (drift, exposures, stage, xy_map, z_scale, gain_warning, widened):
         if warning is not None:
             say(f"warning: {warning}")
             warnings.append(warning)
@@ -372,7 +392,7 @@ def calibrate_scan(
         "sensor_defects": describe_defects(~data.good_pixels()),
         "sensor_gain": gain_map,
         "corrected_design_hash": corrected.parameter_hash(),
-        **_summary(before, after, attribution, problem, simulator.pixel_um, drift is not None, background),
+        **_summary(before, after, attribution, problem, simulator.pixel_um, own_flux, background),
         "fit": _fit_record(subset, attribution, problem),
         "before": before.to_dict(),
         "after": after.to_dict(),

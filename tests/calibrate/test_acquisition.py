@@ -12,6 +12,7 @@ from cm2optics.calibrate.acquisition import (
     bright_foci,
     flux_drift,
     frame_flux,
+    frame_flux_errors,
     frame_motion,
     lateral_jacobians,
     spread_centres,
@@ -210,3 +211,17 @@ def test_clean_frames_and_a_backlash_are_no_stage_rotation():
     moved = lattice_analysis(1500.0, 0.0, seed, positions=FIELD, travel_px=30.0, shift_px=backlash)
     assert stage_errors(moved, 19.2, VERTICES) is not None
     assert stage_xy_map(moved, VERTICES) is None
+
+
+def test_frames_whose_exposure_is_wrong_are_named_and_clean_frames_are_not():
+    """Three frames of sixteen 10 %, 8 % and 6 % off (every focus of the frame by one factor); the
+    clean frames of the same lattice name none."""
+    energy = np.ones((len(FIELD), 9))
+    energy[[2, 7, 11]] *= np.array([1.10, 0.92, 1.06])[:, None]
+    warning = frame_flux_errors(lattice_analysis(1500.0, 0.0, 6, positions=FIELD, travel_px=30.0, energy=energy))
+    assert warning is not None and warning.startswith("3 of 16 frames")
+    import re
+
+    found = {name: float(v) for name, v in re.findall(r"(\d+)\.tif ([+-][\d.]+)%", warning)}
+    assert found == pytest.approx({"2": 10.0, "7": -8.0, "11": 6.0}, abs=0.5)  # %, against the median frame
+    assert frame_flux_errors(lattice_analysis(1500.0, 0.0, 6, positions=FIELD, travel_px=30.0)) is None
