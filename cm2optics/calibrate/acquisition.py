@@ -406,7 +406,7 @@ def stage_xy_map(analysis: ResidualAnalysis, vertices_px: np.ndarray | None = No
     found = []
     if abs(np.degrees(rotation)) >= XY_ROTATION_MIN_DEG and abs(rotation) >= SIGNIFICANCE * rotation_se:
         found.append(
-            f"rotated by {np.degrees(rotation):+.2f} ± {np.degrees(rotation_se):.2f}° (from x towards y) against "
+            f"rotated by {np.degrees(rotation):+.2f} ± {np.degrees(rotation_se):.3f}° (from x towards y) against "
             "the design's"
         )
     for k, axis in enumerate("xy"):

@@ -234,20 +234,41 @@ def _summary(
     }
 
 
-def _widening_caveat(attribution: Attribution, source: PointSource, binning: int) -> str | None:
-    """A caveat when the fit named ``pixel_crosstalk``: on foci a pixel or two wide, sharing signal
-    with the neighbouring pixels widens every focus as a calibration source larger than declared
-    does (its image, m·d across, blurs every focus alike), and the two are not told apart by the
-    foci's widths; None when no crosstalk was named."""
-    found = attribution.effects.get("pixel_crosstalk")
-    if found is None:
-        return None
-    return (
-        f"pixel_crosstalk ({found['fraction']:.3f} between the {binning}×-binned pixels) widens every focus as a "
-        f"calibration source larger than the declared {source.diameter_um:g} µm would (or any blur common to "
+#: A halo whose σ is under this many times the foci's own σ is a blur of the foci, not stray light.
+NARROW_HALO = 3.0
+
+
+def _widening_caveats(
+    attribution: Attribution, source: PointSource, binning: int, after: ResidualAnalysis, pixel_um: float
+) -> list[str]:
+    """Caveats for the effects that only widen the foci as a blur common to every focus does: on
+    foci a pixel or two wide, ``pixel_crosstalk`` (signal shared with the neighbouring pixels) and
+    a ``stray_light`` halo not much wider than the foci themselves (σ under :data:`NARROW_HALO`
+    times theirs, from the model's widths after the fit: an RMS radius √2·σ) widen every focus as
+    a calibration source larger than declared does (its image, m·d across, blurs every focus
+    alike), and the foci's widths do not tell them apart."""
+    out = []
+    alternative = (
+        f"a calibration source larger than the declared {source.diameter_um:g} µm would (or any blur common to "
         f"every lenslet and depth): the foci's widths do not tell the two apart; check the source's size "
-        f"(scan.yaml source_diameter_um) before reading it as the sensor's"
+        f"(scan.yaml source_diameter_um) before reading it as"
     )
+    crosstalk = attribution.effects.get("pixel_crosstalk")
+    if crosstalk is not None:
+        out.append(
+            f"pixel_crosstalk ({crosstalk['fraction']:.3f} between the {binning}×-binned pixels) widens every focus "
+            f"as {alternative} the sensor's"
+        )
+    halo = attribution.effects.get("stray_light")
+    with catch_warnings():
+        simplefilter("ignore", RuntimeWarning)
+        focus_sigma_um = float(np.nanmedian(after.model.width_px[after.used])) / np.sqrt(2.0) * pixel_um
+    if halo is not None and np.isfinite(focus_sigma_um) and halo["width_um"] < NARROW_HALO * focus_sigma_um:
+        out.append(
+            f"stray_light's halo (σ {halo['width_um']:.0f} µm) is barely wider than the foci themselves (σ "
+            f"≈ {focus_sigma_um:.0f} µm): it widens every focus as {alternative} scattered light"
+        )
+    return out
 
 
 def _fit_record(subset: np.ndarray, attribution: Attribution, problem: Problem) -> dict[str, Any]:
@@ -377,8 +398,8 @@ def calibrate_scan(
     background = background_structure(after, scan.exposure_ms)
     gain_map = sensor_gain(after, vertices, per_frame=own_flux)
     gain_warning = None if gain_map is None else describe_sensor_gain(gain_map, scan.meta.binning)
-    widened = _widening_caveat(attribution, source, scan.meta.binning)
-    for warning in (drift, exposures, stage, xy_map, z_scale, gain_warning, widened):
+    widened = _widening_caveats(attribution, source, scan.meta.binning, after, simulator.pixel_um)
+    for warning in (drift, exposures, stage, xy_map, z_scale, gain_warning, *widened):
         if warning is not None:
             say(f"warning: {warning}")
             warnings.append(warning)

@@ -336,3 +336,25 @@ def test_a_sensor_gain_map_alone_is_no_effect(simulator, positions):
     result = _attribute_with_gain(simulator, positions, {}, seed=41, gain_scale=0.5)
     assert result.effects == {}
     assert result.chi2_after < 1.2
+
+
+def test_effects_that_only_widen_the_foci_carry_the_larger_source_caveat():
+    """pixel_crosstalk, and a halo barely wider than the foci, widen every focus as a larger source
+    does; a wide halo does not (foci of RMS radius 2.2 px at 19.2 µm: σ ≈ 30 µm)."""
+    from types import SimpleNamespace
+
+    from cm2optics.calibrate.scan import _widening_caveats
+    from cm2optics.emission.source import AngularProfile, PointSource
+
+    after = SimpleNamespace(model=SimpleNamespace(width_px=np.full((4, 9), 2.2)), used=np.ones(4, bool))
+    source = PointSource(2.0, AngularProfile.parse("isotropic"))
+
+    def caveats(effects):
+        return _widening_caveats(SimpleNamespace(effects=effects), source, 8, after, 19.2)
+
+    assert caveats({"mla_rotation": {"angle_deg": 0.3}}) == []
+    assert caveats({"stray_light": {"fraction": 0.05, "width_um": 200.0}}) == []
+    narrow = caveats({"stray_light": {"fraction": 0.13, "width_um": 44.0}})
+    assert len(narrow) == 1 and "larger than the declared 2 µm" in narrow[0]
+    crosstalk = caveats({"pixel_crosstalk": {"fraction": 0.2}})
+    assert len(crosstalk) == 1 and crosstalk[0].startswith("pixel_crosstalk (0.200 between the 8×-binned")
