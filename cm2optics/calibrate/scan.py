@@ -44,6 +44,7 @@ from cm2optics.calibrate.attribute import Attribution, Problem, attribute
 from cm2optics.calibrate.background import BackgroundStructure, background_entry, background_structure
 from cm2optics.calibrate.defects import defective_pixels, describe_defects, fill_defects
 from cm2optics.calibrate.effects import apply_image_effects, library, split_key
+from cm2optics.calibrate.fixed_pattern import describe_fixed_pattern, fixed_pattern
 from cm2optics.calibrate.lowrank_correction import LowRankCorrection, fit_correction, held_out_error
 from cm2optics.calibrate.residual import CalibrationError, ResidualAnalysis, ScanData, analyse_scan, check_frames
 from cm2optics.calibrate.sensor_gain import describe_sensor_gain, sensor_gain
@@ -398,8 +399,10 @@ def calibrate_scan(
     background = background_structure(after, scan.exposure_ms)
     gain_map = sensor_gain(after, vertices, per_frame=own_flux)
     gain_warning = None if gain_map is None else describe_sensor_gain(gain_map, scan.meta.binning)
+    pattern = fixed_pattern(after)
+    pattern_warning = None if pattern is None else describe_fixed_pattern(pattern)
     widened = _widening_caveats(attribution, source, scan.meta.binning, after, simulator.pixel_um)
-    for warning in (drift, exposures, stage, xy_map, z_scale, gain_warning, *widened):
+    for warning in (drift, exposures, stage, xy_map, z_scale, gain_warning, pattern_warning, *widened):
         if warning is not None:
             say(f"warning: {warning}")
             warnings.append(warning)
@@ -412,6 +415,7 @@ def calibrate_scan(
         "warnings": warnings,
         "sensor_defects": describe_defects(~data.good_pixels()),
         "sensor_gain": gain_map,
+        "fixed_pattern": pattern,
         "corrected_design_hash": corrected.parameter_hash(),
         **_summary(before, after, attribution, problem, simulator.pixel_um, own_flux, background),
         "fit": _fit_record(subset, attribution, problem),
@@ -440,6 +444,12 @@ def calibrate_scan(
             entry["description"] += (
                 "; the foci's energies follow one smooth gain pattern over the sensor (see warnings, "
                 "sensor_gain): part or all of this residual may be the sensor's"
+            )
+    if pattern is not None:  # offsets of whole columns or rows add to every focus over them
+        for entry in document["unexplained"]:
+            entry["description"] += (
+                "; the dark pixels hold fixed column or row offsets (see warnings, fixed_pattern): part of this "
+                "residual may be the readout's"
             )
     correction = None
     if document["unexplained"]:
