@@ -5,8 +5,8 @@ After the fit, the residual where the model is dark (below :data:`DARK_SHARE` of
 brightest model pixel above its median, as :mod:`.background` reads it), less each frame's median
 there, is averaged down every column (and along every row) over all the frames used; what a
 smooth background explains is taken out by subtracting a running median of :data:`SMOOTH` columns
-(rows). Under white noise each mean scatters by σ/√n (σ the dark pixels' robust scatter, n the
-pixels averaged); the pattern is named when its χ² exceeds its degrees of freedom by
+(rows). Under white noise each mean scatters by σ/√n (σ the dark pixels' RMS within 6 robust σ,
+n the pixels averaged); the pattern is named when its χ² exceeds its degrees of freedom by
 :data:`SIGNIFICANCE` standard deviations, its RMS is at least :data:`MIN_RMS_SIGMA` × σ (below,
 it adds nothing the noise model does not hold), and the two halves of the scan's frames agree on
 it (correlation ≥ :data:`SAME_IN_EVERY_FRAME`: fixed, not a frame's own).
@@ -59,7 +59,10 @@ def fixed_pattern(analysis) -> dict[str, Any] | None:
         return None
     levels = np.array([np.median(residual[i][dark[i]]) if dark[i].any() else 0.0 for i in range(len(used))])
     residual = residual - levels[:, None, None]
-    sigma = 1.4826 * float(np.median(np.abs(residual[dark])))
+    values = residual[dark]
+    # the RMS within 6 robust σ: the median of integer counts is coarse (1.4826 × an integer), the RMS is not
+    robust = max(1.4826 * float(np.median(np.abs(values))), 1.0)
+    sigma = float(np.sqrt(np.mean(values[np.abs(values) < 6.0 * robust] ** 2)))
     if sigma <= 0:
         return None
     halves = (slice(0, len(used), 2), slice(1, len(used), 2))

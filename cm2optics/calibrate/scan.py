@@ -249,8 +249,9 @@ def _widening_caveats(
     a calibration source larger than declared does (its image, m·d across, blurs every focus
     alike), and the foci's widths do not tell them apart."""
     out = []
+    declared = "a point" if source.diameter_um == 0 else f"{source.diameter_um:g} µm"
     alternative = (
-        f"a calibration source larger than the declared {source.diameter_um:g} µm would (or any blur common to "
+        f"a calibration source larger than declared ({declared}) would (or any blur common to "
         f"every lenslet and depth): the foci's widths do not tell the two apart; check the source's size "
         f"(scan.yaml source_diameter_um) before reading it as"
     )

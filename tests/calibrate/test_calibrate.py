@@ -355,6 +355,6 @@ def test_effects_that_only_widen_the_foci_carry_the_larger_source_caveat():
     assert caveats({"mla_rotation": {"angle_deg": 0.3}}) == []
     assert caveats({"stray_light": {"fraction": 0.05, "width_um": 200.0}}) == []
     narrow = caveats({"stray_light": {"fraction": 0.13, "width_um": 44.0}})
-    assert len(narrow) == 1 and "larger than the declared 2 µm" in narrow[0]
+    assert len(narrow) == 1 and "larger than declared (2 µm)" in narrow[0]
     crosstalk = caveats({"pixel_crosstalk": {"fraction": 0.2}})
     assert len(crosstalk) == 1 and crosstalk[0].startswith("pixel_crosstalk (0.200 between the 8×-binned")
