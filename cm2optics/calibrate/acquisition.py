@@ -9,6 +9,10 @@ the fit, each frame's flux is the median data/model energy ratio of its bright f
 follow the acquisition order (the scan's file order) closely and change by more than
 :data:`DRIFT_CHANGE` over the scan, the report says so.
 
+Frames whose recorded exposure is wrong (or during which the source flickered) have every bright
+focus brighter or dimmer by one common factor beyond what the foci of the frame scatter by
+among themselves, at no trend along the order (:func:`frame_flux_errors`).
+
 Likewise every focus of a frame moves together when the source was not where ``positions.csv``
 says (stage backlash, a position error): after the fit, a frame whose bright foci are displaced
 together from the model by more than :data:`STAGE_SHIFT_PX` beyond the scan's common offset
@@ -29,6 +33,14 @@ instead: the spread of a lenslet array's foci is 1 + m(z) times the lenslets' (m
 magnification at the source's depth), so a frame whose source sat δz off spreads its foci by
 δz · d ln(1 + m)/dz. The δz of every frame, regressed on its recorded z, gives the scale error
 (its slope) when the scan holds two depths or more (:func:`stage_z_scale`).
+
+A stage whose x and y axes are rotated against the design's, or whose lateral steps are not the
+recorded ones, puts each source off by an error that grows linearly with its recorded position:
+each frame's translation, carried back to the source's plane through the model's own foci
+(their motion per mm of source x and y at that depth, :func:`lateral_jacobians`), regressed on the
+recorded x and y gives that linear map, whose antisymmetric part is the axes' rotation and whose
+diagonal the lateral scales (:func:`stage_xy_map`); a backlash or a random position error has
+no such trend.
 """
 
 from __future__ import annotations
@@ -47,10 +59,13 @@ __all__ = [
     "bright_foci",
     "flux_drift",
     "frame_flux",
+    "frame_flux_errors",
     "frame_motion",
     "spread_centres",
     "spread_rate_per_mm",
+    "lateral_jacobians",
     "stage_errors",
+    "stage_xy_map",
     "stage_z_scale",
 ]
 
@@ -63,6 +78,9 @@ DRIFT_RANK = 0.8
 DRIFT_CHANGE = 0.05
 #: Fewer frames than this give no verdict.
 MIN_FRAMES = 6
+#: A frame whose flux departs from the scan's by less than this share is not named (exposures are
+#: recorded to ≈ 1 %; an optical misfit left by the fit moves a frame's foci by a few % each).
+FRAME_FLUX_MIN = 0.03
 #: A frame whose bright foci are displaced together by more than this, px, beyond the scan's
 #: common offset was not taken where its position says…
 STAGE_SHIFT_PX = 0.3
@@ -75,6 +93,10 @@ SIGNIFICANCE = 4.0
 MIN_AGREEING_FOCI = 3
 #: A z scale error smaller than this share of the recorded steps is not named.
 Z_SCALE_MIN = 0.03
+#: A rotation of the stage's x, y axes smaller than this (degrees) is not named…
+XY_ROTATION_MIN_DEG = 0.2
+#: …nor a lateral scale error smaller than this share of the recorded steps.
+XY_SCALE_MIN = 0.03
 
 
 def bright_foci(analysis: ResidualAnalysis) -> np.ndarray:
@@ -113,6 +135,39 @@ def flux_drift(analysis: ResidualAnalysis) -> str | None:
         f"during the scan, which no effect of the optics does; effects that change the foci's energy "
         f"(source_profile, vignetting, lenslet_transmission) may hold part of it: re-take the scan or "
         f"normalise each frame by a reference measurement of the source"
+    )
+
+
+def frame_flux_errors(analysis: ResidualAnalysis) -> str | None:
+    """A warning naming the frames whose flux (:func:`frame_flux`) departs from the scan's median
+    by at least :data:`FRAME_FLUX_MIN` and :data:`SIGNIFICANCE` standard errors: the standard error
+    of a frame's median ratio is 1.253·σ/√n over its n bright foci, σ the foci's scatter about
+    their frame's median pooled over the scan (1.4826 × the median absolute departure); frames
+    with fewer than :data:`MIN_AGREEING_FOCI` bright foci are not judged. None when no frame is
+    named or fewer than :data:`MIN_FRAMES` are judged."""
+    bright = bright_foci(analysis) & np.isfinite(analysis.energy_ratio)
+    flux = frame_flux(analysis)
+    counts = bright.sum(axis=1)
+    judged = np.flatnonzero(np.isfinite(flux) & (counts >= MIN_AGREEING_FOCI))
+    if len(judged) < MIN_FRAMES:
+        return None
+    departures = np.concatenate([analysis.energy_ratio[i][bright[i]] / flux[i] - 1.0 for i in judged])
+    sigma = 1.4826 * float(np.median(np.abs(departures)))
+    common = float(np.median(flux[judged]))
+    change = flux[judged] / common - 1.0
+    se = 1.253 * sigma / np.sqrt(counts[judged])
+    named = (np.abs(change) >= FRAME_FLUX_MIN) & (np.abs(change) >= SIGNIFICANCE * se)
+    if not named.any():
+        return None
+    order = np.argsort(-np.abs(np.where(named, change, 0.0)))[: int(named.sum())]
+    listed = ", ".join(f"{analysis.files[judged[k]]} {change[k]:+.1%}" for k in order[:8])
+    more = f" and {int(named.sum()) - 8} more" if named.sum() > 8 else ""
+    return (
+        f"{int(named.sum())} of {len(judged)} frames are brighter or dimmer as a whole than the scan's flux says, "
+        f"every bright focus by one common factor ({listed}{more}; the foci of a frame scatter by "
+        f"{sigma:.1%} among themselves): their recorded exposures are wrong or the source's power changed "
+        f"between frames, which no effect of the optics does; the unexplained residual is read against each "
+        f"frame's own flux"
     )
 
 
@@ -286,4 +341,82 @@ def stage_z_scale(analysis: ResidualAnalysis, spread_rate: np.ndarray) -> str | 
         f"times the recorded ones (a z scale error of {scale:+.1%}; the depth errors δz = {scale:+.3f}·z "
         f"{offset:+.3f} mm over {len(known)} frames): the stage's z axis is not calibrated (pitch, steps per mm), "
         f"which no effect of the optics does"
+    )
+
+
+def lateral_jacobians(analysis: ResidualAnalysis) -> dict[float, np.ndarray]:
+    """Per recorded depth (mm), the model's foci's motion on the sensor per mm of source x and y:
+    the 2 × 2 matrix J (row, col px per x, y mm) shared by the lenslets, fitted as m_ij = α_j +
+    J·(x_i, y_i) over the frames at that depth (α_j one per lenslet); depths with fewer than three
+    frames or positions on one line are left out."""
+    out: dict[float, np.ndarray] = {}
+    centroids = analysis.model.centroid_px
+    xy = np.asarray(analysis.positions_mm, float)[:, :2]
+    z = np.round(np.asarray(analysis.positions_mm, float)[:, 2], 6)
+    for depth in np.unique(z):
+        frames = np.flatnonzero(z == depth)
+        rows_p, rows_m = [], []
+        for j in range(centroids.shape[1]):
+            known = frames[np.isfinite(centroids[frames, j]).all(axis=1)]
+            if len(known) < 3:
+                continue
+            rows_p.append(xy[known] - xy[known].mean(axis=0))
+            rows_m.append(centroids[known, j] - centroids[known, j].mean(axis=0))
+        if not rows_p:
+            continue
+        p, m = np.concatenate(rows_p), np.concatenate(rows_m)
+        if np.linalg.matrix_rank(p) < 2:
+            continue
+        solution, *_ = np.linalg.lstsq(p, m, rcond=None)  # m = p @ Jᵀ
+        out[float(depth)] = solution.T
+    return out
+
+
+def stage_xy_map(analysis: ResidualAnalysis, vertices_px: np.ndarray | None = None) -> str | None:
+    """A warning when the frames' source errors grow linearly with the recorded x, y (module
+    docstring): each frame's translation (:func:`frame_motion`) carried back to the source as
+    δp = J⁻¹·t, regressed δp = c + A·p over the frames judged (as :func:`stage_errors` judges
+    them); the rotation (A₂₁ − A₁₂)/2 and the scales A₁₁, A₂₂ named when beyond
+    :data:`XY_ROTATION_MIN_DEG` / :data:`XY_SCALE_MIN` and :data:`SIGNIFICANCE` standard errors;
+    None otherwise, or when the positions do not span x and y."""
+    motion = frame_motion(analysis, vertices_px)
+    jacobians = lateral_jacobians(analysis)
+    enough = min(MIN_AGREEING_FOCI, int(bright_foci(analysis).sum(axis=1).max()))
+    z = np.round(np.asarray(analysis.positions_mm, float)[:, 2], 6)
+    known = [
+        i
+        for i in range(len(z))
+        if np.isfinite(motion.shift_px[i]).all() and motion.foci[i] >= enough and float(z[i]) in jacobians
+    ]
+    if len(known) < MIN_FRAMES:
+        return None
+    p = np.asarray(analysis.positions_mm, float)[known, :2]
+    if np.linalg.matrix_rank(p - p.mean(axis=0)) < 2:
+        return None
+    error = np.array([np.linalg.solve(jacobians[float(z[i])], motion.shift_px[i]) for i in known])  # δp, mm
+    design = np.column_stack([np.ones(len(known)), p])
+    solution, *_ = np.linalg.lstsq(design, error, rcond=None)  # (3, 2): δp = c + A·p, A = solution[1:].T
+    a = solution[1:].T
+    dof = max(len(known) - 3, 1)
+    scatter = np.sum((error - design @ solution) ** 2, axis=0) / dof  # per component of δp
+    inverse = np.linalg.inv(design.T @ design)
+    se = np.sqrt(np.outer(scatter, np.diag(inverse)[1:]))  # se[k, l] of A[k, l]
+    rotation = 0.5 * (a[1, 0] - a[0, 1])
+    rotation_se = 0.5 * float(np.hypot(se[1, 0], se[0, 1]))
+    found = []
+    if abs(np.degrees(rotation)) >= XY_ROTATION_MIN_DEG and abs(rotation) >= SIGNIFICANCE * rotation_se:
+        found.append(
+            f"rotated by {np.degrees(rotation):+.2f} ± {np.degrees(rotation_se):.3f}° (from x towards y) against "
+            "the design's"
+        )
+    for k, axis in enumerate("xy"):
+        if abs(a[k, k]) >= XY_SCALE_MIN and abs(a[k, k]) >= SIGNIFICANCE * se[k, k]:
+            found.append(f"its {axis} steps {1 + a[k, k]:.3f} ± {se[k, k]:.3f} times the recorded ones")
+    if not found:
+        return None
+    return (
+        f"the frames' source errors grow with the recorded position as if the stage's x, y axes were "
+        f"{' and '.join(found)} (over {len(known)} frames, the errors carried back to the source through the "
+        f"model's foci): the stage's lateral axes are not aligned or calibrated against the sensor, which no "
+        f"effect of the optics does"
     )

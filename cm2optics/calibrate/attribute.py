@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from cm2optics.calibrate.effects import Effect, apply_image_effects, leakage_counts
+from cm2optics.calibrate.effects import Effect, Parameter, apply_image_effects, leakage_counts
 from cm2optics.calibrate.features import away_from_foci, circular_windows, focus_windows, window_features
 from cm2optics.calibrate.noise import SensorNoise, estimate_noise, quantisation_step
 from cm2optics.calibrate.register import Registration, register
@@ -44,6 +44,39 @@ NUISANCE = ("offset_row_px", "offset_col_px", "flux_scale", "dark_level")
 NUISANCE_STEPS = (0.05, 0.05, 1e-3, 0.5)
 
 Progress = Callable[[str], None]
+
+#: A sensor's smooth gain non-uniformity (an uncorrected flat field): a nuisance of the sensor,
+#: not an effect of the optics, fitted where the data ask for it (a candidate like the effects,
+#: under the same criterion and guard) so that a library effect beside it is judged against the
+#: residual the gain leaves; never reported among the effects nor written into the design. The
+#: gain 1 + a·u + b·v + c·u² + d·u·v + e·v² over the sensor, u and v the pixel's row and column
+#: from the sensor's centre in half-heights and half-widths (the constant is the flux scale's).
+FLAT_FIELD = Effect(
+    "flat_field",
+    tuple(
+        Parameter(name, 0.0, -0.5, 0.5, 0.01)
+        for name in ("gain_row", "gain_col", "gain_row2", "gain_row_col", "gain_col2")
+    ),
+    "the sensor's gain varies smoothly over its area (an uncorrected flat field): a nuisance of the sensor",
+)
+
+
+def flat_field_gain(shape: tuple[int, int], values: dict[str, float]) -> np.ndarray:
+    """(y, x) the relative gain of :data:`FLAT_FIELD` with ``values`` over a sensor of ``shape``."""
+    u = ((np.arange(shape[0], dtype=np.float32) - (shape[0] - 1) / 2) / (shape[0] / 2))[:, None]
+    v = ((np.arange(shape[1], dtype=np.float32) - (shape[1] - 1) / 2) / (shape[1] / 2))[None, :]
+    p = {
+        name: np.float32(values.get(name, 0.0))
+        for name in ("gain_row", "gain_col", "gain_row2", "gain_row_col", "gain_col2")
+    }
+    return (
+        1
+        + p["gain_row"] * u
+        + p["gain_col"] * v
+        + p["gain_row2"] * u * u
+        + p["gain_row_col"] * u * v
+        + p["gain_col2"] * v * v
+    )
 
 
 @dataclass
@@ -179,6 +212,8 @@ class Attribution:
     chi2_after: float
     feature_residual: np.ndarray  # normalised residuals (data − model)/σ after the fit
     feature_shape: tuple[int, int]
+    #: the sensor's fitted gain pattern (:data:`FLAT_FIELD`'s parameters) where the fit kept one, else None
+    flat_field: dict[str, float] | None = None
 
 
 class Problem:
@@ -193,13 +228,15 @@ class Problem:
         valid: np.ndarray,
         candidates: tuple[Effect, ...],
         counts_per_electron: float | None,
+        flat_field: bool = True,
     ):
+        """flat_field: whether the sensor's smooth gain (:data:`FLAT_FIELD`) is a candidate."""
         self.simulator = simulator
         self.counts = counts.astype(np.float32)
         self.exposure = np.asarray(exposure_ms, np.float32)
         self.positions = np.asarray(positions_mm, float)
         self.valid = valid
-        self.candidates = tuple(c for c in candidates if simulator.supports(c))
+        self.candidates = tuple(c for c in candidates if simulator.supports(c)) + ((FLAT_FIELD,) if flat_field else ())
         nominal = simulator.rates(self.positions, {})
         self.registration, model_counts = register(self.counts, self.exposure, nominal, valid)
         model_signal = model_counts - np.float32(self.registration.dark_level)
@@ -254,6 +291,8 @@ class Problem:
     def model_counts(self, state: State) -> np.ndarray:
         """Expected raw counts (N, y, x) of the data under ``state``."""
         rate = apply_image_effects(self._shifted_rate(state), state.values, self.simulator.pixel_um)
+        if FLAT_FIELD.key in state.values:
+            rate = rate * flat_field_gain(rate.shape[-2:], state.values[FLAT_FIELD.key])
         leak = leakage_counts(state.values, self.exposure)[:, None, None]
         scale, dark = state.nuisance[2], state.nuisance[3]
         return (dark + self.exposure[:, None, None] * (scale * rate) + leak).astype(np.float32)
@@ -271,14 +310,17 @@ class Problem:
         """The simulator's images with the sensor-side effects applied (cached: the flux, dark
         and leakage columns of a Jacobian reuse the same blurred images)."""
         rate = self._shifted_rate(state)
-        image_side = {k: v for k, v in state.values.items() if k in ("stray_light", "pixel_crosstalk")}
+        image_side = {k: v for k, v in state.values.items() if k in ("stray_light", "pixel_crosstalk", FLAT_FIELD.key)}
         if not image_side:
             return rate
         key = (id(rate), repr(sorted((k, sorted(v.items())) for k, v in image_side.items())))
         if key not in self._image_rates:
             if len(self._image_rates) > 8:
                 self._image_rates.clear()
-            self._image_rates[key] = (rate, apply_image_effects(rate, image_side, self.simulator.pixel_um))
+            out = apply_image_effects(rate, image_side, self.simulator.pixel_um)
+            if FLAT_FIELD.key in image_side:
+                out = out * flat_field_gain(out.shape[-2:], image_side[FLAT_FIELD.key])
+            self._image_rates[key] = (rate, out)
         return self._image_rates[key][1]
 
     def features(self, state: State) -> np.ndarray:
@@ -396,7 +438,7 @@ def _sectors(shape: tuple[int, int], centres: np.ndarray) -> np.ndarray:
 
 
 def _is_image_side(key: str) -> bool:
-    return key in {"stray_light", "pixel_crosstalk", "leakage_background"}
+    return key in {"stray_light", "pixel_crosstalk", "leakage_background", FLAT_FIELD.key}
 
 
 def _columns(
@@ -701,14 +743,17 @@ def attribute(problem: Problem, *, max_effects: int = 6, progress: Progress | No
         problem.reweight(state)  # the noise of the features as the fitted model predicts it
         state, chi2, cov = _refine(problem, state, kept, iterations=2)
         steps.append(Step(best[1], chi2, bic(chi2, len(_parameters(problem, kept)))))
-        say(f"added {best[1]}: χ²/n = {chi2 / n:.3f}")
+        what = (
+            " (the sensor's gain pattern, a nuisance: not an effect of the optics)" if best[1] == FLAT_FIELD.key else ""
+        )
+        say(f"added {best[1]}{what}: χ²/n = {chi2 / n:.3f}")
     params = _parameters(problem, kept)
     inflate = max(1.0, chi2 / max(n - len(params), 1))
     sigma = np.sqrt(np.clip(np.diag(cov), 0, None) * inflate) if cov.size else np.zeros(len(params))
-    effects = {key: dict(state.values[key]) for key in kept}
-    uncertainties: dict[str, dict[str, float]] = {key: {} for key in kept}
+    effects = {key: dict(state.values[key]) for key in kept if key != FLAT_FIELD.key}
+    uncertainties: dict[str, dict[str, float]] = {key: {} for key in effects}
     for (key, name), s in zip(params, sigma, strict=False):
-        if key != "nuisance":
+        if key in uncertainties:
             uncertainties[key][name] = float(s)
     final = problem.features(state)
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -726,7 +771,8 @@ def attribute(problem: Problem, *, max_effects: int = 6, progress: Progress | No
         chi2_after=chi2 / n,
         feature_residual=residual,
         feature_shape=problem.space.centres.shape[:2],
+        flat_field=dict(state.values[FLAT_FIELD.key]) if FLAT_FIELD.key in kept else None,
     )
 
 
-__all__ = ["Attribution", "Guard", "Problem", "attribute", "confirmation", "guard"]
+__all__ = ["FLAT_FIELD", "Attribution", "Guard", "Problem", "attribute", "confirmation", "flat_field_gain", "guard"]

@@ -212,6 +212,7 @@ def _attribute(simulator: Simulator, frame: BeadsFrame, max_effects: int, say: P
         counts < 2**frame.bit_depth - 1,
         library(simulator.lenslets),
         frame.counts_per_electron,
+        flat_field=False,  # one frame of unknown emitters: a gain pattern is not told from their brightness
     )
     return attribute(problem, max_effects=max_effects, progress=say)
 

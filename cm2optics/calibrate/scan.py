@@ -31,11 +31,20 @@ from warnings import catch_warnings, simplefilter
 
 import numpy as np
 
-from cm2optics.calibrate.acquisition import bright_foci, flux_drift, spread_rate_per_mm, stage_errors, stage_z_scale
+from cm2optics.calibrate.acquisition import (
+    bright_foci,
+    flux_drift,
+    frame_flux_errors,
+    spread_rate_per_mm,
+    stage_errors,
+    stage_xy_map,
+    stage_z_scale,
+)
 from cm2optics.calibrate.attribute import Attribution, Problem, attribute
 from cm2optics.calibrate.background import BackgroundStructure, background_entry, background_structure
 from cm2optics.calibrate.defects import defective_pixels, describe_defects, fill_defects
 from cm2optics.calibrate.effects import apply_image_effects, library, split_key
+from cm2optics.calibrate.fixed_pattern import describe_fixed_pattern, fixed_pattern
 from cm2optics.calibrate.lowrank_correction import LowRankCorrection, fit_correction, held_out_error
 from cm2optics.calibrate.residual import CalibrationError, ResidualAnalysis, ScanData, analyse_scan, check_frames
 from cm2optics.calibrate.sensor_gain import describe_sensor_gain, sensor_gain
@@ -226,6 +235,44 @@ def _summary(
     }
 
 
+#: A halo whose σ is under this many times the foci's own σ is a blur of the foci, not stray light.
+NARROW_HALO = 3.0
+
+
+def _widening_caveats(
+    attribution: Attribution, source: PointSource, binning: int, after: ResidualAnalysis, pixel_um: float
+) -> list[str]:
+    """Caveats for the effects that only widen the foci as a blur common to every focus does: on
+    foci a pixel or two wide, ``pixel_crosstalk`` (signal shared with the neighbouring pixels) and
+    a ``stray_light`` halo not much wider than the foci themselves (σ under :data:`NARROW_HALO`
+    times theirs, from the model's widths after the fit: an RMS radius √2·σ) widen every focus as
+    a calibration source larger than declared does (its image, m·d across, blurs every focus
+    alike), and the foci's widths do not tell them apart."""
+    out = []
+    declared = "a point" if source.diameter_um == 0 else f"{source.diameter_um:g} µm"
+    alternative = (
+        f"a calibration source larger than declared ({declared}) would (or any blur common to "
+        f"every lenslet and depth): the foci's widths do not tell the two apart; check the source's size "
+        f"(scan.yaml source_diameter_um) before reading it as"
+    )
+    crosstalk = attribution.effects.get("pixel_crosstalk")
+    if crosstalk is not None:
+        out.append(
+            f"pixel_crosstalk ({crosstalk['fraction']:.3f} between the {binning}×-binned pixels) widens every focus "
+            f"as {alternative} the sensor's"
+        )
+    halo = attribution.effects.get("stray_light")
+    with catch_warnings():
+        simplefilter("ignore", RuntimeWarning)
+        focus_sigma_um = float(np.nanmedian(after.model.width_px[after.used])) / np.sqrt(2.0) * pixel_um
+    if halo is not None and np.isfinite(focus_sigma_um) and halo["width_um"] < NARROW_HALO * focus_sigma_um:
+        out.append(
+            f"stray_light's halo (σ {halo['width_um']:.0f} µm) is barely wider than the foci themselves (σ "
+            f"≈ {focus_sigma_um:.0f} µm): it widens every focus as {alternative} scattered light"
+        )
+    return out
+
+
 def _fit_record(subset: np.ndarray, attribution: Attribution, problem: Problem) -> dict[str, Any]:
     """How the attribution went: the positions it traced, its steps, its registration."""
     return {
@@ -235,6 +282,10 @@ def _fit_record(subset: np.ndarray, attribution: Attribution, problem: Problem) 
             for s in attribution.steps
         ],
         "registration": attribution.registration.to_dict(),
+        # the sensor's smooth gain, fitted as a nuisance beside the effects (attribute.FLAT_FIELD), or None
+        "flat_field": None
+        if attribution.flat_field is None
+        else {k: round(float(v), 5) for k, v in attribution.flat_field.items()},
     }
 
 
@@ -342,11 +393,17 @@ def calibrate_scan(
     after = analyse_scan(data, rate, positions, centres, pitch, counts_per_electron=gain)
     vertices = lenslet_vertices_px(design, scan.meta.binning)
     drift, stage = flux_drift(after), stage_errors(after, simulator.pixel_um, vertices)
+    exposures = frame_flux_errors(after) if drift is None else None  # a drift already reads each frame's own flux
+    own_flux = drift is not None or exposures is not None
     z_scale = stage_z_scale(after, spread_rate_per_mm(design, positions[:, 2]))
+    xy_map = stage_xy_map(after, vertices)
     background = background_structure(after, scan.exposure_ms)
-    gain_map = sensor_gain(after, vertices, per_frame=drift is not None)
+    gain_map = sensor_gain(after, vertices, per_frame=own_flux)
     gain_warning = None if gain_map is None else describe_sensor_gain(gain_map, scan.meta.binning)
-    for warning in (drift, stage, z_scale, gain_warning):
+    pattern = fixed_pattern(after)
+    pattern_warning = None if pattern is None else describe_fixed_pattern(pattern)
+    widened = _widening_caveats(attribution, source, scan.meta.binning, after, simulator.pixel_um)
+    for warning in (drift, exposures, stage, xy_map, z_scale, gain_warning, pattern_warning, *widened):
         if warning is not None:
             say(f"warning: {warning}")
             warnings.append(warning)
@@ -359,17 +416,24 @@ def calibrate_scan(
         "warnings": warnings,
         "sensor_defects": describe_defects(~data.good_pixels()),
         "sensor_gain": gain_map,
+        "fixed_pattern": pattern,
         "corrected_design_hash": corrected.parameter_hash(),
-        **_summary(before, after, attribution, problem, simulator.pixel_um, drift is not None, background),
+        **_summary(before, after, attribution, problem, simulator.pixel_um, own_flux, background),
         "fit": _fit_record(subset, attribution, problem),
         "before": before.to_dict(),
         "after": after.to_dict(),
     }
-    if stage is not None or z_scale is not None:  # the source was elsewhere: every residual of those frames shows it
+    if (
+        stage is not None or z_scale is not None or xy_map is not None
+    ):  # the source was elsewhere: its residuals show it
         for entry in document["unexplained"]:
             found = [
                 text
-                for text, warning in (("frames displaced as a whole", stage), ("a z scale error", z_scale))
+                for text, warning in (
+                    ("frames displaced as a whole", stage),
+                    ("the stage's x, y axes", xy_map),
+                    ("a z scale error", z_scale),
+                )
                 if warning
             ]
             entry["description"] += (
@@ -381,6 +445,12 @@ def calibrate_scan(
             entry["description"] += (
                 "; the foci's energies follow one smooth gain pattern over the sensor (see warnings, "
                 "sensor_gain): part or all of this residual may be the sensor's"
+            )
+    if pattern is not None:  # offsets of whole columns or rows add to every focus over them
+        for entry in document["unexplained"]:
+            entry["description"] += (
+                "; the dark pixels hold fixed column or row offsets (see warnings, fixed_pattern): part of this "
+                "residual may be the readout's"
             )
     correction = None
     if document["unexplained"]:

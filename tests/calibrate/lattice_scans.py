@@ -34,14 +34,15 @@ def lattice_analysis(
     gain: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
     energy: np.ndarray | None = None,
     exposure_ms: np.ndarray | None = None,
+    source_error_mm: np.ndarray | None = None,
 ) -> ResidualAnalysis:
     """Frames of the lattice at ``positions`` (N, 3) mm, moving ``travel_px`` per mm of source x, y
     (rows follow y), with foci of ``peak`` counts above a ramp of 0 → ``background`` counts
     across the columns. The data depart from the model by: a displacement of frame i by
     ``shift_px[i]`` columns, a spread ``spread[i]`` × the model's (about ``spread_centre_px[i]``
     (row, col) px; default the frame's lattice centre), a sensor gain ``gain(rows,
-    cols)``, each focus's energy × ``energy`` (N, 9). Foci and ramp scale with ``exposure_ms`` (N,)
-    (default 1 ms each)."""
+    cols)``, each focus's energy × ``energy`` (N, 9), the source's x, y off by ``source_error_mm``
+    (N, 2) mm. Foci and ramp scale with ``exposure_ms`` (N,) (default 1 ms each)."""
     n = len(positions)
     exposure = np.ones(n) if exposure_ms is None else np.asarray(exposure_ms, float)
     centres = VERTICES[None] + travel_px * positions[:, None, 1::-1]  # (N, 9, 2) (row, col)
@@ -49,6 +50,8 @@ def lattice_analysis(
     about = centres.mean(axis=1, keepdims=True) if spread_centre_px is None else spread_centre_px[:, None, :]
     moved = about + factor * (centres - about)
     moved[..., 1] += 0.0 if shift_px is None else shift_px[:, None]
+    if source_error_mm is not None:
+        moved = moved + travel_px * np.asarray(source_error_mm, float)[:, None, ::-1]
     rows, cols = np.mgrid[0 : SHAPE[0], 0 : SHAPE[1]]
 
     def image(c: np.ndarray, weight: np.ndarray) -> np.ndarray:

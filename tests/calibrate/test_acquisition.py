@@ -6,16 +6,19 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from lattice_scans import DEPTHS, LATTICE, lattice_analysis
+from lattice_scans import DEPTHS, FIELD, LATTICE, VERTICES, lattice_analysis
 
 from cm2optics.calibrate.acquisition import (
     bright_foci,
     flux_drift,
     frame_flux,
+    frame_flux_errors,
     frame_motion,
+    lateral_jacobians,
     spread_centres,
     spread_rate_per_mm,
     stage_errors,
+    stage_xy_map,
     stage_z_scale,
 )
 from cm2optics.calibrate.features import focus_features, focus_windows
@@ -172,3 +175,53 @@ def test_the_foci_spread_with_the_depth_as_the_chief_ray_magnification_says():
     expected = [(np.log(spread(z + 0.1)) - np.log(spread(z - 0.1))) / 0.2 for z in (-0.5, 0.0, 0.5)]
     assert rate == pytest.approx(expected, rel=0.02)
     assert np.all(rate != 0)
+
+
+def _rotated(positions: np.ndarray, degrees: float, scale: float = 1.0) -> np.ndarray:
+    """(N, 2) mm the source's x, y error of a stage whose axes are rotated by ``degrees`` and whose
+    lateral steps are ``scale`` × the recorded ones."""
+    a = np.radians(degrees)
+    rotation = scale * np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+    return positions[:, :2] @ rotation.T - positions[:, :2]
+
+
+def test_the_foci_move_on_the_sensor_as_the_lattice_says():
+    analysis = lattice_analysis(1500.0, 0.0, 1, positions=FIELD, travel_px=30.0)
+    (jacobian,) = lateral_jacobians(analysis).values()
+    assert jacobian == pytest.approx(np.array([[0.0, 30.0], [30.0, 0.0]]), abs=0.05)  # rows follow y
+
+
+@pytest.mark.parametrize(("degrees", "scale", "seed"), [(-1.5, 1.0, 1), (0.0, 1.05, 3)])
+def test_a_rotated_or_mis_scaled_stage_is_named_with_its_size(degrees, scale, seed):
+    analysis = lattice_analysis(
+        1500.0, 0.0, seed, positions=FIELD, travel_px=30.0, source_error_mm=_rotated(FIELD, degrees, scale)
+    )
+    warning = stage_xy_map(analysis, VERTICES)
+    assert warning is not None
+    if degrees:
+        assert f"rotated by {degrees:+.2f}"[:-1] in warning  # to 0.1°
+    else:
+        assert "rotated" not in warning and "x steps 1.05" in warning and "y steps 1.05" in warning
+
+
+def test_clean_frames_and_a_backlash_are_no_stage_rotation():
+    seed = 4
+    assert stage_xy_map(lattice_analysis(1500.0, 0.0, seed, positions=FIELD, travel_px=30.0), VERTICES) is None
+    backlash = np.where((np.arange(16) // 4) % 2 == 1, 0.8, 0.0)  # alternate rows of the raster
+    moved = lattice_analysis(1500.0, 0.0, seed, positions=FIELD, travel_px=30.0, shift_px=backlash)
+    assert stage_errors(moved, 19.2, VERTICES) is not None
+    assert stage_xy_map(moved, VERTICES) is None
+
+
+def test_frames_whose_exposure_is_wrong_are_named_and_clean_frames_are_not():
+    """Three frames of sixteen 10 %, 8 % and 6 % off (every focus of the frame by one factor); the
+    clean frames of the same lattice name none."""
+    energy = np.ones((len(FIELD), 9))
+    energy[[2, 7, 11]] *= np.array([1.10, 0.92, 1.06])[:, None]
+    warning = frame_flux_errors(lattice_analysis(1500.0, 0.0, 6, positions=FIELD, travel_px=30.0, energy=energy))
+    assert warning is not None and warning.startswith("3 of 16 frames")
+    import re
+
+    found = {name: float(v) for name, v in re.findall(r"(\d+)\.tif ([+-][\d.]+)%", warning)}
+    assert found == pytest.approx({"2": 10.0, "7": -8.0, "11": 6.0}, abs=0.5)  # %, against the median frame
+    assert frame_flux_errors(lattice_analysis(1500.0, 0.0, 6, positions=FIELD, travel_px=30.0)) is None

@@ -277,3 +277,84 @@ def test_more_clean_seeds_yield_no_effect(simulator, positions, seed, gain):
     """With the four seeds of the fast suite, ten clean seeds in all."""
     result = _attribute(simulator, positions, {}, seed, gain)
     assert result.effects == {}
+
+
+# ----------------------------------------------------------------------------- a sensor's flat field
+# A real sensor's gain varies a little over its area (an uncorrected flat field): not an effect of the
+# optics, but it moves every focus's energy and hid an MLA decentre beside it (issue 14, round 3).
+
+
+def _bowl_gain(shape: tuple[int, int]) -> np.ndarray:
+    """1 − 0.125 r² about a point off the sensor's centre (r = 1 at the half-height / half-width):
+    in the flat field's coordinates u, v (from the centre, in half-sizes), 1 − 0.125 ((u + 0.16)² +
+    (v − 0.16)²)."""
+    rows, cols = np.mgrid[0 : shape[0], 0 : shape[1]]
+    u = (rows - (shape[0] - 1) / 2) / (shape[0] / 2)
+    v = (cols - (shape[1] - 1) / 2) / (shape[1] / 2)
+    return 1.0 - 0.125 * ((u + 0.16) ** 2 + (v - 0.16) ** 2)
+
+
+def test_the_flat_field_nuisance_is_its_closed_form():
+    from cm2optics.calibrate.attribute import FLAT_FIELD, flat_field_gain
+
+    assert FLAT_FIELD.name not in {e.name for e in library(9)}  # a nuisance of the sensor, not in the vocabulary
+    values = {"gain_row": 0.04, "gain_col": -0.02, "gain_row2": -0.1, "gain_row_col": 0.03, "gain_col2": 0.05}
+    gain = flat_field_gain((101, 201), values)
+    assert gain[50, 100] == pytest.approx(1.0)  # the centre: u = v = 0
+    u, v = 100 / 101 * 2 - 1.0 + 1 / 101, 1.0 - 1 / 201  # the bottom-right pixel, (n − 1)/2 / (n/2) from the centre
+    expected = 1 + 0.04 * u - 0.02 * v - 0.1 * u * u + 0.03 * u * v + 0.05 * v * v
+    assert gain[100, 200] == pytest.approx(expected, rel=1e-5)
+    assert flat_field_gain((11, 11), {}) == pytest.approx(np.ones((11, 11)))
+
+
+def _attribute_with_gain(simulator, positions, values, seed, gain_scale=1.0):
+    counts, exposure = measured(simulator, positions, values, seed=seed)
+    gain = 1.0 + gain_scale * (_bowl_gain(simulator.shape) - 1.0)
+    signal = (counts.astype(np.float64) - DARK) * gain[None] + DARK  # the sensor's gain on the noisy signal
+    counts = np.clip(np.round(signal), 0, 4095).astype(np.uint16)
+    problem = Problem(simulator, counts, exposure, positions, np.ones(counts.shape, bool), library(9), 1.0)
+    return attribute(problem)
+
+
+@pytest.mark.slow
+def test_a_decentre_beside_a_sensor_gain_map_is_named_and_the_gain_is_no_effect(simulator, positions):
+    """The MLA decentred 40 µm in x beside a flat-field error of −25 % at the corners: the decentre
+    is named and measured; the gain is fitted as the sensor's nuisance, not reported as an effect."""
+    result = _attribute_with_gain(simulator, positions, {"mla_decenter": {"dx_mm": 0.04, "dy_mm": 0.0}}, seed=40)
+    assert list(result.effects) == ["mla_decenter"]
+    assert result.effects["mla_decenter"]["dx_mm"] == pytest.approx(0.04, abs=0.005)
+    assert result.effects["mla_decenter"]["dy_mm"] == pytest.approx(0.0, abs=0.005)
+    assert result.flat_field is not None
+    assert result.flat_field["gain_row2"] == pytest.approx(-0.125, abs=0.03)
+    assert result.flat_field["gain_col2"] == pytest.approx(-0.125, abs=0.03)
+    assert result.chi2_after < 1.2
+
+
+@pytest.mark.slow
+def test_a_sensor_gain_map_alone_is_no_effect(simulator, positions):
+    """A weaker, second magnitude of the gain map (−12 % at the corners), never tuned on."""
+    result = _attribute_with_gain(simulator, positions, {}, seed=41, gain_scale=0.5)
+    assert result.effects == {}
+    assert result.chi2_after < 1.2
+
+
+def test_effects_that_only_widen_the_foci_carry_the_larger_source_caveat():
+    """pixel_crosstalk, and a halo barely wider than the foci, widen every focus as a larger source
+    does; a wide halo does not (foci of RMS radius 2.2 px at 19.2 µm: σ ≈ 30 µm)."""
+    from types import SimpleNamespace
+
+    from cm2optics.calibrate.scan import _widening_caveats
+    from cm2optics.emission.source import AngularProfile, PointSource
+
+    after = SimpleNamespace(model=SimpleNamespace(width_px=np.full((4, 9), 2.2)), used=np.ones(4, bool))
+    source = PointSource(2.0, AngularProfile.parse("isotropic"))
+
+    def caveats(effects):
+        return _widening_caveats(SimpleNamespace(effects=effects), source, 8, after, 19.2)
+
+    assert caveats({"mla_rotation": {"angle_deg": 0.3}}) == []
+    assert caveats({"stray_light": {"fraction": 0.05, "width_um": 200.0}}) == []
+    narrow = caveats({"stray_light": {"fraction": 0.13, "width_um": 44.0}})
+    assert len(narrow) == 1 and "larger than declared (2 µm)" in narrow[0]
+    crosstalk = caveats({"pixel_crosstalk": {"fraction": 0.2}})
+    assert len(crosstalk) == 1 and crosstalk[0].startswith("pixel_crosstalk (0.200 between the 8×-binned")
