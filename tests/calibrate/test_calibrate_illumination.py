@@ -378,7 +378,7 @@ def test_clean_maps_yield_no_effect_for_ten_seeds(v2):
     model traced with its own seed (200 000 rays): the model's Monte Carlo noise, which dominates
     the comparison, is then a new draw for every map — with one model seed every map would share
     the same draw, ten repeats of one test. No effect named, nothing unexplained."""
-    units = unit_pixel_maps(v2, rays=20_000_000, offset_mm=OFFSET_MM, seed=100)
+    units = unit_pixel_maps(v2, rays=20_000_000, offset_mm=OFFSET_MM, seed=100, chunk=4_000_000)
     for seed in range(10):
         image = measured_map(units, mean_counts=2000.0, seed=seed)
         doc = calibrate_illumination(image, 50.0, v2, rays=200_000, seed=seed).document
