@@ -12,6 +12,11 @@ from cm2optics.illumination.compare import setup_from_options
 from cm2optics.illumination.geometry import build_scene, collimator_from_design
 from cm2optics.illumination.tracer import Status, trace
 
+#: Rays per trace of a truth map (memory), and the seed step between its chunks (far from the
+#: model's seeds, 0 and 1 by default).
+CHUNK_RAYS = 8_000_000  # the largest single trace of the earlier tests: their maps unchanged
+CHUNK_SEED_STEP = 1000
+
 
 def unit_pixel_maps(
     design: SystemDesign,
@@ -21,22 +26,30 @@ def unit_pixel_maps(
     rays: int = 2_000_000,
     offset_mm: tuple[float, float] = (0.0, 0.0),
     seed: int = 7,
+    chunk: int = CHUNK_RAYS,
 ) -> np.ndarray:
     """(units, size_px, size_px) rays landing in each pixel from each LED; the optical axis at
-    ``offset_mm`` (x, y) from the image's centre."""
+    ``offset_mm`` (x, y) from the image's centre. Traced in chunks of at most ``chunk`` rays (the
+    k-th with seed ``seed + CHUNK_SEED_STEP·k``: independent rays, bounded memory), so that a truth
+    can hold many times the model's rays — its own Monte Carlo noise, which a real map does not
+    have, is then negligible beside the model's (BENCHMARKS.md, session 13)."""
     collimator = collimator_from_design(design) if design.collimator is not None else None
     scene = as_built_scene(build_scene(design, collimator))
     setup = setup_from_options(design)
-    record = trace(scene, setup.source, rays, transmission=setup.transmission, seed=seed)
-    on = record.status == int(Status.SAMPLE)
-    hits, unit = record.hit_mm[on] + np.asarray(offset_mm), record.unit[on]
     half = size_px * pixel_um / 2000
-    return np.stack(
-        [
-            np.histogram2d(hits[unit == u, 1], hits[unit == u, 0], bins=size_px, range=[[-half, half]] * 2)[0]
-            for u in range(scene.units)
-        ]
-    )
+    out = np.zeros((scene.units, size_px, size_px))
+    for k, start in enumerate(range(0, rays, chunk)):
+        count = min(chunk, rays - start)
+        record = trace(scene, setup.source, count, transmission=setup.transmission, seed=seed + CHUNK_SEED_STEP * k)
+        on = record.status == int(Status.SAMPLE)
+        hits, unit = record.hit_mm[on] + np.asarray(offset_mm), record.unit[on]
+        out += np.stack(
+            [
+                np.histogram2d(hits[unit == u, 1], hits[unit == u, 0], bins=size_px, range=[[-half, half]] * 2)[0]
+                for u in range(scene.units)
+            ]
+        )
+    return out
 
 
 def measured_map(
