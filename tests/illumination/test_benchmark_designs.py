@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from cm2optics.design import load_preset
+from cm2optics.design import DesignError, load_preset
 from cm2optics.optics.collimator import collimator_profile, tir_wall_reach_mm
 from cm2optics.optics.layout import unit_clashes
 
@@ -36,3 +36,21 @@ def test_kept_designs_build_and_clear_the_housing(path):
     assert unit_clashes(design) == []
     if collimator.led_gap_mm == 0.0:  # the LED at the cavity's mouth: its die must fit inside the cavity
         assert collimator.cavity_radius_mm > design.led.emitter_mm / math.sqrt(2)
+
+
+def test_die_clearance_design_clears_the_die_by_a_printable_margin():
+    """`cm2-v2-die-clearance.yaml` (session 13): the enclosing cavity clears the LED die's corners by
+    ≥ 0.1 mm (the ± 50 µm LED placement of issue 16 item 4 + a resin printer's ≈ 50 µm), and its wall,
+    which would reach past the footprint around that wider cavity, is cut at ``tir_max_radius_mm``."""
+    path = next(p for p in DESIGNS if p.stem == "cm2-v2-die-clearance")
+    design = load_preset(str(path))
+    collimator = design.collimator
+    assert collimator.led_gap_mm == 0.0
+    assert collimator.cavity_radius_mm - design.led.emitter_mm / math.sqrt(2) >= 0.1
+    profile = collimator_profile(design)
+    assert 0.0 < collimator.tir_max_radius_mm < collimator.footprint_mm / 2
+    assert profile.tir_r_mm[-1] == pytest.approx(collimator.tir_max_radius_mm, abs=1e-9)
+    assert profile.outer_radius_entry_mm == pytest.approx(collimator.cavity_radius_mm + collimator.entry_wall_mm)
+    uncut = {"collimator.tir_max_radius_mm": 0.0, "collimator.height_mm": 3.0, "led_array.excitation_gap_mm": 3.0}
+    with pytest.raises(DesignError, match="footprint"):  # the uncut wall, however tall, does not fit
+        collimator_profile(design.with_changes(uncut))
