@@ -11,7 +11,17 @@ from nbclient import NotebookClient
 NOTEBOOKS = sorted((Path(__file__).resolve().parents[1] / "notebooks").glob("*.ipynb"))
 
 
-@pytest.mark.parametrize("path", NOTEBOOKS, ids=lambda p: p.name)
+#: Run only with ``-m slow``, for the default suite's 20 minutes: 08 runs the whole calibration loop
+#: (≈ 110 s quiet; the loop itself is tested in the default suite by tests/calibrate, e.g.
+#: ``test_calibrate_scan_end_to_end``).
+SLOW_NOTEBOOKS = {"08-calibration.ipynb"}
+
+
+@pytest.mark.parametrize(
+    "path",
+    [pytest.param(p, marks=pytest.mark.slow) if p.name in SLOW_NOTEBOOKS else p for p in NOTEBOOKS],
+    ids=lambda p: p.name,
+)
 def test_notebook_runs(path: Path, tmp_path):
     notebook = nbformat.read(path, as_version=4)
     NotebookClient(
