@@ -51,12 +51,10 @@ Progress = Callable[[str], None]
 #: residual the gain leaves; never reported among the effects nor written into the design. The
 #: gain 1 + a·u + b·v + c·u² + d·u·v + e·v² over the sensor, u and v the pixel's row and column
 #: from the sensor's centre in half-heights and half-widths (the constant is the flux scale's).
+_FLAT_FIELD_TERMS = ("gain_row", "gain_col", "gain_row2", "gain_row_col", "gain_col2")
 FLAT_FIELD = Effect(
     "flat_field",
-    tuple(
-        Parameter(name, 0.0, -0.5, 0.5, 0.01)
-        for name in ("gain_row", "gain_col", "gain_row2", "gain_row_col", "gain_col2")
-    ),
+    tuple(Parameter(name, 0.0, -0.5, 0.5, 0.01) for name in _FLAT_FIELD_TERMS),
     "the sensor's gain varies smoothly over its area (an uncorrected flat field): a nuisance of the sensor",
 )
 
@@ -65,18 +63,8 @@ def flat_field_gain(shape: tuple[int, int], values: dict[str, float]) -> np.ndar
     """(y, x) the relative gain of :data:`FLAT_FIELD` with ``values`` over a sensor of ``shape``."""
     u = ((np.arange(shape[0], dtype=np.float32) - (shape[0] - 1) / 2) / (shape[0] / 2))[:, None]
     v = ((np.arange(shape[1], dtype=np.float32) - (shape[1] - 1) / 2) / (shape[1] / 2))[None, :]
-    p = {
-        name: np.float32(values.get(name, 0.0))
-        for name in ("gain_row", "gain_col", "gain_row2", "gain_row_col", "gain_col2")
-    }
-    return (
-        1
-        + p["gain_row"] * u
-        + p["gain_col"] * v
-        + p["gain_row2"] * u * u
-        + p["gain_row_col"] * u * v
-        + p["gain_col2"] * v * v
-    )
+    terms = (u, v, u * u, u * v, v * v)
+    return 1 + sum(np.float32(values.get(name, 0.0)) * t for name, t in zip(_FLAT_FIELD_TERMS, terms, strict=True))
 
 
 @dataclass
