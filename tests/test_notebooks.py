@@ -13,8 +13,10 @@ NOTEBOOKS = sorted((Path(__file__).resolve().parents[1] / "notebooks").glob("*.i
 
 #: Run only with ``-m slow``, for the default suite's 20 minutes: 08 runs the whole calibration loop
 #: (≈ 110 s quiet; the loop itself is tested in the default suite by tests/calibrate, e.g.
-#: ``test_calibrate_scan_end_to_end``).
-SLOW_NOTEBOOKS = {"08-calibration.ipynb"}
+#: ``test_calibrate_scan_end_to_end``); 06 renders and reconstructs its volumes (≈ 50 s quiet; the
+#: same calls are tested by tests/synth and tests/recon, e.g. ``test_dataset_files_manifest_and_reproducibility``
+#: and ``test_every_method_recovers_a_few_emitters``).
+SLOW_NOTEBOOKS = {"06-synthetic-data-and-baselines.ipynb", "08-calibration.ipynb"}
 
 
 @pytest.mark.parametrize(
