@@ -69,12 +69,6 @@ def train_command(
     from cm2optics.recon.net.config import load_config
     from cm2optics.recon.net.train import train
 
-    if not config.is_file():
-        raise FileNotFoundError(f"{config}: no such config file")
-    settings = load_config(config)
-    if ablation is not None:
-        settings = _ablated(settings, ablation)
-    out_dir = Path(settings.out_dir)
     if keep is not None:
         from cm2optics.recon.net.config import KEEP_WEIGHTS, ConfigError
 
@@ -82,6 +76,12 @@ def train_command(
             raise ConfigError("--keep chooses the weights --export writes; give --export")
         if keep not in KEEP_WEIGHTS:
             raise ConfigError(f"--keep {keep}: must be one of {', '.join(KEEP_WEIGHTS)}")
+    if not config.is_file():
+        raise FileNotFoundError(f"{config}: no such config file")
+    settings = load_config(config)
+    if ablation is not None:
+        settings = _ablated(settings, ablation)
+    out_dir = Path(settings.out_dir)
     if export is not None:
         _export(out_dir, export, config, overwrite, keep)
         return
