@@ -45,6 +45,14 @@ def train_command(
             "training or stopped) into this folder as a weights folder, e.g. reconstruction/cm2net-cpu.",
         ),
     ] = None,
+    keep: Annotated[
+        str | None,
+        typer.Option(
+            "--keep",
+            help="With --export: which weights — last (the latest checkpoint's), best (the best validation scoring's) "
+            "or average (the mean of the last ones'); default: the config's keep_weights.",
+        ),
+    ] = None,
     overwrite: OverwriteOption = False,
     as_json: JsonOption = False,
 ) -> None:
@@ -61,6 +69,13 @@ def train_command(
     from cm2optics.recon.net.config import load_config
     from cm2optics.recon.net.train import train
 
+    if keep is not None:
+        from cm2optics.recon.net.config import KEEP_WEIGHTS, ConfigError
+
+        if export is None:
+            raise ConfigError("--keep chooses the weights --export writes; give --export")
+        if keep not in KEEP_WEIGHTS:
+            raise ConfigError(f"--keep {keep}: must be one of {', '.join(KEEP_WEIGHTS)}")
     if not config.is_file():
         raise FileNotFoundError(f"{config}: no such config file")
     settings = load_config(config)
@@ -68,7 +83,7 @@ def train_command(
         settings = _ablated(settings, ablation)
     out_dir = Path(settings.out_dir)
     if export is not None:
-        _export(out_dir, export, config, overwrite)
+        _export(out_dir, export, config, overwrite, keep)
         return
     check_output(out_dir, command="train", kind="folder", inputs=[config], overwrite=overwrite, option="out_dir")
     claim_folder(out_dir, "train")
@@ -89,7 +104,7 @@ def _ablated(settings, ablation: str):
     return settings.with_changes(ablation=ablation, out_dir=f"{str(settings.out_dir).rstrip('/')}-{ablation}")
 
 
-def _export(run_dir: Path, folder: Path, config: Path, overwrite: bool) -> None:
+def _export(run_dir: Path, folder: Path, config: Path, overwrite: bool, keep: str | None = None) -> None:
     """``--export``: the run's latest checkpoint as a weights folder (written whole, or not at all)."""
     from rich.console import Console
 
@@ -101,7 +116,7 @@ def _export(run_dir: Path, folder: Path, config: Path, overwrite: bool) -> None:
     check_output(
         folder, command="train", kind="folder", inputs=[config, run_dir], overwrite=overwrite, option="--export"
     )
-    saved = export_weights(run_dir, folder)
+    saved = export_weights(run_dir, folder, keep)
     Console(stderr=True).print(f"[green]weights:[/] {saved}")
 
 

@@ -669,6 +669,10 @@ def _network_and_calibration_cases() -> list[Case]:
         ),
         Case("train", "input-file", ["train", "{missing}"], ("missing.tif", "no such")),
         Case("train", "input-file", ["train", "{garbage_yaml}"], ("garbage.yaml", "YAML")),
+        Case("train", "option", ["train", "{garbage_yaml}", "--keep", "best"], ("--keep", "--export")),
+        Case(
+            "train", "option", ["train", "{garbage_yaml}", "--keep", "first", "--export", "{case}/w"], ("--keep first",)
+        ),
         Case("calibrate scan", "input-file", ["calibrate", "scan", "{missing}", "--out", "{case}/r"], ("no such",)),
         Case("calibrate scan", "input-file", ["calibrate", "scan", "{root}", "--out", "{case}/r"], ("scan.yaml",)),
         Case(

@@ -57,6 +57,32 @@ def test_focus_displacements_are_the_foci_offsets_and_dark_lenslets_carry_no_lig
     assert light[0, DARK_LEFT] == 0.0 and light[1, DARK_LEFT] > 1.0
 
 
+class PerLensletFoci(DisplacedFoci):
+    """The same foci on a per-lenslet basis: lenslet j's two patches are terms 2j, 2j + 1, dark in
+    every other lenslet (``lenslet_terms``), as ``cm2 lsv build --per-lenslet-basis`` stores them."""
+
+    def __init__(self):
+        super().__init__()
+        K, J = self.basis.shape[:2]
+        block = np.zeros((K * J, J, PATCH, PATCH), np.float32)
+        for j in range(J):
+            block[K * j : K * (j + 1), j] = self.basis[:, j]
+        self.basis, self.K = block, K
+
+    def lenslet_terms(self, j):
+        return np.arange(self.K * j, self.K * (j + 1))
+
+    def coefficients_at(self, x_mm, y_mm, z_mm, lenslet=None):
+        return np.tile(super().coefficients_at(x_mm, y_mm, z_mm), len(LEFT))
+
+
+def test_a_per_lenslet_basis_gives_the_same_displacements_from_each_lenslets_own_terms():
+    x, y = np.array([-0.5, 0.5, 0.2]), np.array([0.1, -0.1, 0.3])
+    shared, per_lenslet = focus_displacements(DisplacedFoci(), x, y), focus_displacements(PerLensletFoci(), x, y)
+    for a, b in zip(shared, per_lenslet, strict=True):
+        np.testing.assert_allclose(a, b, atol=1e-6)
+
+
 def test_registration_map_reads_each_view_where_its_focus_landed():
     model = DisplacedFoci()
     V = 40

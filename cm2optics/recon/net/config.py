@@ -26,9 +26,10 @@ import yaml
 from cm2optics.errors import UserError
 from cm2optics.synth.config import SynthConfig
 
-__all__ = ["ABLATIONS", "LOSSES", "NORMS", "RUNTIME_FIELDS", "ConfigError", "NetConfig", "load_config"]
+__all__ = ["ABLATIONS", "KEEP_WEIGHTS", "LOSSES", "NORMS", "RUNTIME_FIELDS", "ConfigError", "NetConfig", "load_config"]
 
 NORMS = ("batch", "group", "none")
+KEEP_WEIGHTS = ("last", "best", "average")
 LOSSES = ("bce", "weighted-bce", "focal")
 TARGETS = ("occupancy", "emission")
 #: The paper's ablations (Fig. 4): the full network, or without view demixing, or one branch.
@@ -89,6 +90,8 @@ class NetConfig:
     through ``mix_forward_model`` with the recipe ``synth`` changed by the fields in ``mix_synth``
     (e.g. a smaller field and views: fov_mm, view_px, patches_per_volume; the grid and patch size
     stay the network's), from their own seed; the refocusing shifts must agree (empty / 0: none);
+    val_mix_volumes: validation volumes of the mixed source (its model and recipe, its own seed),
+    scored beside the ``val_volumes`` (0: none);
     curriculum_epochs: epochs over which the density grows linearly from
     curriculum_start_density (per mm²) to ``synth.density_per_mm2`` (0: no curriculum);
     target: ``occupancy`` (fraction of each voxel inside an emitter, the paper's binned balls)
@@ -100,7 +103,13 @@ class NetConfig:
     (γ = focal_gamma); border_px: patch margin left out of the volume loss (−1: the largest
     refocusing shift); detect_threshold: the validation's detection threshold on the sigmoid output
     (also the inference's default for weights that carry no operating threshold chosen on validation
-    volumes, :mod:`~cm2optics.recon.net.operating`).
+    volumes, :mod:`~cm2optics.recon.net.operating`);
+    val_every: also score the validation volumes every this many steps within an epoch (0: at the
+    epoch ends only); keep_weights: the weights the run ends with (its ``weights/`` folder and
+    ``cm2 train --export``): ``last`` (the last step's), ``best`` (those of the validation scoring
+    with the highest score: the F1 at the best of :data:`VALIDATION_THRESHOLDS`, averaged over the
+    two sources when there is a mixed one) or ``average`` (the mean of the weights at the last
+    ``keep_average`` validation scorings). All three out of the hash at their defaults (0, last).
 
     Start — init_weights: a weights folder whose learned tensors the run starts from (fine-tuning
     on another forward model: the refocusing comes from this config's model, see
@@ -129,6 +138,7 @@ class NetConfig:
     mix_forward_model: str = ""
     mix_fraction: float = 0.0
     mix_synth: dict = field(default_factory=dict)
+    val_mix_volumes: int = 0
     curriculum_epochs: int = 0
     curriculum_start_density: tuple[float, float] = (5.0, 20.0)
     target: str = "occupancy"
@@ -144,6 +154,9 @@ class NetConfig:
     init_weights: str = ""
     border_px: int = -1
     detect_threshold: float = 0.5
+    val_every: int = 0
+    keep_weights: str = "last"
+    keep_average: int = 4
     epochs: int = 10
     out_dir: str = "runs/cm2net"
     checkpoint_every: int = 0
@@ -204,6 +217,14 @@ class NetConfig:
         _float("focal_gamma", self.focal_gamma, 0.0, 100.0)
         _int("border_px", self.border_px, -1, 100_000)
         _float("detect_threshold", self.detect_threshold, 0.0, 1.0, open_low=True)
+        _int("val_every", self.val_every, 0, 10_000_000)
+        _choice("keep_weights", self.keep_weights, KEEP_WEIGHTS)
+        _int("keep_average", self.keep_average, 1, 1000)
+        _int("val_mix_volumes", self.val_mix_volumes, 0, 1_000_000)
+        if self.val_mix_volumes and not self.mix_forward_model:
+            raise ConfigError(f"val_mix_volumes = {self.val_mix_volumes}: needs a mixed source (mix_forward_model)")
+        if self.keep_weights != "last" and not (self.val_volumes or self.val_mix_volumes):
+            raise ConfigError(f"keep_weights = {self.keep_weights}: needs validation volumes (val_volumes)")
         _int("epochs", self.epochs, 0, 1_000_000)
         _int("checkpoint_every", self.checkpoint_every, 0, 10_000_000)
         _int("workers", self.workers, 0, 256)
@@ -255,6 +276,7 @@ class NetConfig:
             mix_forward_model="",
             mix_fraction=0.0,
             mix_synth={},
+            val_mix_volumes=0,
         )
 
     # -- dictionaries, YAML, hash ---------------------------------------------------------
@@ -292,7 +314,9 @@ class NetConfig:
     def hash(self) -> str:
         """SHA-256 (hex) of the fields that change the weights (not :data:`RUNTIME_FIELDS`; nor
         ``ablation`` when ``none`` nor an empty ``init_weights`` nor ``interleave_volumes`` of 1 nor
-        ``register_views`` when false nor the ``mix_*`` fields when there is no mixed source, so that configs written before they existed keep their hash)."""
+        ``register_views`` when false nor the ``mix_*`` fields when there is no mixed source nor
+        ``val_mix_volumes``, ``val_every``, ``keep_weights`` at 0, 0, last (``keep_average`` only
+        with ``average``), so that configs written before they existed keep their hash)."""
         data = {k: v for k, v in self.to_dict().items() if k not in RUNTIME_FIELDS}
         if data["ablation"] == "none":
             del data["ablation"]
@@ -305,6 +329,11 @@ class NetConfig:
         if not data["mix_forward_model"]:
             for name in ("mix_forward_model", "mix_fraction", "mix_synth"):
                 del data[name]
+        for name, default in (("val_mix_volumes", 0), ("val_every", 0), ("keep_weights", "last")):
+            if data[name] == default:
+                del data[name]
+        if data.get("keep_weights") != "average":
+            del data["keep_average"]
         return hashlib.sha256(json.dumps(data, sort_keys=True, default=str).encode()).hexdigest()
 
     def with_changes(self, **changes: Any) -> NetConfig:

@@ -372,12 +372,16 @@ def rank_items(config: NetConfig, items: list[Item], rank: int, world: int, star
     return out
 
 
-def validation_items(config: NetConfig) -> list[Item]:
+def validation_items(config: NetConfig, source: int = 0) -> list[Item]:
+    """The fixed validation patches: ``val_volumes`` volumes of the config's source (``source``
+    0), or ``val_mix_volumes`` of the mixed source (1: its recipe, seed ``seed + MIX_SEED_OFFSET
+    + VALIDATION_SEED_OFFSET``)."""
     seed = config.seed + VALIDATION_SEED_OFFSET
-    density = tuple(float(v) for v in config.synth.density_per_mm2)
-    return [
-        Item(seed, v, k, density) for v in range(config.val_volumes) for k in range(config.synth.patches_per_volume)
-    ]
+    n, c = config.val_volumes, config
+    if source:
+        n, c, seed = config.val_mix_volumes, config.mix_config(), seed + MIX_SEED_OFFSET
+    density = tuple(float(v) for v in c.synth.density_per_mm2)
+    return [Item(seed, v, k, density, source) for v in range(n) for k in range(c.synth.patches_per_volume)]
 
 
 def validation_volumes(config: NetConfig, n_volumes: int):

@@ -45,11 +45,13 @@ def focus_displacements(model, x_mm: np.ndarray, y_mm: np.ndarray, z_mm: float =
     shift = np.zeros((len(x), J, 2))
     light = np.zeros((len(x), J))
     for j in range(J):
-        basis = model.basis[:, j].reshape(K, -1).astype(np.float32)
+        # a per-lenslet basis: only lenslet j's own terms have light in it (all K otherwise)
+        terms = model.lenslet_terms(j) if hasattr(model, "lenslet_terms") else np.arange(K)
+        basis = model.basis[terms, j].reshape(len(terms), -1).astype(np.float32)
         for start in range(0, len(x), chunk):
             sl = slice(start, start + chunk)
             c = model.coefficients_at(x[sl], y[sl], np.full(len(x[sl]), z_mm), lenslet=j).astype(np.float32)
-            patches = (c @ basis).reshape(-1, h, w)
+            patches = (c[:, terms] @ basis).reshape(-1, h, w)
             peak = patches.max(axis=(1, 2), keepdims=True)
             weight = np.clip(patches - CENTROID_THRESHOLD * peak, 0.0, None)
             total = weight.sum(axis=(1, 2))

@@ -56,9 +56,24 @@ from cm2optics.recon.net.loss import cm2net_loss
 from cm2optics.recon.net.model import CM2Net, build_net
 from cm2optics.recon.net.refocus import RefocusPlanes, refocus_planes
 
-__all__ = ["evaluate", "make_net", "make_optimiser", "make_scheduler", "train", "train_one_epoch"]
+__all__ = [
+    "evaluate",
+    "export_weights",
+    "kept_weights",
+    "make_net",
+    "make_optimiser",
+    "make_scheduler",
+    "train",
+    "train_one_epoch",
+]
 
 CHECKPOINT, HISTORY, CURVE = "checkpoint.pt", "history.json", "loss_curve.png"
+#: Where a run keeps the weights of its best validation scoring, and those of its last ones
+#: (``keep_weights`` best / average).
+BEST, AVERAGE = "best.pt", "average.pt"
+#: Thresholds at which a run's validation scorings take the F1 (``f1_best``) when it keeps weights
+#: by validation, scores every ``val_every`` steps or a mixed source's volumes.
+VALIDATION_THRESHOLDS = (0.05, 0.1, 0.15, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8)
 
 
 # ----------------------------------------------------------------------------- pieces
@@ -204,12 +219,14 @@ def evaluate(
     items=None,
     source: PatchSource | None = None,
     threshold: float | None = None,
+    thresholds: Iterable[float] = (),
 ) -> dict[str, Any]:
     """Validation loss and detection scores over the validation patches (or ``items``).
 
     Each patch's prediction, less the loss border, is binarised at ``threshold`` (default
     ``config.detect_threshold``), its components matched to the true emitters whose centres lie
-    in it (:func:`cm2optics.metrics.evaluate_volume`), and the counts pooled."""
+    in it (:func:`cm2optics.metrics.evaluate_volume`), and the counts pooled. ``thresholds``: also
+    the pooled F1 at each of them, the best as ``f1_best`` at ``threshold_best``."""
     from cm2optics.metrics import evaluate_volume, pooled_scores
 
     module = getattr(net, "module", net)
@@ -224,6 +241,8 @@ def evaluate(
     inner = VolumeGrid((grid.shape[0], p - 2 * border, p - 2 * border), pixel_voxel_um(config, source.scale))
     totals = {"loss": 0.0, "demix": 0.0, "volume": 0.0}
     evaluations = []
+    thresholds = [float(t) for t in thresholds]
+    kept: list[tuple[np.ndarray, Any]] = []  # (prediction, truth) per patch, for ``thresholds``
     for start in range(0, len(items), max(config.batch_size, 1)):
         chunk = items[start : start + max(config.batch_size, 1)]
         arrays = [source.patch(it) for it in chunk]
@@ -238,7 +257,10 @@ def evaluate(
         prob = torch.sigmoid(volume_logits).cpu().numpy()
         for it, pred in zip(chunk, prob, strict=True):
             crop = pred[:, border : p - border, border : p - border] if border else pred
-            evaluations.append(evaluate_volume(crop, inner, source.truth(it, border), threshold))
+            truth = source.truth(it, border)
+            evaluations.append(evaluate_volume(crop, inner, truth, threshold))
+            if thresholds:
+                kept.append((crop, truth))
     n = len(items)
     metrics = {f"val_{k}": v / n for k, v in totals.items()}
     scores = pooled_scores(evaluations)
@@ -246,6 +268,12 @@ def evaluate(
         if key in scores:
             metrics[key] = scores[key]
     metrics["threshold"] = threshold
+    if thresholds:
+        f1 = [
+            pooled_scores([evaluate_volume(c, inner, t, value) for c, t in kept]).get("f1", 0.0) for value in thresholds
+        ]
+        best = int(np.argmax(f1))
+        metrics["f1_best"], metrics["threshold_best"] = float(f1[best]), thresholds[best]
     return metrics
 
 
@@ -395,7 +423,10 @@ def train(
     if world > 1:
         model = torch.nn.parallel.DistributedDataParallel(net, device_ids=[dev.index] if dev.type == "cuda" else None)
     n_steps = _steps_per_epoch_or_raise(config)
-    source = PatchSource(config) if rank == 0 or config.val_volumes else None
+    source = PatchSource(config, cache=max(2, config.val_volumes)) if rank == 0 or config.val_volumes else None
+    if rank == 0 and not resume:  # a fresh run: no kept weights of an earlier one
+        for name in (BEST, AVERAGE):
+            (out / name).unlink(missing_ok=True)
     facts = {
         "histogram": carried.get("histogram"),
         "hardware": _hardware(dev, world),
@@ -405,6 +436,7 @@ def train(
         histogram = inherited if inherited is not None else _histogram(source, config)
         facts["histogram"] = [float(v) for v in histogram]
     checkpoint = _checkpointer(out / CHECKPOINT, net, optimiser, scheduler, config, history, pos, rank, world, facts)
+    validate = _validator(net, config, border, dev, source, history, out, rank)
 
     while pos.epoch < config.epochs and not pos.stopped:
         loader = _epoch_loader(config, pos, rank, world)
@@ -415,14 +447,14 @@ def train(
             config,
             border,
             device=dev,
-            on_step=_step_hook(pos, history, config, n_steps, max_steps, checkpoint),
+            on_step=_step_hook(pos, history, config, n_steps, max_steps, checkpoint, validate),
             total=n_steps - pos.step_in_epoch,
             description=f"epoch {pos.epoch + 1}/{config.epochs}",
             progress=config.progress and rank == 0,
         )
         if pos.stopped:
             break
-        metrics = evaluate(net, config, border, device=dev, source=source) if config.val_volumes else {}
+        metrics = validate(pos.global_step)
         record = _epoch_record(pos.epoch, pos.global_step, optimiser, history["steps"][-n_steps:], metrics)
         scheduler.step(metrics.get("val_loss", record["train_loss"]))
         history["epochs"].append(record)
@@ -476,6 +508,127 @@ def _checkpointer(
     return checkpoint
 
 
+def _extended_validation(config: NetConfig) -> bool:
+    """Whether the run scores beyond the epoch ends' plain validation: ``val_every``, a mixed
+    source's validation volumes or weights kept by validation."""
+    return bool(config.val_every or config.val_mix_volumes or config.keep_weights != "last")
+
+
+def _validator(
+    net: torch.nn.Module,
+    config: NetConfig,
+    border: int,
+    device: torch.device,
+    source: PatchSource | None,
+    history: dict[str, Any],
+    out: Path,
+    rank: int,
+) -> Callable[[int], dict[str, Any]]:
+    """``validate(step)``: the validation metrics of the net as it stands (``{}`` without
+    validation volumes), the net left in training mode.
+
+    With :func:`_extended_validation` each scoring also takes the F1 at the best of
+    :data:`VALIDATION_THRESHOLDS` (``f1_best``), scores the mixed source's ``val_mix_volumes``
+    (keys ``mix_…``), appends its record (``step``, the metrics, ``score``: the mean ``f1_best``
+    over the sources) to ``history["validations"]`` and, on rank 0, keeps the weights the config
+    asks for (:data:`BEST`, :data:`AVERAGE`)."""
+    extended = _extended_validation(config)
+    sources: list[tuple[str, PatchSource | None, list | None]] = []
+    if config.val_volumes:
+        sources.append(("", source, None))
+    if extended and config.val_mix_volumes:
+        mix = config.mix_config()
+        sources.append(("mix_", PatchSource(mix, cache=config.val_mix_volumes), validation_items(config, 1)))
+
+    def validate(step: int) -> dict[str, Any]:
+        if not sources:
+            return {}
+        metrics: dict[str, Any] = {}
+        for prefix, src, items in sources:
+            scored = evaluate(
+                net,
+                config,
+                border,
+                device=device,
+                items=items,
+                source=src,
+                thresholds=VALIDATION_THRESHOLDS if extended else (),
+            )
+            metrics |= {f"{prefix}{k}": v for k, v in scored.items()}
+        net.train()
+        if not extended:
+            return metrics
+        prefixes = [prefix for prefix, _, _ in sources]
+        metrics["score"] = float(np.mean([metrics[f"{prefix}f1_best"] for prefix in prefixes]))
+        record = {"step": step, **metrics}
+        validations = history.setdefault("validations", [])
+        validations[:] = [v for v in validations if v["step"] < step] + [record]
+        if rank == 0:
+            _keep_weights(net, config, out, history, record)
+        return metrics
+
+    return validate
+
+
+def _keep_weights(
+    net: torch.nn.Module, config: NetConfig, out: Path, history: dict[str, Any], record: dict[str, Any]
+) -> None:
+    """After a validation scoring: ``best`` — the net's state to :data:`BEST` if its score beats
+    every earlier scoring's (``history["best"]``); ``average`` — appended to the last
+    ``keep_average`` states in :data:`AVERAGE` (states of later steps, from before a resume, dropped)."""
+    state = {k: v.detach().clone() for k, v in net.state_dict().items()}
+    if config.keep_weights == "best":
+        best = history.get("best")
+        if best is None or record["score"] > best["score"] or best["step"] >= record["step"]:
+            history["best"] = {"step": record["step"], "score": record["score"]}
+            payload = {"model": state, "record": record, "config_hash": config.hash()}
+            write_atomic(out / BEST, lambda tmp: torch.save(payload, tmp))
+    elif config.keep_weights == "average":
+        path = out / AVERAGE
+        kept = torch.load(path, map_location="cpu", weights_only=False)["states"] if path.is_file() else []
+        kept = [k for k in kept if k["step"] < record["step"]] + [
+            {"step": record["step"], "model": state, "record": record}
+        ]
+        payload = {"states": kept[-config.keep_average :], "config_hash": config.hash()}
+        write_atomic(path, lambda tmp: torch.save(payload, tmp))
+
+
+def kept_weights(run_dir: str | Path, config: NetConfig, keep: str | None = None) -> tuple[dict, dict] | None:
+    """(state dict, facts) of the weights a run keeps (``keep``, default the config's
+    ``keep_weights``): the best validation scoring's, or the mean of the last ones' (floating
+    tensors averaged, counters the last's); None for ``last`` (the latest checkpoint's)."""
+    keep = keep or config.keep_weights
+    if keep == "last":
+        return None
+    path = Path(run_dir) / (BEST if keep == "best" else AVERAGE)
+    if not path.is_file():
+        raise CheckpointError(
+            f"{path}: no {keep} weights kept yet (keep_weights: {keep}; the run keeps them at its validation scorings)"
+        )
+    state = torch.load(path, map_location="cpu", weights_only=False)
+    if state.get("config_hash") != config.hash():
+        raise CheckpointError(f"{path}: kept by a run of another config ({str(state.get('config_hash'))[:12]}…)")
+    if keep == "best":
+        record = state["record"]
+        return state["model"], {
+            "weights kept": f"best validation score {record['score']:.4f} at step {record['step']}",
+            "record": record,
+        }
+    states = state["states"]
+    average = {}
+    for key, last in states[-1]["model"].items():
+        if torch.is_floating_point(last):
+            average[key] = torch.stack([k["model"][key] for k in states]).mean(0)
+        else:
+            average[key] = last.clone()
+    steps = [k["step"] for k in states]
+    record = dict(states[-1]["record"])
+    return average, {
+        "weights kept": f"mean of the weights at the {len(steps)} validation scorings at steps {steps}",
+        "record": record,
+    }
+
+
 @dataclass
 class _Position:
     """Where a training run stands: the epoch (0-based), the step within it, the optimiser steps
@@ -507,9 +660,12 @@ def _step_hook(
     n_steps: int,
     max_steps: int | None,
     checkpoint: Callable[[int, int], None],
+    validate: Callable[[int], dict[str, Any]] | None = None,
 ) -> Callable[[int, dict[str, float]], bool]:
-    """The ``on_step`` callback of one epoch: records each step's loss and time (s), checkpoints
-    every ``checkpoint_every`` steps and stops at ``max_steps``; returns True to stop the epoch."""
+    """The ``on_step`` callback of one epoch: records each step's loss and time (s), scores the
+    validation volumes every ``val_every`` steps (``validate``; the epoch's end scores them
+    anyway), checkpoints every ``checkpoint_every`` steps and stops at ``max_steps``; returns True
+    to stop the epoch."""
     e, first, last = pos.epoch, pos.step_in_epoch, [time.perf_counter()]
 
     def on_step(i: int, record: dict[str, float]) -> bool:
@@ -519,6 +675,9 @@ def _step_hook(
         history["seconds_per_step"].append(now - last[0])
         last[0] = now
         s = first + i + 1
+        if validate is not None and config.val_every and pos.global_step % config.val_every == 0 and s < n_steps:
+            validate(pos.global_step)
+            last[0] = time.perf_counter()  # the scoring's time is not a step's
         if config.checkpoint_every and pos.global_step % config.checkpoint_every == 0 and s < n_steps:
             checkpoint(e, s)
         if max_steps is not None and pos.global_step >= max_steps:
@@ -643,15 +802,25 @@ def _save_final_weights(
     from cm2optics.recon.net.weights import save_weights
 
     training = _training_facts(pos.epoch, pos.global_step, history, config, facts["hardware"])
-    return save_weights(
-        net, config, out / "weights", metrics=_last_metrics(history), training=training, histogram=facts["histogram"]
-    )
+    metrics = _last_metrics(history)
+    kept = kept_weights(out, config)
+    if kept is not None:
+        import copy
+
+        state, facts_kept = kept
+        net = copy.deepcopy(net)
+        net.load_state_dict(state)
+        training["weights kept"] = facts_kept["weights kept"]
+        metrics = {k: v for k, v in facts_kept["record"].items() if isinstance(v, int | float)}
+    return save_weights(net, config, out / "weights", metrics=metrics, training=training, histogram=facts["histogram"])
 
 
-def export_weights(run_dir: str | Path, folder: str | Path) -> Path:
+def export_weights(run_dir: str | Path, folder: str | Path, keep: str | None = None) -> Path:
     """The weights of the latest checkpoint in ``run_dir`` (a run that is still training, or
     stopped) as a weights folder: safetensors, config, model card with the training facts and the
-    last validation metrics, SHA256SUMS, and the reference histogram of the training views.
+    last validation metrics, SHA256SUMS, and the reference histogram of the training views. With
+    ``keep`` (default: the config's ``keep_weights``) ``best`` or ``average``, the weights the run
+    keeps instead (:func:`kept_weights`), with the metrics of their validation scoring.
 
     The network is rebuilt from the checkpoint's tensors (no forward model); the histogram is the
     one the checkpoint carries — only a checkpoint of an older version makes it again
@@ -672,6 +841,11 @@ def export_weights(run_dir: str | Path, folder: str | Path) -> Path:
         raise CheckpointError(f"{path}: not a readable CM²Net checkpoint ({error})") from None
     state = load_checkpoint(path, config.hash())
     tensors = {k.removeprefix("module."): v for k, v in state["model"].items()}
+    metrics = _last_metrics(state["history"])
+    kept = kept_weights(run_dir, config, keep)
+    if kept is not None:
+        tensors = {k.removeprefix("module."): v for k, v in kept[0].items()}
+        metrics = {k: v for k, v in kept[1]["record"].items() if isinstance(v, int | float)}
     try:
         net = net_from_tensors(config, tensors, str(path), "its config")
     except WeightsError as error:
@@ -680,13 +854,13 @@ def export_weights(run_dir: str | Path, folder: str | Path) -> Path:
     if histogram is None:
         histogram = _histogram(PatchSource(config), config)
     training = _training_facts(state["epoch"], state["global_step"], state["history"], config, state.get("hardware"))
+    if kept is not None:
+        training["weights kept"] = kept[1]["weights kept"]
     folder = Path(folder)
     folder.parent.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=f".{folder.name}.partial-", dir=folder.parent))
     try:
-        save_weights(
-            net, config, staging, metrics=_last_metrics(state["history"]), training=training, histogram=histogram
-        )
+        save_weights(net, config, staging, metrics=metrics, training=training, histogram=histogram)
         return swap_in_folder(staging, folder, "train")
     finally:
         shutil.rmtree(staging, ignore_errors=True)
