@@ -82,3 +82,26 @@ def test_refit_of_a_node_model_leaves_the_held_out_nodes_out_of_its_fit_and_its_
     assert out["nodes_at_or_below_target"] == sum(v <= 0.08 for v in out["nmse_per_node"])
     zero = leave_out_nodes(model, scan, n_heldout=3, node_psfs=node_model(0.0))
     assert zero["nmse_full"] == pytest.approx(1.0) and zero["nmse"] == pytest.approx(1.0)
+
+
+def test_a_node_model_builds_from_whole_pixel_frames_with_each_focus_phase(v2, built):
+    """A scan without epsf.h5: ``node_psfs`` gets the frames' whole-pixel windows and every focus's
+    sub-pixel phase, and its fine PSFs make an ePSF model (the aberration model's path for a
+    measured scan)."""
+    scan, _ = built
+    S, seen = 4, {}
+
+    def node_psfs(crops, grid_index, axes, geometry, oversample, pixel_um, *, progress, memory_bytes, phases):
+        seen.update(shape=crops.shape, phases=np.asarray(phases), geometry=geometry, oversample=oversample)
+        fine = np.kron(np.asarray(crops, np.float64), np.ones((S, S))) / S**2  # any fine PSFs (plumbing)
+        return fine.astype(np.float32), fine[::2].astype(np.float32), {"dense_positions": len(fine[::2])}
+
+    result = build_model(scan, rank=3, oversample=S, rotate=False, warp=False, design=v2, node_psfs=node_psfs)
+    index = open_scan(scan)
+    patch = result.model.provenance["options"]["patch_px"]
+    assert seen["shape"] == (len(index), 9, patch, patch) and seen["oversample"] == S
+    foci = seen["geometry"].focus(*index.positions_mm.T)
+    np.testing.assert_allclose(seen["phases"], foci - np.floor(foci))
+    assert len(np.unique(np.round(seen["phases"][:, 4], 3), axis=0)) > 1  # the nodes' phases differ
+    assert result.model.oversample == S and result.model.basis.shape[-1] % S == 0
+    assert result.model.provenance["node_psfs"]["nmse_nodes_vs_scan"] is None  # no fine crops to compare
