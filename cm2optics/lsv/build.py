@@ -438,6 +438,7 @@ def build_model(
     memory_bytes: int = DEFAULT_MEMORY_BYTES,
     node_psfs: NodePSFs | None = None,
     per_lenslet_basis: bool = False,
+    scan_node_coefficients: bool = False,
 ) -> BuildResult:
     """Build an LSV model from the scan folder ``scan_dir`` (see the module docstring).
 
@@ -482,7 +483,10 @@ def build_model(
         from and a record for the provenance; None: the crops themselves.
     per_lenslet_basis: each lenslet its own basis of ``rank`` single-lenslet PSFs instead of one
         basis of ``rank`` J-lenslet focus arrays (J·rank terms in all, each lenslet's forward
-        using its own ``rank``: the forward's cost is the same, the model's rank J times)."""
+        using its own ``rank``: the forward's cost is the same, the model's rank J times).
+    scan_node_coefficients: with ``node_psfs``, only the basis comes from its PSFs; the node
+        coefficients (and the focal surface, the turn/warp choice, the node fluxes) from the
+        scan's own fine crops, as without it (needs fine crops: a synthetic scan's epsf.h5)."""
     axial_um = _check_build_options(oversample, rank, lateral_um, axial_um, design, refine)
     seconds: dict[str, float] = {}
     start = time.perf_counter()
@@ -507,6 +511,11 @@ def build_model(
                 "a model of the node PSFs renders an ePSF basis: it needs --oversample ≥ 2 and foci at several "
                 "sub-pixel phases"
             )
+        if scan_node_coefficients and crops.shape[-1] == patch:
+            raise ScanError(
+                "node coefficients from the scan need its fine crops (epsf.h5): a scan of whole-pixel frames "
+                "takes them from the node model"
+            )
         scan_crops, frame_phases = crops, {}
         if crops.shape[-1] == patch:  # whole-pixel frames only: the node model is placed on them, phase by phase
             from cm2optics.lsv.epsf_estimate import pixel_windows
@@ -524,6 +533,9 @@ def build_model(
             memory_bytes=memory_bytes,
             **frame_phases,
         )
+        if scan_node_coefficients:
+            crops = scan_crops  # the basis from the model's PSFs, the nodes from the scan's own crops
+            node_model["node_coefficients"] = "the scan's own crops projected on the basis"
         seconds["node_psfs"] = time.perf_counter() - start
 
     start = time.perf_counter()

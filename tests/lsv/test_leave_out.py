@@ -9,7 +9,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from cm2optics.formats.scan import open_scan
+from cm2optics.formats.scan import ScanError, open_scan
 from cm2optics.lsv.build import build_model
 from cm2optics.lsv.decompose import lenslet_bases
 from cm2optics.lsv.epsf_validate import heldout_nodes, leave_one_out_pixels
@@ -105,3 +105,51 @@ def test_a_node_model_builds_from_whole_pixel_frames_with_each_focus_phase(v2, b
     assert len(np.unique(np.round(seen["phases"][:, 4], 3), axis=0)) > 1  # the nodes' phases differ
     assert result.model.oversample == S and result.model.basis.shape[-1] % S == 0
     assert result.model.provenance["node_psfs"]["nmse_nodes_vs_scan"] is None  # no fine crops to compare
+
+
+@pytest.mark.slow  # ≈ 15 s at load 6 (two ePSF builds)
+def test_node_coefficients_from_the_scan_take_the_nodes_from_its_crops_and_the_basis_from_the_model(
+    v2, built, monkeypatch
+):
+    """``scan_node_coefficients``: the basis from the node model's PSFs, the nodes from the scan's
+    own fine crops (here the frames' crops, upsampled, stand in for an epsf.h5)."""
+    import cm2optics.lsv.build as build
+
+    scan, _ = built
+    S = 2
+
+    def fine_crops(index, geometry, patch, oversample, *args, **kwargs):
+        crops = extract_crops(index, geometry, (patch, patch))
+        return np.kron(crops, np.ones((S, S), np.float32))
+
+    def node_psfs(crops, grid_index, axes, geometry, oversample, pixel_um, *, progress, memory_bytes):
+        other = np.roll(crops, 1, axis=-1)  # the "model": every PSF moved by one fine sample
+        return other, np.concatenate([crops, other]), {"dense_positions": 2 * len(crops)}
+
+    def node_error(model, index):
+        crops = fine_crops(index, model.geometry, model.patch_shape[0], S)
+        errors = []
+        for n in range(0, len(index), 7):
+            p = model.focus_patches(*index.positions_mm[n]).astype(np.float64)
+            c = crops[n].astype(np.float64)
+            a = (p * c).sum() / (p * p).sum()
+            errors.append(((a * p - c) ** 2).sum() / (c * c).sum())
+        return float(np.mean(errors))
+
+    index = open_scan(scan)
+    monkeypatch.setattr(build, "_scan_crops", fine_crops)
+    options = dict(rank=96, oversample=S, rotate=False, warp=False, design=v2, node_psfs=node_psfs, trim=None)
+    from_scan = build_model(scan, scan_node_coefficients=True, **options).model
+    from_model = build_model(scan, **options).model
+    assert from_scan.provenance["node_psfs"]["node_coefficients"].startswith("the scan's own crops")
+    assert node_error(from_scan, index) < 1e-6 < 1e-2 < node_error(from_model, index)
+
+
+def test_node_coefficients_from_a_scan_of_whole_pixel_frames_are_refused_before_the_model_fit(v2, built):
+    scan, _ = built
+
+    def node_psfs(*args, **kwargs):
+        raise AssertionError("the node model must not run")
+
+    with pytest.raises(ScanError, match="need its fine crops"):
+        build_model(scan, rank=3, oversample=2, design=v2, node_psfs=node_psfs, scan_node_coefficients=True)
