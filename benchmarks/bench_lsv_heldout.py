@@ -363,7 +363,7 @@ def main() -> None:
     for result in results:
         print(f"\nbinning {result['binning']}: mean error ‖m − t‖/‖t‖ (flux included) per radius")
         names = list(next(iter(result["summary"].values())))
-        print("| r | " + " | ".join(names) + " |")
+        print("| r | " + " | ".join(n.replace(" | ", ": ") for n in names) + " |")
         print("|---|" + "---|" * len(names))
         for group, values in result["summary"].items():
             print(f"| {group} | " + " | ".join(f"{values[n]['error']:.3f}" for n in names) + " |")
