@@ -153,3 +153,28 @@ def test_node_coefficients_from_a_scan_of_whole_pixel_frames_are_refused_before_
 
     with pytest.raises(ScanError, match="need its fine crops"):
         build_model(scan, rank=3, oversample=2, design=v2, node_psfs=node_psfs, scan_node_coefficients=True)
+
+
+def test_refit_of_a_node_model_from_whole_pixel_frames_passes_each_frames_phase(v2, built):
+    """``--refit`` of a node model built from a scan without epsf.h5: the model is refitted on the
+    frames' whole-pixel windows with each focus's sub-pixel phase, its fine predictions placed."""
+    scan, model = built
+    S = 2
+    model = replace(
+        model, provenance={**model.provenance, "node_psfs": {"dense_positions": 0}, "epsf": {"oversample": S}}
+    )
+    index = open_scan(scan)
+    seen = {}
+
+    def node_psfs(crops, grid_index, axes, geometry, oversample, pixel_um, *, held_out, progress, memory_bytes, phases):
+        seen.update(shape=crops.shape, phases=np.asarray(phases), oversample=oversample)
+        fine = np.kron(np.asarray(crops, np.float64), np.ones((S, S)))  # any fine PSFs (plumbing)
+        others = np.setdiff1d(np.arange(len(crops)), held_out)
+        return fine[held_out], fine[others], {"dense_positions": len(others)}
+
+    out = leave_out_nodes(model, scan, n_heldout=3, node_psfs=node_psfs)
+    patch = model.provenance["options"]["patch_px"]
+    foci = model.geometry.focus(*index.positions_mm.T)
+    assert seen["shape"] == (len(index), 9, patch, patch) and seen["oversample"] == S
+    np.testing.assert_allclose(seen["phases"], foci - np.floor(foci))
+    assert out["oversample"] == S and 0 <= out["nmse_full"] and len(out["nmse_per_node"]) == 3
