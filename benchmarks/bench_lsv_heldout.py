@@ -32,7 +32,11 @@ draws the emitters inside the patch's central half (x, y uniform, z uniform over
 the depths), one group; ``X,Y,Z`` centres its depths on Z (z = 0 is added for the geometry fit).
 An existing patch scan is reused with ``--scan`` and the same patch options (they draw the
 emitters); a model file already in ``OUT/binB/`` (e.g. linked from an earlier run) is not rebuilt. ``--extra-model NAME=PATH`` (repeatable) compares further models (e.g.
-one from the full-field scan) on the same emitters.
+one from the full-field scan) on the same emitters. ``--split`` adds, for every ePSF model, the
+parts of its error at each emitter: the emitter's own traced ePSF placed as the model places its
+PSFs (``| traced ePSF``: the sub-pixel placement and the crop window, the floor), that ePSF fitted by
+the model's basis lenslet by lenslet (``| on basis``: + the low rank); the model's own figure adds
+the interpolation of the coefficients between the nodes.
 
     python benchmarks/bench_lsv_heldout.py --binning 2 --grid 9x9x11 --out /tmp/heldout
     python benchmarks/bench_lsv_heldout.py --patch-center-mm 3,0 --patch-spacing-mm 0.2 --variants whole,epsf --out /tmp/p3
@@ -135,6 +139,55 @@ def traced(design, binning: int, position, diameter_um: float, via_cli: bool, fo
     return render_emitters(design, table, PSFSettings(binning=binning))
 
 
+_EMISSION: dict = {}
+
+
+def traced_epsf(design, binning: int, position, diameter_um: float, model) -> np.ndarray:
+    """(J, h·S, w·S) the traced ePSF of the emitter at ``position`` (mm; what ``cm2 psf simulate
+    --oversample S`` writes to epsf.h5, in the traced image's units), registered on each focus's
+    chief ray in the frame of ``model``'s basis (as :func:`cm2optics.lsv.epsf.epsf_crops`)."""
+    from cm2optics.emission.psf import EmissionModel, PSFSettings
+    from cm2optics.emission.source import fluorescent_bead
+    from cm2optics.lsv.kernels import sample_window
+
+    S = model.oversample
+    key = (binning, S, diameter_um)
+    if key not in _EMISSION:
+        _EMISSION.clear()
+        _EMISSION[key] = EmissionModel(
+            design, fluorescent_bead(diameter_um), settings=PSFSettings(binning=binning, oversample=S)
+        )
+    foci = _EMISSION[key].foci(np.asarray(position, float))
+    r0, c0 = min(f.row0 for f in foci) * S, min(f.col0 for f in foci) * S
+    r1 = max(f.row0 * S + f.epsf.shape[0] for f in foci)
+    c1 = max(f.col0 * S + f.epsf.shape[1] for f in foci)
+    canvas = np.zeros((r1 - r0, c1 - c0))
+    for f in foci:
+        r, c = f.row0 * S - r0, f.col0 * S - c0
+        canvas[r : r + f.epsf.shape[0], c : c + f.epsf.shape[1]] += f.epsf
+    h, w = model.patch_shape
+    centres = model.geometry.focus(*position)
+    return np.stack(
+        [
+            sample_window(canvas, (centres[j, 0] * S - r0, centres[j, 1] * S - c0), (h * S, w * S))
+            for j in range(len(centres))
+        ]
+    )
+
+
+def split_errors(model, truth: np.ndarray, position, target: np.ndarray) -> dict[str, dict[str, float]]:
+    """The parts of an ePSF model's error at one emitter (issue 13): its traced ePSF ``truth``
+    (J, h·S, w·S, in the units of ``target``) placed as the model places its own (the sub-pixel
+    placement and the window: the floor), and its fit by the model's basis, lenslet by lenslet
+    (+ the low rank); the model itself adds the interpolation between the nodes."""
+    from cm2optics.lsv.sparse import place_patches
+
+    return {
+        "traced ePSF": image_errors(place_patches(model, truth, *position), target),
+        "on basis": image_errors(place_patches(model, model.project(truth), *position), target),
+    }
+
+
 def bench_binning(args: argparse.Namespace, binning: int, design) -> dict:
     from cm2optics.lsv.lsi import lsi_model
     from cm2optics.lsv.model import load_model
@@ -209,28 +262,37 @@ def bench_binning(args: argparse.Namespace, binning: int, design) -> dict:
     for group, r, position in emitters(args, (float(zs[0]), float(zs[-1]))):
         t = traced(design, binning, position, args.diameter_um, args.via_cli, root)
         row = {"group": group, "r_mm": r, "position_mm": position}
-        for name, model in models.items():
+        for name, model in list(models.items()):
             row[name] = image_errors(model.point_image(*position), t / units[unit_point(model)])
+            if args.split and model.oversample > 1:
+                truth = traced_epsf(design, binning, position, args.diameter_um, model) / units[unit_point(model)]
+                for part, value in split_errors(model, truth, position, t / units[unit_point(model)]).items():
+                    row[f"{name} | {part}"] = value
         rows.append(row)
         print(
             f"  bin {binning} {group:6s} {position}: "
             + "  ".join(
                 f"{name.split(' (')[0][:12]}{'*' if 'estimated' in name else ''} {row[name]['error']:.3f}"
                 for name in models
-            ),
+            )
+            + "".join(f"  [{k}] {v['error']:.3f}" for k, v in row.items() if " | " in k),
             flush=True,
         )
     seconds["emitters"] = time.perf_counter() - start
     summary = {}
+    columns = list(dict.fromkeys(k for r in rows for k in r if k not in ("group", "r_mm", "position_mm")))
     for group in dict.fromkeys(r["group"] for r in rows):
         members = [r for r in rows if r["group"] == group]
         summary[group] = {
             name: {
                 "error": float(np.mean([m[name]["error"] for m in members])),
+                "error_min": float(np.min([m[name]["error"] for m in members])),
+                "error_max": float(np.max([m[name]["error"] for m in members])),
                 "shape_error": float(np.mean([m[name]["shape_error"] for m in members])),
                 "flux_ratio": float(np.mean([m[name]["flux_ratio"] for m in members])),
+                "emitters": len(members),
             }
-            for name in models
+            for name in columns
         }
     units_json = {str(k): v for k, v in units.items()}
     return {
@@ -276,6 +338,12 @@ def main() -> None:
         "--extra-model", action="append", default=[], help="NAME=PATH: a further model to compare (repeatable)"
     )
     parser.add_argument("--via-cli", action="store_true", help="trace through `cm2 psf image` (16-bit files)")
+    parser.add_argument(
+        "--split",
+        action="store_true",
+        help="for each ePSF model also the emitter's traced ePSF placed as the model places its own (the "
+        "floor) and its fit by the model's basis (+ the low rank): the model adds the interpolation",
+    )
     parser.add_argument("--out", default="out/bench-lsv-heldout")
     args = parser.parse_args()
     from cm2optics.design import load_preset
@@ -295,7 +363,7 @@ def main() -> None:
     for result in results:
         print(f"\nbinning {result['binning']}: mean error ‖m − t‖/‖t‖ (flux included) per radius")
         names = list(next(iter(result["summary"].values())))
-        print("| r | " + " | ".join(names) + " |")
+        print("| r | " + " | ".join(n.replace(" | ", ": ") for n in names) + " |")
         print("|---|" + "---|" * len(names))
         for group, values in result["summary"].items():
             print(f"| {group} | " + " | ".join(f"{values[n]['error']:.3f}" for n in names) + " |")

@@ -179,10 +179,19 @@ def build(
             "--aberration-model",
             help="N > 0: node PSFs from the nodal-aberration model (the preset's pupils traced at every node, its "
             "wavefront and vignetting fitted to them, each PSF's offset and flux fitted to the scan's crops) and the "
-            "basis from its PSFs at N seeded random positions between the nodes (the rank is at most N); needs an "
-            "ePSF scan (--oversample even ≥ 2). 0: node PSFs and basis from the scan's crops.",
+            "basis from its PSFs at N seeded random positions between the nodes (the rank is at most N); needs "
+            "--oversample even ≥ 2 and the scan's fine ePSFs (epsf.h5) or whole-pixel frames at several sub-pixel "
+            "phases (the offsets fitted to each frame at its own phase). 0: node PSFs and basis from the scan's crops.",
         ),
     ] = 0,
+    node_coefficients: Annotated[
+        str,
+        typer.Option(
+            "--node-coefficients",
+            help="With --aberration-model: 'model' (node coefficients from its PSFs at the nodes) or 'scan' (from "
+            "the scan's own fine ePSF crops projected on its basis: the basis alone from the model; needs epsf.h5).",
+        ),
+    ] = "model",
     per_lenslet_basis: Annotated[
         bool,
         typer.Option(
@@ -225,6 +234,10 @@ def build(
         raise UserError(
             f"--aberration-model needs an ePSF basis (--oversample even ≥ 2), not --oversample {oversample}"
         )
+    if node_coefficients not in ("model", "scan"):
+        raise UserError(f"--node-coefficients = {node_coefficients!r}: must be model or scan")
+    if node_coefficients == "scan" and not aberration_model:
+        raise UserError("--node-coefficients scan needs --aberration-model N (the basis from its PSFs)")
     turn = {"auto": None, "on": True, "off": False}.get(rotate, "bad")
     if turn == "bad":
         raise UserError(f"--rotate = {rotate!r}: must be auto, on or off")
@@ -256,6 +269,7 @@ def build(
             memory_bytes=int(memory_gb * 1024**3),
             node_psfs=_aberration_model(design, aberration_model),
             per_lenslet_basis=per_lenslet_basis,
+            scan_node_coefficients=node_coefficients == "scan",
         )
     summary = _save_build(result, model_path, None if no_report else folder, oversample)
     if as_json:

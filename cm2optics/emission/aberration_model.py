@@ -402,25 +402,48 @@ class LensletModel:
 
 
 def fit_placement(
-    model: LensletModel, crops: Sequence[np.ndarray], positions_mm: np.ndarray, trim_mm: float | None = None
+    model: LensletModel,
+    crops: Sequence[np.ndarray],
+    positions_mm: np.ndarray,
+    trim_mm: float | None = None,
+    samplers: Sequence[Callable[[np.ndarray], np.ndarray]] | None = None,
+    rounds: int = 3,
 ) -> LensletModel:
     """``model`` with its placement fitted to the scan's ``crops`` (fine grid, as the render's) at
     ``positions_mm`` (N, 3): each crop's core centroid minus the unshifted render's (no matched
     render) and log(crop flux / render flux), as cubic polynomials in (x, y, z) by trimmed least
     squares (3 rounds; a node is dropped where it misses by > max(3 × median, ``trim_mm``), default
-    two samples). Dark crops and positions where the model passes nothing are skipped."""
+    two samples). Dark crops and positions where the model passes nothing are skipped.
+
+    ``samplers``: crops on another grid than the render's, e.g. whole-pixel frames (a measured scan
+    has no fine ePSF): per crop, the map of a fine render onto that crop's grid (its pixels at the
+    node's sub-pixel phase); the centroids are then taken on that grid (``model.sample_mm`` ×
+    ``model.oversample`` per sample), and since a centroid of coarse samples does not move one for
+    one with the source, the offset is refined ``rounds`` − 1 times against the render moved by
+    the offset found so far; the flux is the crop's over the sampled render's."""
     trim_mm = 2 * model.sample_mm if trim_mm is None else trim_mm
+    crop_sample_mm = model.sample_mm * (model.oversample if samplers is not None else 1)
     features, offsets, fluxes = [], [], []
-    for crop, position in zip(crops, np.asarray(positions_mm, float), strict=True):
+    for i, (crop, position) in enumerate(zip(crops, np.asarray(positions_mm, float), strict=True)):
         crop = np.asarray(crop, float)
         if not crop.sum() > 0:
             continue
         render = model.render(position)
         if not render.sum() > 0:
             continue
+        sample = samplers[i] if samplers is not None else None
+        target = core_centroid(crop, crop_sample_mm)
+        offset = target - core_centroid(render if sample is None else sample(render), crop_sample_mm)
+        flux = crop.sum() / render.sum()
+        if sample is not None:
+            moved = sample(model.render(position, tuple(offset)))
+            for _ in range(rounds - 1):
+                offset = offset + target - core_centroid(moved, crop_sample_mm)
+                moved = sample(model.render(position, tuple(offset)))
+            flux = crop.sum() / moved.sum() if moved.sum() > 0 else flux
         features.append(placement_features(position))
-        offsets.append(core_centroid(crop, model.sample_mm) - core_centroid(render, model.sample_mm))
-        fluxes.append(np.log(crop.sum() / render.sum()))
+        offsets.append(offset)
+        fluxes.append(np.log(flux))
     if len(features) < 2 * placement_features(np.zeros(3)).size:
         raise ValueError(f"{len(features)} lit crops cannot fit a lenslet's placement (16 terms)")
     F, offsets, fluxes = np.array(features), np.array(offsets), np.array(fluxes)

@@ -438,6 +438,7 @@ def build_model(
     memory_bytes: int = DEFAULT_MEMORY_BYTES,
     node_psfs: NodePSFs | None = None,
     per_lenslet_basis: bool = False,
+    scan_node_coefficients: bool = False,
 ) -> BuildResult:
     """Build an LSV model from the scan folder ``scan_dir`` (see the module docstring).
 
@@ -476,11 +477,16 @@ def build_model(
     node_psfs: a model of the node PSFs that replaces the crops (e.g. the nodal-aberration model of
         :mod:`cm2optics.calibrate.aberration_build`, which the CLI passes with the design): called
         as ``node_psfs(crops, grid_index, axes_mm, geometry, oversample, pixel_um, progress=,
-        memory_bytes=)`` on the scan's fine crops, it returns the PSFs at the nodes, the PSFs the
-        basis is decomposed from and a record for the provenance; None: the crops themselves.
+        memory_bytes=)`` on the scan's fine crops (a scan without them: on its whole-pixel windows
+        (:func:`~cm2optics.lsv.epsf_estimate.pixel_windows`) with ``phases=`` (N, J, 2), each focus's
+        sub-pixel phase), it returns the fine PSFs at the nodes, the PSFs the basis is decomposed
+        from and a record for the provenance; None: the crops themselves.
     per_lenslet_basis: each lenslet its own basis of ``rank`` single-lenslet PSFs instead of one
         basis of ``rank`` J-lenslet focus arrays (J·rank terms in all, each lenslet's forward
-        using its own ``rank``: the forward's cost is the same, the model's rank J times)."""
+        using its own ``rank``: the forward's cost is the same, the model's rank J times).
+    scan_node_coefficients: with ``node_psfs``, only the basis comes from its PSFs; the node
+        coefficients (and the focal surface, the turn/warp choice, the node fluxes) from the
+        scan's own fine crops, as without it (needs fine crops: a synthetic scan's epsf.h5)."""
     axial_um = _check_build_options(oversample, rank, lateral_um, axial_um, design, refine)
     seconds: dict[str, float] = {}
     start = time.perf_counter()
@@ -500,13 +506,24 @@ def build_model(
     basis_psfs, node_model = None, None
     if node_psfs is not None:
         start = time.perf_counter()
-        if crops.shape[-1] == patch:
+        if oversample < 2:
             raise ScanError(
-                "a model of the node PSFs needs the scan's fine ePSF crops (epsf.h5, cm2 psf simulate --oversample)"
+                "a model of the node PSFs renders an ePSF basis: it needs --oversample ≥ 2 and foci at several "
+                "sub-pixel phases"
             )
-        scan_crops = crops
+        if scan_node_coefficients and crops.shape[-1] == patch:
+            raise ScanError(
+                "node coefficients from the scan need its fine crops (epsf.h5): a scan of whole-pixel frames "
+                "takes them from the node model"
+            )
+        scan_crops, frame_phases = crops, {}
+        if crops.shape[-1] == patch:  # whole-pixel frames only: the node model is placed on them, phase by phase
+            from cm2optics.lsv.epsf_estimate import pixel_windows
+
+            scan_crops, foci = pixel_windows(index, geometry, (patch, patch), progress=progress)
+            frame_phases["phases"] = foci - np.floor(foci)
         crops, basis_psfs, node_model = node_psfs(
-            crops,
+            scan_crops,
             gi,
             index.grid_axes_mm(),
             geometry,
@@ -514,7 +531,11 @@ def build_model(
             index.meta.pixel_um,
             progress=progress,
             memory_bytes=memory_bytes,
+            **frame_phases,
         )
+        if scan_node_coefficients:
+            crops = scan_crops  # the basis from the model's PSFs, the nodes from the scan's own crops
+            node_model["node_coefficients"] = "the scan's own crops projected on the basis"
         seconds["node_psfs"] = time.perf_counter() - start
 
     start = time.perf_counter()
@@ -551,8 +572,10 @@ def build_model(
         basis_psfs=basis_psfs,
         per_lenslet=per_lenslet_basis,
     )
-    if node_model is not None:  # the model's error at the nodes against the scan's own crops
-        scan_error = node_nmse(decomposition, _trim_like(scan_crops, decomposition))
+    if node_model is not None:  # the model's error at the nodes against the scan's own crops (fine ones only)
+        scan_error = (
+            None if scan_crops.shape[-1] == patch else node_nmse(decomposition, _trim_like(scan_crops, decomposition))
+        )
         model.provenance["node_psfs"]["nmse_nodes_vs_scan"] = scan_error[0] if scan_error else None
     seconds["svd"] = time.perf_counter() - start
     start = time.perf_counter()

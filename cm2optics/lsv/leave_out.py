@@ -129,7 +129,16 @@ def leave_out_nodes(
     per_lenslet, terms = _structure(model)
     gi = index.grid_index()
     held = heldout_nodes(gi, n_heldout, seed)
-    crops = _fine_crops(index, model, patch, S, memory_bytes, progress)
+    node_model = model.provenance.get("node_psfs")
+    frame_phases: dict[str, np.ndarray] = {}
+    if node_model is not None and S > 1 and not (index.folder / "epsf.h5").is_file():
+        # a node model built from whole-pixel frames: refitted on them, each at its own phase
+        from cm2optics.lsv.epsf_estimate import pixel_windows
+
+        crops, foci = pixel_windows(index, model.geometry, (patch, patch), progress=progress)
+        frame_phases["phases"] = foci - np.floor(foci)
+    else:
+        crops = _fine_crops(index, model, patch, S, memory_bytes, progress)
     targets, eps = held_frames(index, model.geometry, held, (patch, patch))
     axes = index.grid_axes_mm()
     reported = tuple(k for k in TERMS if k < terms) + (terms,)
@@ -141,7 +150,6 @@ def leave_out_nodes(
         "oversample": S,
         "patch_px": patch,
     }
-    node_model = model.provenance.get("node_psfs")
     if node_model is not None:
         if node_psfs is None:
             raise ValueError("the model was built with a model of the node PSFs: --refit needs it (the design)")
@@ -155,6 +163,7 @@ def leave_out_nodes(
             held_out=held,
             progress=progress,
             memory_bytes=memory_bytes,
+            **frame_phases,
         )
         basis = lenslet_bases(dense, terms, progress=progress) if per_lenslet else decompose(dense, terms).basis
         del dense

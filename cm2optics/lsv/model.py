@@ -260,6 +260,24 @@ class LSVModel:
             out[j] = np.tensordot(c, self.basis[:, j], axes=(0, 0))
         return out
 
+    def project(self, patches: np.ndarray) -> np.ndarray:
+        """The least-squares fit (J, h·S, w·S) float64 of focus patches ``patches`` (registered as
+        the basis: e.g. a traced ePSF at some point) by the basis, lenslet by lenslet: each
+        lenslet's patch by the terms lit there (all K of a basis of focus arrays, whose
+        coefficients every path interpolates along each lenslet's own chief ray, so they differ
+        between lenslets; its own terms of a per-lenslet basis). What the model gives at that
+        point with the best coefficients: its basis's error there, apart from the interpolation."""
+        x = np.asarray(patches, np.float64)
+        if x.shape != self.basis.shape[1:]:
+            raise ValueError(f"patches {x.shape}: must be (J, h·S, w·S) = {self.basis.shape[1:]}")
+        out = np.zeros_like(x)
+        for j in range(self.n_lenslets):
+            terms = self.lenslet_terms(j)
+            B = self.basis[terms, j].reshape(len(terms), -1).astype(np.float64)
+            c = np.linalg.lstsq(B.T, x[j].reshape(-1), rcond=None)[0]
+            out[j] = (c @ B).reshape(x.shape[1:])
+        return out
+
     # -- operators (torch) ----------------------------------------------------------------
     def operator(self, grid: VolumeGrid | None = None, device: str = "cpu") -> LSVOperator:
         """The forward/adjoint operator on ``grid`` (default: ``default_grid``), cached."""

@@ -37,7 +37,7 @@ from cm2optics.lsv.operators import fast_length
 if TYPE_CHECKING:  # pragma: no cover
     from cm2optics.lsv.model import LSVModel
 
-__all__ = ["ball_kernel", "point_image", "render_emitters"]
+__all__ = ["ball_kernel", "place_patches", "point_image", "render_emitters"]
 
 SIZE_STEP_PX = 0.25
 POINT_BELOW_PX = 0.5
@@ -79,11 +79,21 @@ def _add(target: np.ndarray, block: np.ndarray, r: int, c: int) -> None:
 
 def point_image(model: LSVModel, x_mm: float, y_mm: float, z_mm: float, per_lenslet: bool = False) -> np.ndarray:
     """Exact image (y, x) (or (J, y, x)) of a unit point source at (x, y, z) mm, float64."""
+    patches = model.focus_patches(x_mm, y_mm, z_mm)
+    return place_patches(model, patches, x_mm, y_mm, z_mm, per_lenslet=per_lenslet)
+
+
+def place_patches(
+    model: LSVModel, patches: np.ndarray, x_mm: float, y_mm: float, z_mm: float, per_lenslet: bool = False
+) -> np.ndarray:
+    """Image (y, x) (or (J, y, x)) float64 of focus patches (J, h·S, w·S), registered as the
+    model's basis (e.g. a traced ePSF, or its fit by the basis, :meth:`LSVModel.project`), placed
+    at the foci of a source at (x, y, z) mm exactly as :func:`point_image` places the model's own."""
     H, W = model.sensor_shape
     h, w = model.patch_shape
     out = np.zeros((model.n_lenslets if per_lenslet else 1, H, W))
     focus = model.geometry.focus(x_mm, y_mm, z_mm)
-    patches = model.focus_patches(x_mm, y_mm, z_mm).astype(np.float64)
+    patches = np.asarray(patches, np.float64)
     for j in range(model.n_lenslets):
         n, eps = split_shift(focus[j] - np.array([h // 2, w // 2]))
         placed = _placed(model, patches[j], (eps[0], eps[1]))

@@ -267,6 +267,11 @@ def test_simulate_volume_per_lenslet_and_lsi(model, tmp_path):
         (["lsv", "build", "{scan}", "--memory-gb", "0"], "--memory-gb = 0.0: must be > 0"),
         (["lsv", "build", "{scan}", "--aberration-model", "-1"], "--aberration-model = -1: must be ≥ 0"),
         (["lsv", "build", "{scan}", "--aberration-model", "100"], "--aberration-model needs an ePSF basis"),
+        (["lsv", "build", "{scan}", "--node-coefficients", "crops"], "--node-coefficients = 'crops': must be"),
+        (
+            ["lsv", "build", "{scan}", "--node-coefficients", "scan"],
+            "--node-coefficients scan needs --aberration-model",
+        ),
         (["lsv", "validate", "/no/model.h5", "{scan}"], "no such model file"),
         (["lsv", "validate", "{model}", "{scan}", "--ranks", "a,b"], "--ranks"),
         (["lsv", "validate", "{model}", "{scan}", "--refit", "--memory-gb", "0"], "--memory-gb = 0.0: must be > 0"),

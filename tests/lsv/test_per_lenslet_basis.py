@@ -140,3 +140,23 @@ def test_lenslet_by_lenslet_products_and_gram_equal_the_dense_ones():
     np.testing.assert_allclose(products(crops, basis, blocks), products(crops, basis), rtol=1e-10, atol=1e-10)
     np.testing.assert_allclose(basis_gram(basis, blocks), basis_gram(basis), rtol=1e-10, atol=1e-10)
     np.testing.assert_allclose(basis_gram(basis, blocks), np.eye(6), atol=1e-5)
+
+
+@pytest.mark.parametrize("per_lenslet", [False, True])
+def test_projection_on_the_basis_keeps_the_models_own_patches_and_leaves_an_orthogonal_residual(per_lenslet):
+    from cm2optics.lsv.sparse import place_patches
+
+    model = synthetic_model("general")
+    model = _as_per_lenslet(model) if per_lenslet else model
+    own = model.focus_patches(0.2, -0.3, 0.05)  # in the basis's span: kept
+    np.testing.assert_allclose(model.project(own), own, atol=1e-5 * np.abs(own).max())
+    np.testing.assert_allclose(
+        place_patches(model, own, 0.2, -0.3, 0.05), model.point_image(0.2, -0.3, 0.05), atol=1e-12
+    )
+    x = np.random.default_rng(7).normal(size=model.basis.shape[1:])
+    residual = x - model.project(x)
+    for j in range(model.n_lenslets):  # orthogonal to the terms lit in each lenslet, there
+        terms = model.basis[model.lenslet_terms(j), j].reshape(len(model.lenslet_terms(j)), -1)
+        np.testing.assert_allclose(terms @ residual[j].ravel(), 0, atol=1e-8 * np.abs(x).sum())
+    with pytest.raises(ValueError, match="patches"):
+        model.project(x[:, :-1])
