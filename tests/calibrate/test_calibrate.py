@@ -238,8 +238,12 @@ PAIRS = [
     # the paper's two effects: a narrow source and a column of partial lenslets
     ({"source_profile": {"falloff_per_rad2": 10.0}, "partial_lenslets[+x]": {"border_mm": 0.3}}),
     ({"sensor_tilt": {"tilt_x_deg": 0.5, "tilt_y_deg": 0.0}, "mla_rotation": {"angle_deg": -0.3}}),
-    # the calibration pinhole as it may be: narrower in angle and larger than declared
-    ({"source_profile": {"falloff_per_rad2": 10.0}, "source_size": {"diameter_um": 80.0}}),
+    # the calibration pinhole as it may be: narrower in angle and larger than declared (measured in
+    # session 14: nothing named — an expected failure until the attribution takes the two together)
+    pytest.param(
+        {"source_profile": {"falloff_per_rad2": 10.0}, "source_size": {"diameter_um": 80.0}},
+        marks=pytest.mark.xfail(strict=True, reason="session 14: neither effect kept (issue 14, round 5)"),
+    ),
 ]
 
 
