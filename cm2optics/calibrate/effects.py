@@ -154,9 +154,39 @@ def partial_lenslet_effects(pitch_mm: float) -> tuple[Effect, ...]:
     )
 
 
-def library(lenslets: int, pitch_mm: float = 1.0) -> tuple[Effect, ...]:
-    """Every candidate effect for an array of ``lenslets`` lenslets at a pitch of ``pitch_mm``."""
-    return GLOBAL_EFFECTS + per_lenslet_effects(lenslets) + partial_lenslet_effects(pitch_mm)
+#: The largest calibration source the library fits, µm (:class:`~cm2optics.emission.source.PointSource`'s range).
+MAX_SOURCE_DIAMETER_UM = 200.0
+
+
+def source_size_effect(declared_um: float = 0.0) -> Effect | None:
+    """The calibration source larger than the ``declared_um`` (µm) the scan says it used: a
+    pinhole or bead of diameter ``diameter_um`` (µm, object space; default: the declared size, at
+    which the effect is absent; range: the declared size to :data:`MAX_SOURCE_DIAMETER_UM`).
+
+    A source of diameter d is a disc: every focus is the point source's convolved with the disc's
+    image, d × the lenslet's lateral magnification at the source's depth across. Its second
+    moment, (d·m)²/16 per axis, adds to the focus's: the same widening, relative to the image of
+    the disc, in every lenslet and field position, growing with the magnification over depth
+    (m ∝ 1/(D − z)). Pixel crosstalk widens the foci by a fixed amount in sensor pixels whatever
+    the depth and magnification; stray light moves a fraction of the energy into a wide halo.
+    None when the declared source is already at the largest size."""
+    if not 0.0 <= declared_um < MAX_SOURCE_DIAMETER_UM:
+        return None
+    return Effect(
+        "source_size",
+        (_p("diameter_um", declared_um, declared_um, MAX_SOURCE_DIAMETER_UM, 2.0),),
+        f"the calibration source is a disc larger than declared ({declared_um:g} µm): every focus is blurred by "
+        "its image, the diameter × the magnification at the source's depth",
+    )
+
+
+def library(lenslets: int, pitch_mm: float = 1.0, source_diameter_um: float = 0.0) -> tuple[Effect, ...]:
+    """Every candidate effect for an array of ``lenslets`` lenslets at a pitch of ``pitch_mm``,
+    imaged with a calibration source declared ``source_diameter_um`` (µm) across."""
+    size = source_size_effect(source_diameter_um)
+    return (
+        GLOBAL_EFFECTS + ((size,) if size else ()) + per_lenslet_effects(lenslets) + partial_lenslet_effects(pitch_mm)
+    )
 
 
 def split_key(key: str) -> tuple[str, int | str | None]:

@@ -201,6 +201,12 @@ def _analyse(simulator: Simulator, frame: BeadsFrame, rate: np.ndarray) -> Resid
     )
 
 
+def _declared_diameter_um(simulator: Simulator) -> float:
+    """The beads' diameter the simulator images (µm; the traced source's, else a point)."""
+    source = getattr(simulator, "source", None)
+    return float(source.diameter_um) if source is not None else 0.0
+
+
 def _attribute(simulator: Simulator, frame: BeadsFrame, max_effects: int, say: Progress) -> Attribution:
     """The library effects the frame's residual asks for (the scan loop's attribution on one image)."""
     counts = frame.counts[None].astype(np.float32)
@@ -210,7 +216,7 @@ def _attribute(simulator: Simulator, frame: BeadsFrame, max_effects: int, say: P
         np.array([frame.exposure_ms]),
         frame.emitters.positions_mm(),
         counts < 2**frame.bit_depth - 1,
-        library(simulator.lenslets),
+        library(simulator.lenslets, source_diameter_um=_declared_diameter_um(simulator)),
         frame.counts_per_electron,
         flat_field=False,  # one frame of unknown emitters: a gain pattern is not told from their brightness
     )

@@ -48,7 +48,14 @@ from cm2optics.calibrate.fixed_pattern import describe_fixed_pattern, fixed_patt
 from cm2optics.calibrate.lowrank_correction import LowRankCorrection, fit_correction, held_out_error
 from cm2optics.calibrate.residual import CalibrationError, ResidualAnalysis, ScanData, analyse_scan, check_frames
 from cm2optics.calibrate.sensor_gain import describe_sensor_gain, sensor_gain
-from cm2optics.calibrate.tracer import TracerSimulator, design_with, lenslet_vertices_px, submit_rates, tracing_pool
+from cm2optics.calibrate.tracer import (
+    TracerSimulator,
+    design_with,
+    fitted_source,
+    lenslet_vertices_px,
+    submit_rates,
+    tracing_pool,
+)
 from cm2optics.calibrate.unexplained import PATCH_HALF_PX, describe_unexplained
 from cm2optics.design import SystemDesign
 from cm2optics.emission.source import AngularProfile, PointSource
@@ -174,7 +181,8 @@ def _with_image_effects(rate: np.ndarray, simulator: TracerSimulator, attributio
 def corrected_design(design: SystemDesign, attribution: Attribution) -> SystemDesign:
     """``design`` with every fitted effect written into its fields: the optical ones as the tracer
     reads them (:func:`~cm2optics.calibrate.tracer.design_with`), the sensor-side ones as
-    ``as_built`` values; the calibration source's profile belongs to the source, not the device."""
+    ``as_built`` values; the calibration source's profile and size belong to the source, not the
+    device (the document's ``source_corrected`` names the source found)."""
     changed = design_with(design, attribution.effects)
     effects = attribution.effects
     fields: dict[str, object] = {}
@@ -252,8 +260,9 @@ def _widening_caveats(
     declared = "a point" if source.diameter_um == 0 else f"{source.diameter_um:g} µm"
     alternative = (
         f"a calibration source larger than declared ({declared}) would (or any blur common to "
-        f"every lenslet and depth): the foci's widths do not tell the two apart; check the source's size "
-        f"(scan.yaml source_diameter_um) before reading it as"
+        f"every lenslet and depth): the source_size candidate, whose blur grows with the magnification over "
+        f"depth, was tried beside it and not preferred, but on foci this narrow the two are close; check the "
+        f"source's size (scan.yaml source_diameter_um) before reading it as"
     )
     crosstalk = attribution.effects.get("pixel_crosstalk")
     if crosstalk is not None:
@@ -378,7 +387,7 @@ def calibrate_scan(
             scan.exposure_ms[subset],
             positions[subset],
             valid,
-            library(simulator.lenslets, design.mla.pitch_mm),
+            library(simulator.lenslets, design.mla.pitch_mm, source.diameter_um),
             gain,
         )
         attribution = attribute(problem, max_effects=max_effects, progress=say)
@@ -403,6 +412,7 @@ def calibrate_scan(
     pattern = fixed_pattern(after)
     pattern_warning = None if pattern is None else describe_fixed_pattern(pattern)
     widened = _widening_caveats(attribution, source, scan.meta.binning, after, simulator.pixel_um)
+    widened += list(attribution.ambiguities)  # a larger source against crosstalk or a narrow halo, too close to call
     for warning in (drift, exposures, stage, xy_map, z_scale, gain_warning, pattern_warning, *widened):
         if warning is not None:
             say(f"warning: {warning}")
@@ -413,6 +423,7 @@ def calibrate_scan(
         "design": design.name,
         "design_hash": design.parameter_hash(),
         "source": source.describe(),
+        "source_corrected": fitted_source(attribution.effects, source).describe(),
         "warnings": warnings,
         "sensor_defects": describe_defects(~data.good_pixels()),
         "sensor_gain": gain_map,

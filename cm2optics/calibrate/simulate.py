@@ -55,6 +55,7 @@ OPTICAL = {
     "mla_tilt",
     "sensor_tilt",
     "partial_lenslets",
+    "source_size",
 }
 
 
@@ -71,7 +72,9 @@ class AnalyticSimulator:
     change, its best focus moved by −δ_j·(1 + 1/m₀²) in object space (the lens nearer the
     object by δ_j, its image distance longer by δ_j). Partial lenslets on a side
     (``partial_lenslets[side]``, ``border_mm`` wide) are the cells one pitch beyond the array's
-    edge, their foci carrying border/pitch of a full lenslet's light.
+    edge, their foci carrying border/pitch of a full lenslet's light. A source larger than a point
+    (``source_size``, ``diameter_um``) widens every focus by its disc image's second moment
+    (:class:`~cm2optics.lsv.toy.AnalyticCM2`'s ``source_diameter_um``).
     """
 
     model: AnalyticCM2
@@ -126,6 +129,8 @@ class AnalyticSimulator:
                 changes["magnification"] = self.model.magnification * math.exp(
                     self.spacing_magnification_per_mm * p["delta_mm"]
                 )
+            elif name == "source_size":
+                changes["source_diameter_um"] = p["diameter_um"]
             elif name == "sensor_tilt":
                 changes["sensor_tilt_deg"] = (p["tilt_x_deg"], p["tilt_y_deg"])
             elif name == "mla_tilt":

@@ -21,6 +21,8 @@ lenslet_transmission[j]     ``as_built.lenslet_transmission[j]``
 vignetting                  ``as_built.vignetting_radius_delta_mm``
 source_profile              the calibration source's Gaussian profile (not the device's:
                             falloff f → 1/e² half-angle 1/√f rad, at most 180°; 0: isotropic)
+source_size (diameter_um)   the calibration source's diameter (not the device's: ``cm2 psf
+                            simulate --pinhole-um``, scan.yaml ``source_diameter_um``)
 frame offset (row, col px)  ``as_built.sensor_offset_*_um`` = −offset × the binned pitch
 ==========================  ============================================================
 
@@ -51,11 +53,12 @@ from dataclasses import dataclass, field, replace
 from multiprocessing import get_context
 
 import numpy as np
+from scipy.signal import fftconvolve
 
 from cm2optics.calibrate.effects import Effect, split_key
 from cm2optics.calibrate.simulate import OPTICAL, Values
 from cm2optics.design import SystemDesign
-from cm2optics.emission.psf import EmissionModel, Focus, PSFSettings, SensorGrid
+from cm2optics.emission.psf import EmissionModel, Focus, PSFSettings, SensorGrid, disc_kernel
 from cm2optics.emission.scan import simulate_position
 from cm2optics.emission.source import AngularProfile, PointSource, ProfileKind
 from cm2optics.optics import first_order
@@ -65,6 +68,7 @@ __all__ = [
     "UNIT_SOURCE",
     "TracerSimulator",
     "design_with",
+    "fitted_source",
     "lenslet_vertices_px",
     "submit_rates",
     "traced_rates",
@@ -83,8 +87,8 @@ def design_with(
 ) -> SystemDesign:
     """``design`` with the optical effects in ``values`` (effect key → parameters) written into its
     fields (see the module docstring) and the frame offset (row, col binned px of ``pitch_um``
-    µm) as a sensor offset. Sensor-side effects and the source profile are not design fields of
-    the device and are left out."""
+    µm) as a sensor offset. Sensor-side effects and the source's profile and size are not design
+    fields of the device and are left out."""
     built = design.as_built
     changes: dict[str, object] = {}
     decenter = [list(built.lenslet_offset_mm(j)) for j in range(design.mla.rows * design.mla.cols)]
@@ -147,6 +151,13 @@ def source_for(values: Values, base: PointSource) -> PointSource:
     )
 
 
+def fitted_source(values: Values, base: PointSource) -> PointSource:
+    """The calibration source ``base`` with the fitted ``source_profile`` and ``source_size`` of
+    ``values`` (what the scan's source was, as far as the fit tells)."""
+    diameter = values.get("source_size", {}).get("diameter_um", base.diameter_um)
+    return replace(source_for(values, base), diameter_um=float(diameter))
+
+
 @dataclass(frozen=True)
 class _Traced:
     """One traced focus kept for re-use: its lenslet (index into the optics' lenslets), its ePSF
@@ -172,6 +183,30 @@ def _crop(focus: Focus, oversample: int) -> _Traced:
     crop = np.ascontiguousarray(epsf[a0:a1, b0:b1], np.float32)
     origin = (oversample * focus.row0 + int(a0), oversample * focus.col0 + int(b0))
     return _Traced(focus.lenslet, crop, origin, focus.ray_centroid_mm, focus.ray_power)
+
+
+def source_disc_um(values: Values, base: PointSource) -> float:
+    """The diameter (µm, object space) of the disc that, convolved with foci traced with the
+    calibration source ``base``, gives those of the ``source_size`` in ``values``: √(d² − d₀²),
+    d₀ the traced source's diameter — exact in the second moment (a disc's, (d·m)²/16 per axis,
+    adds), and in shape as d₀ ≪ d (a declared pinhole of a few µm); 0 without the effect (or a
+    size at or below the declared one)."""
+    size = values.get("source_size")
+    if size is None:
+        return 0.0
+    return math.sqrt(max(size["diameter_um"] ** 2 - base.diameter_um**2, 0.0))
+
+
+def _blurred(traced: _Traced, diameter_px: float, oversample: int) -> _Traced:
+    """``traced`` convolved with a uniform disc ``diameter_px`` binned pixels across (its ePSF
+    samples lie 1/``oversample`` px apart; the disc sampled on them, area-weighted)."""
+    kernel = disc_kernel(diameter_px, 1.0 / oversample)
+    if kernel is None or traced.epsf.size == 0:
+        return traced
+    half = kernel.shape[0] // 2
+    epsf = np.clip(fftconvolve(traced.epsf, kernel.astype(np.float32), mode="full"), 0.0, None).astype(np.float32)
+    origin = (traced.origin[0] - half, traced.origin[1] - half)
+    return replace(traced, epsf=epsf, origin=origin)
 
 
 def _axis_samples(origin: int, length: int, shift: float, oversample: int, size: int):
@@ -224,7 +259,9 @@ class TracerSimulator:
     Effects that move a lenslet's vertex in the plane of the array (``mla_decenter``,
     ``mla_rotation``, ``lenslet_pitch``, ``lenslet_decenter``) move its focus rigidly by
     (1 + m)·d (d the vertex's displacement, m the chief-ray magnification at the source's height);
-    ``lenslet_transmission`` scales it; the frame offset moves every focus. These are applied to
+    ``lenslet_transmission`` scales it; the frame offset moves every focus; a calibration source
+    larger than the traced one (``source_size``) blurs it by the extra disc's image
+    (:func:`source_disc_um` × the chief-ray magnification at the source's depth). These are applied to
     the traced foci of the design without them, each focus's ePSF sampled at its moved pixel
     centres (exact for undersampled foci, where resampling the image would not be). The other
     optical effects (``mla_spacing``, ``vignetting``, ``source_profile``, the tilts, partial lenslets)
@@ -287,6 +324,7 @@ class TracerSimulator:
         traced = {k: v for k, v in optical.items() if k.partition("[")[0] in RETRACED}
         base = design_with(self.design, {**self.anchor, **traced})
         model = self._model(base, source_for(traced, self.source))
+        disc_um = source_disc_um(optical, self.source)
         moved = design_with(self.design, optical)
         vertex_shift = _vertices_mm(moved) - _vertices_mm(base)  # (cells, 2) x, y mm
         before, after = _transmissions(base), _transmissions(moved)
@@ -298,8 +336,12 @@ class TracerSimulator:
         for i, position in enumerate(positions):
             frame[:] = 0.0
             device = model.device_point_mm(self._in_design(model, position))
-            gain = 1.0 + first_order.chief_ray_magnification(base, float(device[2]))
+            magnification = first_order.chief_ray_magnification(base, float(device[2]))
+            gain = 1.0 + magnification
+            disc_px = disc_um * magnification / self.pixel_um  # the source's extra disc, binned px across
             for focus in self._traced(model, position):
+                if disc_px > 0:
+                    focus = _blurred(focus, disc_px, self.oversample)
                 dx, dy = gain * vertex_shift[focus.lenslet] / pitch_mm
                 shift = (offset_px[0] + dy, offset_px[1] + dx)
                 _render(frame, focus, shift, transmission[focus.lenslet], self.oversample)

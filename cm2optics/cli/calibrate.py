@@ -48,7 +48,10 @@ def scan(
     source_um: Annotated[
         float | None,
         typer.Option(
-            "--source-um", min=0, help="Calibration source diameter, µm (default: scan.yaml's, else a point)."
+            "--source-um",
+            min=0,
+            help="Calibration source diameter as declared, µm (default: scan.yaml's, else a point); the "
+            "source_size effect fits a larger one.",
         ),
     ] = None,
     source_profile: Annotated[
@@ -71,7 +74,7 @@ def scan(
     step from the recorded values; the gain from scan.yaml's counts_per_electron, else from the
     data; a scan whose scan.yaml says noise: none has its noise scale profiled out), then names
     the effects of the library (MLA decentre, rotation, spacing, lenslet pitch, single-lenslet
-    decentre and transmission, source profile, stray light, leakage, crosstalk, vignetting) that
+    decentre and transmission, source profile, source size, stray light, leakage, crosstalk, vignetting) that
     the residual asks for, by the BIC, with joint refits and 1σ uncertainties. Effects that move
     or dim lenslets are applied to the traced foci (their effective PSFs resampled) and traced
     exactly once the fit settles; spacing, vignetting and the source profile are linearised and

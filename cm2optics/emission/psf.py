@@ -14,7 +14,7 @@ all bands at once). Bands that carry less than :data:`NEGLIGIBLE_BAND` of a lens
 spectrum's tails, which the filter and the film all but stop) are left out. The PSF is evaluated
 on sub-pixels (at most ``subpixel_um`` apart, so that the pixel integral is sampled above
 Nyquist), summed over bands, convolved with the source's geometric image (a disc of
-|m|·diameter) and summed into pixels.
+|m|·diameter, m the chief-ray magnification at the source's depth) and summed into pixels.
 
 Units: a PSF pixel holds the number of photons detected (photo-electrons) in it per photon the
 source emits into its hemisphere. Coordinates:
@@ -307,8 +307,9 @@ class Focus:
         return float(self.patch.sum(axis=1) @ rows / total), float(self.patch.sum(axis=0) @ cols / total)
 
 
-def _disc_kernel(diameter: float, pitch: float, supersample: int = 8) -> np.ndarray | None:
-    """A uniform disc of ``diameter`` sampled (area-weighted) on pixels of ``pitch``; sums to 1."""
+def disc_kernel(diameter: float, pitch: float, supersample: int = 8) -> np.ndarray | None:
+    """A uniform disc of ``diameter`` sampled (area-weighted) on pixels of ``pitch`` (the same
+    unit); sums to 1. None when the disc is under a quarter of a pixel across (a point)."""
     if diameter < 0.25 * pitch:
         return None
     half = int(math.ceil(diameter / 2 / pitch + 0.5))
@@ -789,9 +790,10 @@ class EmissionModel:
         diameter = self.source.diameter_um if diameter_um is None else float(diameter_um)
         if not (math.isfinite(diameter) and 0 <= diameter <= 200):
             raise ValueError(f"diameter_um = {diameter_um!r}: must lie within 0–200 µm")
-        kernel = _disc_kernel(
-            abs(first_order.magnification(self.design)) * diameter / 1000.0, self.grid.pitch_mm / self._q
-        )
+        kernel = None
+        if diameter > 0:  # the source's image: its diameter × the chief-ray magnification at its depth
+            m = first_order.chief_ray_magnification(self.design, float(self.device_point_mm(position_mm)[2]))
+            kernel = disc_kernel(m * diameter / 1000.0, self.grid.pitch_mm / self._q)
         foci = []
         for k, window in windows.items():
             own = [p for p in pairs if p.lenslet == k]

@@ -23,7 +23,7 @@ edge of the field (4 mm off axis) than on axis (the tests check it); the profile
 at 32° (a 64° full divergence at that level, the paper's "> 60°").
 
 The diameter acts in the image: the PSF is convolved with the source's geometric image, a
-uniform disc of diameter |m|·d (m the lateral magnification).
+uniform disc of diameter |m|·d (m the lateral, chief-ray magnification at the source's depth).
 """
 
 from __future__ import annotations

@@ -23,7 +23,10 @@ from its lenslet's best focus (``σ_def = ½·NA·|z − κ·ρ²|·m``, κ the 
 default) and, along the direction away from its lenslet's axis, with the off-axis distance
 ``ρ`` (``×(1 + a·ρ²)``); it is pushed outwards by a radial distortion
 ``b·ρ³`` and dimmed by a soft vignetting edge at ``ρ_v`` (side foci vanish for sources far
-from a lenslet, as in the paper for lateral positions > 1.7 mm).
+from a lenslet, as in the paper for lateral positions > 1.7 mm). A source of diameter ``d``
+(``source_diameter_um``, a uniform disc) blurs each focus by its image, a disc ``d·m`` across
+(m the focus's own magnification at the source's depth), whose second moment ``(d·m)²/16`` per
+axis is added to the Gaussian's covariance (the equal-moment Gaussian of the disc's convolution).
 """
 
 from __future__ import annotations
@@ -80,6 +83,8 @@ class AnalyticCM2:
     lenslet_magnification: (J,) factor on m(z) per lenslet (empty: all 1), e.g. a lenslet moved
         along the axis by a tilted array.
     lenslet_focus_mm: (J,) extra object-space z of each lenslet's best focus, mm (empty: all 0).
+    source_diameter_um: d, the diameter of the source (a uniform disc), µm in object space (0: a
+        point): each focus's covariance gains (d·m/pixel)²/16 px² per axis, m its magnification.
     sensor_tilt_deg: (θx, θy) the sensor tilted right-handedly about x, then y, about its centre,
         degrees: at (x, y) it sits ``h = y·sin θx − x·sin θy`` higher (towards the lenslets), so
         each focus meets it early along its chief ray (from the vertex, ``m₀·D`` above the sensor:
@@ -107,6 +112,7 @@ class AnalyticCM2:
     lenslet_magnification: tuple[float, ...] = ()
     lenslet_focus_mm: tuple[float, ...] = ()
     sensor_tilt_deg: tuple[float, float] = (0.0, 0.0)
+    source_diameter_um: float = 0.0
 
     def __post_init__(self) -> None:
         if self.sigma0_um is None:
@@ -164,6 +170,9 @@ class AnalyticCM2:
                 u = np.array([1.0, 0.0])
             v = np.array([-u[1], u[0]])
             cov[j] = sigma_r[j] ** 2 * np.outer(u, u) + sigma_t[j] ** 2 * np.outer(v, v)
+        if self.source_diameter_um > 0:  # the source's disc image, d·m across: its second moment per axis
+            disc_px = self.source_diameter_um * m / self.pixel_um
+            cov = cov + (disc_px**2 / 16.0)[:, None, None] * np.eye(2)
         cos4 = (self.reduced_distance_mm / np.hypot(self.reduced_distance_mm, rho)) ** 4
         vignetting = 1.0 / (1.0 + np.exp((rho - self.vignetting_mm) / self.vignetting_soft_mm))
         flux = cos4 * vignetting * (self.reduced_distance_mm / (self.reduced_distance_mm - z_mm)) ** 2

@@ -191,7 +191,7 @@ def test_calibrate_scan_end_to_end(simulator, positions, tmp_path, monkeypatch, 
 # Every library effect alone at two magnitudes, pairs of effects, clean data: the tool is not told
 # what was injected. Tolerances (the documented recovery accuracy on this 18-position scan):
 # rotation ± 0.05°, spacing ± 5 µm, decentres ± 5 µm, source half-angle ± 2°, MLA and sensor tilts
-# ± 0.05°, partial lenslets' border ± 20 µm; the others as given.
+# ± 0.05°, partial lenslets' border ± 20 µm, the calibration source's diameter ± 10 µm; the others as given.
 # Crosstalk below ≈ 0.1 leaves χ² under the 1.2 floor on this scan (0.05: χ² 1.08) and is not sought.
 
 
@@ -231,6 +231,7 @@ SINGLE = {
     ),
     "partial_lenslets[+x]": (({"border_mm": 0.1}, {"border_mm": 0.4}), {"border_mm": 0.02}),
     "partial_lenslets[-y]": (({"border_mm": 0.2}, {"border_mm": 0.6}), {"border_mm": 0.02}),
+    "source_size": (({"diameter_um": 50.0}, {"diameter_um": 150.0}), {"diameter_um": 10.0}),
 }
 PAIRS = [
     ({"mla_rotation": {"angle_deg": 0.3}, "lenslet_transmission[4]": {"transmission": 0.7}}),
@@ -240,6 +241,12 @@ PAIRS = [
     # the paper's two effects: a narrow source and a column of partial lenslets
     ({"source_profile": {"falloff_per_rad2": 10.0}, "partial_lenslets[+x]": {"border_mm": 0.3}}),
     ({"sensor_tilt": {"tilt_x_deg": 0.5, "tilt_y_deg": 0.0}, "mla_rotation": {"angle_deg": -0.3}}),
+    # the calibration pinhole as it may be: narrower in angle and larger than declared (measured in
+    # session 14: nothing named — an expected failure until the attribution takes the two together)
+    pytest.param(
+        {"source_profile": {"falloff_per_rad2": 10.0}, "source_size": {"diameter_um": 80.0}},
+        marks=pytest.mark.xfail(strict=True, reason="session 14: neither effect kept (issue 14, round 5)"),
+    ),
 ]
 
 
@@ -361,3 +368,108 @@ def test_effects_that_only_widen_the_foci_carry_the_larger_source_caveat():
     assert len(narrow) == 1 and "larger than declared (2 µm)" in narrow[0]
     crosstalk = caveats({"pixel_crosstalk": {"fraction": 0.2}})
     assert len(crosstalk) == 1 and crosstalk[0].startswith("pixel_crosstalk (0.200 between the 8×-binned")
+
+
+# ----------------------------------------------------------------------------- a source larger than declared
+# A pinhole or bead larger than the design declares blurs every focus by its disc image (d × the
+# magnification at the source's depth): named `source_size`, not `pixel_crosstalk` or a narrow
+# `stray_light` (issue 14, round 5).
+
+
+def _second_moments(image: np.ndarray, centre: tuple[float, float], half: int = 9) -> np.ndarray:
+    """(row, col) variance (px²) of ``image`` in a (2·half + 1)² window about ``centre``."""
+    r0, c0 = round(centre[0]), round(centre[1])
+    window = image[r0 - half : r0 + half + 1, c0 - half : c0 + half + 1].astype(np.float64)
+    rows, cols = np.mgrid[-half : half + 1, -half : half + 1]
+    total = window.sum()
+    mr, mc = (window * rows).sum() / total, (window * cols).sum() / total
+    return np.array([(window * (rows - mr) ** 2).sum() / total, (window * (cols - mc) ** 2).sum() / total])
+
+
+def test_a_larger_source_adds_its_disc_images_second_moment(simulator):
+    """The closed form: a disc of diameter D has a second moment D²/16 per axis, which adds to the
+    focus's; the image of the source's disc is d·m(z) across, so the widening grows with the
+    magnification over depth; at the declared size (here a point) the effect is absent."""
+    from cm2optics.calibrate.effects import source_size_effect
+
+    effect = source_size_effect(0.0)
+    assert effect.defaults() == {"diameter_um": 0.0} and effect.parameters[0].low == 0.0
+    assert source_size_effect(25.0).defaults() == {"diameter_um": 25.0} and source_size_effect(200.0) is None
+    assert "source_size" in {e.name for e in library(9)}
+    positions = np.array([[0.0, 0.0, -0.3], [0.0, 0.0, 0.3]])
+    point = simulator.rates(positions, {})
+    np.testing.assert_array_equal(simulator.rates(positions, {"source_size": {"diameter_um": 0.0}}), point)
+    disc = simulator.rates(positions, {"source_size": {"diameter_um": 100.0}})
+    centres = simulator.focus_centres_px(positions)[:, 4]
+    for i, z in enumerate(positions[:, 2]):
+        image_px = 100.0 * float(simulator.model.magnification_at(z)) / simulator.pixel_um
+        added = _second_moments(disc[i], centres[i]) - _second_moments(point[i], centres[i])
+        np.testing.assert_allclose(added, image_px**2 / 16, rtol=0.02)
+        assert disc[i].sum() == pytest.approx(point[i].sum(), rel=1e-4)  # a blur: the energy stays
+
+
+def test_the_tracers_source_disc_adds_its_second_moment_and_keeps_the_centroid():
+    """A traced focus (ePSF samples 1/8 px apart) convolved with the extra disc: its centroid stays,
+    its second moment grows by D²/16 per axis; the extra disc is √(d² − d₀²), none at the declared d₀."""
+    from cm2optics.calibrate.tracer import _blurred, _Traced, source_disc_um
+    from cm2optics.emission.source import AngularProfile, PointSource, ProfileKind
+
+    declared = PointSource(5.0, AngularProfile(ProfileKind.ISOTROPIC))
+    assert source_disc_um({}, declared) == 0.0
+    assert source_disc_um({"source_size": {"diameter_um": 5.0}}, declared) == 0.0
+    assert source_disc_um({"source_size": {"diameter_um": 13.0}}, declared) == pytest.approx(12.0)
+    s = 8
+    u = (np.arange(97) - 48.3) / s  # px from the focus's centre, the centre between samples
+    epsf = np.exp(-0.5 * (u[:, None] ** 2 + u[None, :] ** 2) / 1.5**2).astype(np.float32)
+    focus = _Traced(4, epsf, (800, 1200), (0.0, 0.0), 1.0)
+    blurred = _blurred(focus, 3.0, s)
+
+    def moments(t):
+        rows = (np.arange(t.epsf.shape[0]) + t.origin[0]) / s
+        cols = (np.arange(t.epsf.shape[1]) + t.origin[1]) / s
+        w = t.epsf.astype(np.float64)
+        total = w.sum()
+        mr, mc = w.sum(axis=1) @ rows / total, w.sum(axis=0) @ cols / total
+        var = (w.sum(axis=1) @ (rows - mr) ** 2 / total, w.sum(axis=0) @ (cols - mc) ** 2 / total)
+        return total, np.array([mr, mc]), np.array(var)
+
+    total, centre, var = moments(focus)
+    total_b, centre_b, var_b = moments(blurred)
+    assert total_b == pytest.approx(total, rel=1e-5)
+    np.testing.assert_allclose(centre_b, centre, atol=1e-4)
+    np.testing.assert_allclose(var_b - var, 3.0**2 / 16, rtol=0.01)
+
+
+def _disc_offsets_mm(diameter_um: float, points: int = 64) -> np.ndarray:
+    """(points, 2) offsets (x, y) mm spread uniformly over a disc of ``diameter_um`` (a Vogel
+    spiral: equal areas, second moment d²/16 per axis)."""
+    k = np.arange(points)
+    r = diameter_um / 2000.0 * np.sqrt((k + 0.5) / points)
+    t = k * np.pi * (3.0 - np.sqrt(5.0))
+    return np.column_stack([r * np.cos(t), r * np.sin(t)])
+
+
+class _Bead:
+    """A calibration source that is a uniform disc: the simulator's images of 64 point sources
+    spread over it, averaged — the disc as it is, not the model's equal-moment Gaussian."""
+
+    def __init__(self, simulator, diameter_um: float):
+        self.simulator, self.offsets = simulator, _disc_offsets_mm(diameter_um)
+        self.pixel_um = simulator.pixel_um
+
+    def rates(self, positions, values):
+        total = sum(self.simulator.rates(positions + np.array([dx, dy, 0.0]), values) for dx, dy in self.offsets)
+        return (total / len(self.offsets)).astype(np.float32)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(("diameter_um", "seed"), [(60.0, 50), (100.0, 51)])
+def test_a_bead_larger_than_declared_is_named_source_size(simulator, positions, diameter_um, seed):
+    """Round 4's case: a uniform 60- or 100-µm disc imaged, a point declared (once named
+    `pixel_crosstalk` 0.47 and a 44-µm `stray_light` halo): `source_size` alone, its diameter ± 10 µm."""
+    counts, exposure = measured(_Bead(simulator, diameter_um), positions, seed=seed)
+    problem = Problem(simulator, counts, exposure, positions, np.ones(counts.shape, bool), library(9), 1.0)
+    result = attribute(problem)
+    assert list(result.effects) == ["source_size"], result.effects
+    assert result.effects["source_size"]["diameter_um"] == pytest.approx(diameter_um, abs=10.0)
+    assert result.chi2_after < 1.2
