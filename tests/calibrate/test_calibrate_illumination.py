@@ -32,9 +32,11 @@ import yaml
 from typer.testing import CliRunner
 
 from cm2optics.calibrate.illumination import (
+    HELD_OUT_TRACES,
     TracedMaps,
     _effect_slots,
     _Fit,
+    _held_out_threshold,
     _nuisance_slots,
     bin_measured_map,
     calibrate_illumination,
@@ -129,6 +131,26 @@ def test_noise_only_maps_give_the_tent_kernels_correlation_and_chi2_of_n_degrees
     smooth = grid.whiten(np.ones(b))
     assert np.mean((white @ smooth) ** 2 / (smooth @ smooth)) == pytest.approx(1.0, abs=0.21)
     assert np.mean(z.sum(1) ** 2 / b) > 1.5
+
+
+def test_the_held_out_threshold_passes_a_candidate_no_better_than_the_model_rarely():
+    """The held-out check's null: on each of K independent traces the current model's χ² and a far
+    candidate's are independent χ²(dof) draws (no rays shared), the candidate also paying the BIC's
+    penalty for its 2 parameters. The mean ΔBIC over K traces has the spread the threshold assumes,
+    √(4·dof/K), and exceeds the threshold with a chance ≤ Φ(−3) = 0.13 %; a candidate whose true
+    gain is the threshold plus 2σ passes ≈ 98 % of the time."""
+    rng = np.random.default_rng(5)
+    dof, k, draws, penalty = 203, HELD_OUT_TRACES, 200_000, 2 * np.log(208)
+    difference = rng.chisquare(dof, (draws, k)) - rng.chisquare(dof, (draws, k))
+    sigma = np.sqrt(4 * dof / k)
+    assert difference.mean(1).std() == pytest.approx(sigma, rel=0.01)
+    needed = _held_out_threshold(dof, k)
+    assert needed == pytest.approx(3 * sigma)
+    null = (difference - penalty).mean(1)
+    assert np.mean(null >= needed) < 0.0013
+    real = (difference + needed + 2 * sigma).mean(1)  # its ΔBIC's mean: the threshold + 2σ
+    assert np.mean(real >= needed) == pytest.approx(0.977, abs=0.01)
+    assert _held_out_threshold(dof, 10_000) == 10.0  # never below the BIC's threshold
 
 
 class _NoisyTemplates:
