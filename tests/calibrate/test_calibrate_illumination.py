@@ -10,8 +10,9 @@ relative LED flux ± 0.1 on cm2-v2 (± 0.19 on V1 at 200 000 model rays, whose e
 flux less well: 3× the spread measured over 15 runs), unit tilt ± 1° about each axis (± 0.5° for
 the pair's tilt with 1 000 000 model rays), collimator decentre ± 0.05 mm, offset ± 0.08 mm on
 cm2-v2 (V1's map does not fix it). Detection limit (BENCHMARKS.md): a 2° tilt is not named at
-400 000 model rays. Of the effect matrix (every effect alone at two magnitudes) LED 0 at 70 % and
-the 0.25-mm collimator decentre are here (slow) and the 0.15-mm one as a strict xfail (below the noise at
+400 000 model rays. Of the effect matrix (every effect alone at two magnitudes) LED 0 at 70 %, unit 3
+tilted (3°, 3°) (named at 500 000 model rays, measured by the final refit at 2 000 000) and the 0.25-mm
+collimator decentre are here (slow) and the 0.15-mm one as a strict xfail (below the noise at
 500 000 model rays once χ² counts the tent kernel's correlation); the other cases have not passed a
 run yet. The clean maps of ten seeds (a 20 M-ray truth, the model's seed varied with the map's) are a
 strict xfail: 3 of 10 seeds keep a far collimator decentre, whose traces the model's Monte Carlo
@@ -313,9 +314,10 @@ def test_cli_names_a_tilted_unit_and_a_dim_led_and_writes_a_valid_corrected_desi
 # map's noise is the truth trace's, ≈ 1/8 of the model's own Monte Carlo variance per bin, as on a
 # real map, where the camera's shot noise is far below the model's. Only the cases with a verdict
 # are here (BENCHMARKS.md, session 12, the generalised χ²: flux-0.7 passed, 363 s of CPU;
-# decenter-0.25 passed, dy −0.200 mm, at the tolerance's edge, 551 s of CPU; tilt-3x3y and
-# decenter-0.15 failed; flux-1.4 and tilt-4x got no run). Tolerances (module docstring): flux ± 0.1,
-# tilt ± 1°, decentre ± 0.05 mm.
+# decenter-0.25 passed, dy −0.200 mm, at the tolerance's edge, 551 s of CPU; decenter-0.15 failed;
+# flux-1.4 and tilt-4x got no run; session 14: tilt-3x3y passes with the final refit at 4× the rays,
+# (2.88 ± 0.13°, 3.02 ± 0.13°), 1001 s of CPU, 1971 s wall at load 6). Tolerances (module docstring):
+# flux ± 0.1, tilt ± 1°, decentre ± 0.05 mm.
 
 _BELOW_NOISE = pytest.mark.xfail(
     strict=True,
@@ -324,27 +326,15 @@ _BELOW_NOISE = pytest.mark.xfail(
     "decentre refitted and rejected by the held-out trace (ΔBIC −25.8, −6.8, −15.3): no effect named",
 )
 
-_TILT_SHORT = pytest.mark.xfail(
-    strict=True,
-    reason="not met (BENCHMARKS.md, sessions 12–13): led_tilt[3] named alone but (2.78 ± 0.15°, 1.86 ± 0.17°) "
-    "against (3°, 3°), the offset x at +0.198 mm (truth +0.1). Session 13: the model's Monte Carlo noise at "
-    "500 000 rays, not a degeneracy — along tilt_y with the offset refitted χ² changes by only 1.8–7.9 from 2° to "
-    "3° on two model seeds (≈ 15 expected from the Fisher information, σ 0.24°, correlation with offset x −0.63); "
-    "traced with 2 000 000 rays the same profile has its minimum at 3° (Δχ² 45 from 2°), and a Gauss–Newton "
-    "polish there from the search's values reaches (2.89 ± 0.12°, 3.02 ± 0.12°), offset (+0.091, −0.046): a "
-    "final refit at 4× the rays would pass, not in the tool yet",
-)
-
 #: case → (as-built changes, relative fluxes, the effect key expected, its parameters, tolerance)
 SINGLE = {
     "flux-0.7": ({}, (0.7, 1, 1, 1), ("led_flux", 0), {"flux": 0.7}, 0.1),
-    "tilt-3x3y": pytest.param(
+    "tilt-3x3y": (
         {"led_tilt_deg": [[0, 0], [0, 0], [0, 0], [3, 3]]},
         None,
         ("led_tilt", 3),
         {"tilt_x_deg": 3.0, "tilt_y_deg": 3.0},
         1.0,
-        marks=_TILT_SHORT,
     ),
     "decenter-0.15": pytest.param(
         {"collimator_decenter_mm": [[0, 0], [0.15, 0], [0, 0], [0, 0]]},
