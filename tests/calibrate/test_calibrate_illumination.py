@@ -381,7 +381,7 @@ def test_each_illumination_effect_alone_is_named_and_measured(v2, changes, flux,
 
 
 @pytest.mark.slow
-@pytest.mark.timeout(7200)  # ≈ 1.5–4.5 min of CPU per seed at 200 000 model rays (2026-11-26, load 4–8)
+@pytest.mark.timeout(7200)  # 100–160 s of CPU per seed at 200 000 model rays, 8 held-out traces (session 14)
 def test_clean_maps_yield_no_effect_for_ten_seeds(v2):
     """The nominal cm2-v2 as the truth (20 000 000 rays: its own ray noise 1 % of the model's, as a
     real map has none), ten camera-noise seeds at 2000 counts per pixel, each calibrated with the
@@ -389,8 +389,8 @@ def test_clean_maps_yield_no_effect_for_ten_seeds(v2):
     the comparison, is then a new draw for every map — with one model seed every map would share
     the same draw, ten repeats of one test. No effect named, nothing unexplained. (Session 13, one
     held-out trace: seeds 5, 6 and 9 kept a far collimator decentre, the decentred and nominal traces
-    nearly independent draws; session 14, a mean over 8 held-out traces against 3σ of its noise:
-    seeds 0, 5, 6 and 9 run, nothing named — BENCHMARKS.md.)"""
+    nearly independent draws; session 14, a mean over 8 held-out traces against 3σ of its noise: all
+    ten name nothing, 96–331 s wall and 100–160 s CPU each at load 3–6 — BENCHMARKS.md.)"""
     units = unit_pixel_maps(v2, rays=20_000_000, offset_mm=OFFSET_MM, seed=100, chunk=4_000_000)
     for seed in range(10):
         image = measured_map(units, mean_counts=2000.0, seed=seed)
