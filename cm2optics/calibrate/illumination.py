@@ -38,12 +38,23 @@ LED at 70 % from three at 143 %).
 Attribution as for scans (:mod:`.attribute`): every candidate is fitted, linearised, beside the
 nuisance and the effects already kept; the ``REFITTED_CANDIDATES`` that lower the BIC (χ² + k ln n)
 most are refitted by Gauss–Newton with the tracer in the loop, and the best of them is kept if it
-lowers the BIC by more than ``BIC_THRESHOLD`` — a traced one also on the model traced with
-independent rays (seed + 1), where a tilt or decentre fitted to the model's own Monte Carlo noise
-does not lower it: with a realistic map, whose camera noise is far below the model's, that noise
-limits detection (BENCHMARKS.md); the search stops when no candidate is significant (the BIC alone: a map has few
-bins, so χ²_red may sit a little above ``CHI2_FLOOR`` with a significant effect left; above it
-after the effects, the residual is described as unexplained).
+lowers the BIC by more than ``BIC_THRESHOLD`` — a traced one also, on average, on
+``HELD_OUT_TRACES`` models traced with independent rays (seeds seed + 1 …), by more than
+``HELD_OUT_Z`` standard deviations of that mean under no improvement (:func:`_held_out_threshold`):
+a tilt or decentre fitted to the model's own Monte Carlo noise does not lower it there. A geometry
+that moves a unit's beam by more than a bin (a 0.15-mm decentre: ≈ 1.9 mm) shares almost no rays
+with the nominal trace, so on one held-out trace the two χ² are independent draws and their
+difference varies by ≈ ± 29; one such trace passed a false decentre on 3 of 10 clean maps
+(BENCHMARKS.md, session 13). With a realistic map, whose camera noise is far below the model's,
+that noise limits detection; the search stops when no candidate is significant (the BIC alone: a
+map has few bins, so χ²_red may sit a little above ``CHI2_FLOOR`` with a significant effect left;
+above it after the effects, the residual is described as unexplained).
+When a tilt or decentre is kept, every kept value is refitted last (Gauss–Newton, central
+differences) on the model traced with ``POLISH_RAYS_FACTOR`` × the rays (common random numbers
+between its nominal and perturbed traces), and the nominal registered again on it, so that
+χ² before and after share one model: at the search's rays χ² along a direction the lateral offset
+partly trades against (a tilt about one axis) is as rough as its signal, and the search stops
+short (unit 3 at (3°, 3°) read (2.78°, 1.86°) at 500 000 rays; BENCHMARKS.md, sessions 13–14).
 Last, the scale and the relative fluxes are solved again with the least squares corrected for the
 traced maps' own Monte Carlo noise (errors in variables: each map's expected Σ w²·variance taken off
 the normal matrix): a map traced with few rays per bin looks like the others' noise-wise, which
@@ -98,6 +109,16 @@ REFITTED_CANDIDATES = 3
 MIN_BINS = 30
 #: Largest lateral offset of the measured map fitted, mm (used bins keep this much inside the image).
 MAX_OFFSET_MM = 0.5
+#: Independent model traces (seeds seed + 1 … seed + K) on which a refitted traced candidate must
+#: lower the BIC before it is kept (:func:`_held_out_threshold`).
+HELD_OUT_TRACES = 8
+#: The held-out check's one-sided z: a candidate that does not improve the model passes it with a
+#: chance of at most Φ(−3) ≈ 0.13 % (:func:`_held_out_threshold`).
+HELD_OUT_Z = 3.0
+#: The final refit (polish) of kept traced effects uses the model traced with this many times the
+#: rays: the search's χ² along a traded direction (a tilt against the lateral offset) is as rough
+#: as its signal at the search's rays (BENCHMARKS.md, session 13).
+POLISH_RAYS_FACTOR = 4
 
 
 @dataclass(frozen=True)
@@ -629,20 +650,40 @@ def _refitted(
 
 
 def _held_out_gain(
-    held_out: _Fit,
+    held_out: list[_Fit],
     slots: list[_Slot],
     theta: np.ndarray,
     trial_slots: list[_Slot],
     trial: np.ndarray,
     penalty: float,
-) -> float:
-    """The BIC drop of a refitted traced candidate on the model traced with independent rays (the
+) -> list[float]:
+    """The BIC drop of a refitted traced candidate on each model traced with independent rays (the
     scale and free fluxes solved again there, the rest as fitted). Its gain on the rays it was fitted
     with includes the model's Monte Carlo noise that the refit and the grid start chose; on independent
     rays a geometry fitted to that noise loses instead."""
-    before = held_out.profiled(slots, theta)[1] + penalty * len(slots)
-    after = held_out.profiled(trial_slots, trial)[1] + penalty * len(trial_slots)
-    return before - after
+    gains = []
+    for fit in held_out:
+        before = fit.profiled(slots, theta)[1] + penalty * len(slots)
+        after = fit.profiled(trial_slots, trial)[1] + penalty * len(trial_slots)
+        gains.append(before - after)
+    return gains
+
+
+def _held_out_threshold(dof: int, traces: int) -> float:
+    """The least mean BIC drop over ``traces`` held-out traces that keeps a traced candidate:
+    ``BIC_THRESHOLD`` or ``HELD_OUT_Z`` standard deviations of that mean under no improvement,
+    whichever is larger. On one held-out trace the χ² of the current model and of the candidate
+    are each χ² of ``dof`` degrees of freedom (variance 2·dof: the model's Monte Carlo noise
+    dominates, the generalised χ² decorrelates the centres); where the candidate's geometry moves
+    its unit's rays by more than a bin, the two traces share almost no ray fates or bins and the
+    two χ² are independent draws, so their difference varies by 2·2·dof — an upper bound, as
+    common rays only correlate them (a 0.15-mm collimator decentre moves its beam ≈ 1.9 mm; the
+    measured spread of Δχ² over model seeds ≈ 35 against √(4·207) ≈ 29, BENCHMARKS.md). The
+    traces are independent (the data, shared, adds no covariance between them while the model is
+    right), so their mean varies by 4·dof / K; a candidate no better than the current model has a
+    mean Δχ² ≤ 0 and its ΔBIC lower still, by the penalty: it passes with a chance of at most
+    Φ(−``HELD_OUT_Z``) (0.13 % for z = 3, per candidate judged)."""
+    return max(BIC_THRESHOLD, HELD_OUT_Z * math.sqrt(4 * dof / traces))
 
 
 def _current(fit: _Fit, slots: list[_Slot], theta: np.ndarray, effect: UnitEffect) -> np.ndarray:
@@ -757,11 +798,13 @@ def calibrate_illumination(
     effect_names: tuple[str, ...] | None = None,
     label: str = "map",
     progress: Progress | None = None,
+    polish_rays: int | None = None,
 ) -> IlluminationCalibration:
     """Register the design's traced irradiance map to a measured one (``image``, counts, ``pixel_um``
     µm per pixel on the sample), name the illumination effects the residual asks for (only those
     in ``effect_names`` if given) and return the document, the maps and the corrected design.
-    ``label`` names the map in the document (its file)."""
+    ``label`` names the map in the document (its file). ``polish_rays``: rays of the final refit
+    when a traced effect is kept (default ``POLISH_RAYS_FACTOR`` × ``rays``; ≤ ``rays``: none)."""
     say = progress or (lambda message: None)
     if not (math.isfinite(counts_per_electron) and counts_per_electron > 0):
         raise UserError(f"--counts-per-electron = {counts_per_electron}: must be a number > 0")
@@ -769,9 +812,13 @@ def calibrate_illumination(
         raise UserError(f"--bin-mm = {bin_mm}: must lie within 0–{design.volume.field_mm / 4} mm")
     if rays < 1000:
         raise UserError(f"--rays = {rays}: must be ≥ 1000")
+    polish_rays = POLISH_RAYS_FACTOR * rays if polish_rays is None else polish_rays
+    if polish_rays < 0:
+        raise UserError(f"--polish-rays = {polish_rays}: must be ≥ 0 (0: no final refit at more rays)")
     measured = bin_measured_map(image, pixel_um, bin_mm, design.volume.field_mm / 2)
     say(f"{measured.values.size} bins of {bin_mm} mm; tracing {design.name} with {rays} rays")
     maps = TracedMaps(design, measured, rays, seed)
+    traced = [maps]  # every model traced (its traces counted in the document)
     built = design.illumination_as_built
     units = maps.units
     fit = _Fit(
@@ -782,6 +829,7 @@ def calibrate_illumination(
     )
     slots = _nuisance_slots(measured.pixel_mm)
     theta, chi2, cov = fit.refine(slots, _start(fit, slots))
+    registration = slots, theta
     n = measured.values.size
     penalty = math.log(n)
     before, var_before = fit.predict(slots, theta)
@@ -794,7 +842,7 @@ def calibrate_illumination(
         if effect_names is None or e.name in effect_names
     ]
     kept: list[UnitEffect] = []
-    held_out: _Fit | None = None  # the model traced with other rays, made when first needed
+    held_out: list[_Fit] = []  # the model traced with other rays (HELD_OUT_TRACES seeds), made when first needed
     while len(kept) < max_effects:
         remaining = [c for c in candidates if c not in kept]
         if not remaining:
@@ -811,25 +859,57 @@ def calibrate_illumination(
         ):
             if bic_now - bic < BIC_THRESHOLD:
                 break
+            confirmation: dict[str, Any] = {}
             if best.traced:
-                if held_out is None:
-                    held_out = _Fit(TracedMaps(design, measured, rays, seed + 1), fit.flux0, fit.geometry0, fit.gain)
-                confirmed = _held_out_gain(held_out, slots, theta, trial_slots, refit[0], penalty)
-                if confirmed < BIC_THRESHOLD:
-                    steps.append(
-                        {"effect": best.key, "rejected": "held-out trace", "held_out_delta_bic": round(confirmed, 3)}
+                if not held_out:
+                    traced += [TracedMaps(design, measured, rays, seed + k) for k in range(1, HELD_OUT_TRACES + 1)]
+                    held_out = [_Fit(m, fit.flux0, fit.geometry0, fit.gain) for m in traced[-HELD_OUT_TRACES:]]
+                gains = _held_out_gain(held_out, slots, theta, trial_slots, refit[0], penalty)
+                needed = _held_out_threshold(n - len(trial_slots), len(gains))
+                confirmation = {
+                    "held_out_delta_bic": round(float(np.mean(gains)), 3),
+                    "held_out_threshold": round(needed, 3),
+                    "held_out_each": [round(g, 3) for g in gains],
+                }
+                if np.mean(gains) < needed:
+                    steps.append({"effect": best.key, "rejected": "held-out traces", **confirmation})
+                    say(
+                        f"{best.key} not confirmed on {len(gains)} independent traces "
+                        f"(mean ΔBIC {np.mean(gains):.3g} < {needed:.3g})"
                     )
-                    say(f"{best.key} not confirmed on independent rays (ΔBIC {confirmed:.3g})")
                     continue
-            chosen = bic, best, trial_slots, refit
+            chosen = bic, best, trial_slots, refit, confirmation
             break
         if chosen is None:
             break
-        bic, best, trial_slots, (trial, trial_chi2, trial_cov) = chosen
+        bic, best, trial_slots, (trial, trial_chi2, trial_cov), confirmation = chosen
         slots, theta, chi2, cov = trial_slots, trial, trial_chi2, trial_cov
         kept.append(best)
-        steps.append({"effect": best.key, "chi2": round(chi2 / (n - len(slots)), 5), "bic": round(bic, 3)})
+        steps.append(
+            {"effect": best.key, "chi2": round(chi2 / (n - len(slots)), 5), "bic": round(bic, 3), **confirmation}
+        )
         say(f"kept {best.key}: reduced χ² {chi2 / (n - len(slots)):.3g}")
+    if polish_rays > rays and any(e.traced for e in kept):
+        # The kept values refitted jointly (central differences) on the model traced with more rays,
+        # and the nominal registered again on it, so that before and after share one model's noise.
+        say(f"final refit of {', '.join(e.key for e in kept)} with {polish_rays} rays")
+        traced.append(TracedMaps(design, measured, polish_rays, seed))
+        fit = _Fit(traced[-1], fit.flux0, fit.geometry0, fit.gain)
+        theta, chi2, cov = fit.refine(slots, theta, central=True)
+        nominal, nominal_chi2, _ = fit.refine(*registration)
+        before, var_before = fit.predict(registration[0], nominal)
+        data_before = measured.values_at(fit.unpack(registration[0], nominal)[1])
+        chi2_before = nominal_chi2 / (n - len(registration[0]))
+        steps.append(
+            {
+                "effect": "final refit",
+                "rays": polish_rays,
+                "chi2": round(chi2 / (n - len(slots)), 5),
+                "bic": round(chi2 + penalty * len(slots), 3),
+                "chi2_nominal": round(chi2_before, 5),
+            }
+        )
+        say(f"final refit: reduced χ² {chi2 / (n - len(slots)):.3g} (nominal {chi2_before:.3g})")
     corrected, corrected_chi2 = fit.profiled(slots, theta, template_noise=True)
     if math.isfinite(corrected_chi2):
         theta, chi2 = corrected, corrected_chi2
@@ -877,7 +957,9 @@ def calibrate_illumination(
             "bin_mm": bin_mm,
             "rays": rays,
             "seed": seed,
-            "traces": maps.traces,
+            "traces": sum(m.traces for m in traced),
+            "held_out_traces": len(held_out),
+            "polish_rays": polish_rays if any(e.traced for e in kept) and polish_rays > rays else None,
             "template_noise_corrected": math.isfinite(corrected_chi2),
             "candidates": sorted({c.name for c in candidates}),
         },

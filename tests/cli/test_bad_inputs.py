@@ -728,6 +728,12 @@ def _illumination_calibration_cases() -> list[Case]:
         Case(
             command,
             "option",
+            run("{map}", "--pixel-um", "20", "--polish-rays", "-1", "--out", "{case}/r"),
+            ("--polish-rays", "≥ 0"),
+        ),
+        Case(
+            command,
+            "option",
             run("{map}", "--pixel-um", "20", "--preset", "nope", "--out", "{case}/r"),
             ("unknown preset",),
         ),
