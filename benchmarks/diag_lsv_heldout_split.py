@@ -152,6 +152,73 @@ def summary(rows, keys):
     return out
 
 
+def cache_pupils():
+    """Trace the design's pupils once for the several aberration-model fits of one run."""
+    import cm2optics.calibrate.aberration_build as ab
+
+    original, cache = ab.trace_pupils, {}
+
+    def cached(emission, pos, seed=0, progress=None):
+        if "p" not in cache:
+            cache["p"] = original(emission, pos, seed=seed, progress=progress)
+        return cache["p"]
+
+    ab.trace_pupils = cached
+
+
+def fit_both_placements(design, crops, index, positions9, fit_nodes, zs, model):
+    """The aberration model fitted twice on ``fit_nodes``: its placement from the fine ePSF crops
+    and from the whole-pixel windows (each at its own sub-pixel phase). Returns (fine, pixel, record)."""
+    from cm2optics.calibrate.aberration_build import _fit_lenslets
+    from cm2optics.lsv.epsf_estimate import pixel_windows
+
+    S, pixel_um = model.oversample, index.meta.pixel_um
+    t0 = time.time()
+    fine, record = _fit_lenslets(design, crops, positions9, fit_nodes, zs, model.geometry, S, pixel_um, 0, None)
+    print(f"fit (fine crops, {len(fit_nodes)} nodes) {time.time() - t0:.0f} s", record, flush=True)
+    t0 = time.time()
+    windows, foci = pixel_windows(index, model.geometry, model.patch_shape)
+    phases = foci - np.floor(foci)
+    pixel, _ = _fit_lenslets(
+        design, windows, positions9, fit_nodes, zs, model.geometry, S, pixel_um, 0, None, phases=phases
+    )
+    print(f"fit (whole-pixel windows) {time.time() - t0:.0f} s", flush=True)
+    return fine, pixel, record
+
+
+def placement_difference(fine, pixel, emitter_positions):
+    """Per lenslet, how far the whole-pixel placement's offset (µm) and flux differ from the fine one's."""
+    from cm2optics.emission.aberration_model import placement_features
+
+    F = placement_features(np.asarray(emitter_positions))
+    difference = {}
+    for j in fine:
+        if fine[j] is not None and pixel.get(j) is not None:
+            d = F @ pixel[j].offset - F @ fine[j].offset
+            r = np.exp(F @ pixel[j].log_flux - F @ fine[j].log_flux)
+            difference[j] = {
+                "mean_offset_diff_um": float(np.linalg.norm(d, axis=1).mean() * 1e3),
+                "max_offset_diff_um": float(np.linalg.norm(d, axis=1).max() * 1e3),
+                "flux_ratio_mean": float(r.mean()),
+                "flux_ratio_std": float(r.std()),
+            }
+    print("pixel vs fine placement at the emitters", difference, flush=True)
+    return difference
+
+
+def renderer(model, lenslet_models):
+    """The fitted lenslet models' fine PSFs at a point, in the model's focus-patch layout."""
+
+    def render(p):
+        out = np.zeros((model.n_lenslets, *model.basis.shape[2:]))
+        for j, lm in lenslet_models.items():
+            if lm is not None:
+                out[j] = lm.predict(p)
+        return out
+
+    return render
+
+
 def main_truth(n, truthscan, out_json, specs):
     from cm2optics.lsv.model import load_model
 
@@ -209,7 +276,6 @@ def main_abm(n, truthscan, out_json, model_path, scan9, n_sweep):
             {"info": info, "summary": summary(rows, keys), "rows": rows}, open(out_json, "w"), indent=1, default=str
         )
 
-    from cm2optics.calibrate.aberration_build import _fit_lenslets
     from cm2optics.design import load_preset
     from cm2optics.formats.scan import open_scan
     from cm2optics.lsv.epsf import epsf_crops
@@ -291,65 +357,16 @@ def main_abm(n, truthscan, out_json, model_path, scan9, n_sweep):
         dump(rows, {"stage": name})
     del variants
     hybrid_coefficients = coeff
-    import cm2optics.calibrate.aberration_build as ab
-    from cm2optics.emission.aberration_model import placement_features
-    from cm2optics.lsv.epsf_estimate import pixel_windows
-
-    original, cache = ab.trace_pupils, {}
-
-    def cached(emission, pos, seed=0, progress=None):
-        if "p" not in cache:
-            cache["p"] = original(emission, pos, seed=seed, progress=progress)
-        return cache["p"]
-
-    ab.trace_pupils = cached
-    t0 = time.time()
-    lmodels, record = _fit_lenslets(
-        design, crops9, positions9, np.arange(len(positions9)), zs, model.geometry, S, index9.meta.pixel_um, 0, None
+    cache_pupils()
+    lmodels, pmodels, record = fit_both_placements(
+        design, crops9, index9, positions9, np.arange(len(positions9)), zs, model
     )
-    print(f"fit (fine crops) {time.time() - t0:.0f} s", record, flush=True)
     node0 = int(np.flatnonzero(np.all(np.abs(positions9) < 1e-9, axis=1))[0])
     s0_scan9 = place(model.geometry, S, crops9[node0].astype(np.float64), (0.0, 0.0, 0.0), model.sensor_shape).sum()
     node_of = {tuple(np.round(q, 6)): k for k, q in enumerate(positions9)}
-    t0 = time.time()
-    windows, foci = pixel_windows(index9, model.geometry, model.patch_shape)
-    pmodels, precord = _fit_lenslets(
-        design,
-        windows,
-        positions9,
-        np.arange(len(positions9)),
-        zs,
-        model.geometry,
-        S,
-        index9.meta.pixel_um,
-        0,
-        None,
-        phases=foci - np.floor(foci),
-    )
-    print(f"fit (whole-pixel windows) {time.time() - t0:.0f} s", flush=True)
-    del windows
     J = model.n_lenslets
-    em_pos = np.array([p for _, _, p in positions(n)])
-    F = placement_features(em_pos)
-    offset_diff = {}
-    for j in range(J):
-        if lmodels[j] is not None and pmodels[j] is not None:
-            d = F @ pmodels[j].offset - F @ lmodels[j].offset
-            r = np.exp(F @ pmodels[j].log_flux - F @ lmodels[j].log_flux)
-            offset_diff[j] = {
-                "mean_offset_diff_um": float(np.linalg.norm(d, axis=1).mean() * 1e3),
-                "max_offset_diff_um": float(np.linalg.norm(d, axis=1).max() * 1e3),
-                "flux_ratio_mean": float(r.mean()),
-                "flux_ratio_std": float(r.std()),
-            }
-    print("pixel vs fine placement at the emitters", offset_diff, flush=True)
-
-    def render(p, models=lmodels):
-        out = np.zeros((J, *model.basis.shape[2:]))
-        for j, lm in models.items():
-            if lm is not None:
-                out[j] = lm.predict(p)
-        return out
+    offset_diff = placement_difference(lmodels, pmodels, [p for _, _, p in em])
+    render, render_px = renderer(model, lmodels), renderer(model, pmodels)
 
     a0 = place(model.geometry, S, render(pts[0]), pts[0], model.sensor_shape).sum()
     project, kind = projector(model)
@@ -359,7 +376,7 @@ def main_abm(n, truthscan, out_json, model_path, scan9, n_sweep):
         a = render(p) / s0_scan9
         rows[i]["abm:render"] = image_errors(place(model.geometry, S, a, p, model.sensor_shape), t)
         rows[i]["abm:render_proj"] = image_errors(place(model.geometry, S, project(a), p, model.sensor_shape), t)
-        b = render(p, pmodels) / s0_scan9
+        b = render_px(p) / s0_scan9
         rows[i]["abm_px:render"] = image_errors(place(model.geometry, S, b, p, model.sensor_shape), t)
         rows[i]["abm_px:render_proj"] = image_errors(place(model.geometry, S, project(b), p, model.sensor_shape), t)
         print("render", g, p, " ".join(f"{k} {rows[i][k]['error']:.3f}" for k in rows[i] if "render" in k), flush=True)
@@ -435,40 +452,13 @@ def main_abm(n, truthscan, out_json, model_path, scan9, n_sweep):
         print(g, v["n"], " ".join(f"{k} {v[k]['error']:.3f}" for k in keys if k in v))
 
 
-if __name__ == "__main__":
-    step = sys.argv[1]
-    if step == "positions":
-        n, out = int(sys.argv[2]), sys.argv[3]
-        em = positions(n)
-        with open(out, "w") as fh:
-            fh.write("x_mm,y_mm,z_mm\n0,0,0\n")
-            for _, _, p in em:
-                fh.write(f"{p[0]:.6f},{p[1]:.6f},{p[2]:.6f}\n")
-        print(len(em) + 1, "positions")
-    elif step == "truth":
-        main_truth(int(sys.argv[2]), sys.argv[3], sys.argv[4], sys.argv[5:])
-    elif step == "abm":
-        main_abm(
-            int(sys.argv[2]),
-            sys.argv[3],
-            sys.argv[4],
-            sys.argv[5],
-            sys.argv[6],
-            int(sys.argv[7]) if len(sys.argv) > 7 else 4,
-        )
-
-
 def main_abmfit(n, out_json, model_path, scan9):
     """Goal 3, trimmed for time: the aberration model's placement fitted to the fine crops and to the
     whole-pixel windows (each at its phase), both on the nodes of every second depth (session 10's
     rule), its renders at the emitters at full rank and on the model's basis."""
-    import cm2optics.calibrate.aberration_build as ab
-    from cm2optics.calibrate.aberration_build import _fit_lenslets
     from cm2optics.design import load_preset
-    from cm2optics.emission.aberration_model import placement_features
     from cm2optics.formats.scan import open_scan
     from cm2optics.lsv.epsf import epsf_crops
-    from cm2optics.lsv.epsf_estimate import pixel_windows
     from cm2optics.lsv.model import load_model
 
     design = load_preset("cm2-v2")
@@ -486,58 +476,11 @@ def main_abmfit(n, out_json, model_path, scan9):
     node0 = int(np.flatnonzero(np.all(np.abs(positions9) < 1e-9, axis=1))[0])
     s0_scan9 = place(model.geometry, S, crops9[node0].astype(np.float64), (0.0, 0.0, 0.0), model.sensor_shape).sum()
     print(f"crops {time.time() - t0:.0f} s", flush=True)
-    original, cache = ab.trace_pupils, {}
-
-    def cached(emission, pos, seed=0, progress=None):
-        if "p" not in cache:
-            cache["p"] = original(emission, pos, seed=seed, progress=progress)
-        return cache["p"]
-
-    ab.trace_pupils = cached
-    t0 = time.time()
-    lmodels, record = _fit_lenslets(
-        design, crops9, positions9, fit_nodes, zs, model.geometry, S, index9.meta.pixel_um, 0, None
-    )
-    print(f"fit (fine crops, {len(fit_nodes)} nodes) {time.time() - t0:.0f} s", flush=True)
+    cache_pupils()
+    lmodels, pmodels, _ = fit_both_placements(design, crops9, index9, positions9, fit_nodes, zs, model)
     del crops9
-    t0 = time.time()
-    windows, foci = pixel_windows(index9, model.geometry, model.patch_shape)
-    pmodels, _ = _fit_lenslets(
-        design,
-        windows,
-        positions9,
-        fit_nodes,
-        zs,
-        model.geometry,
-        S,
-        index9.meta.pixel_um,
-        0,
-        None,
-        phases=foci - np.floor(foci),
-    )
-    print(f"fit (whole-pixel windows) {time.time() - t0:.0f} s", flush=True)
-    del windows
-    J = model.n_lenslets
-    F = placement_features(np.array([p for _, _, p in em]))
-    offset_diff = {}
-    for j in range(J):
-        if lmodels[j] is not None and pmodels[j] is not None:
-            d = F @ pmodels[j].offset - F @ lmodels[j].offset
-            r = np.exp(F @ pmodels[j].log_flux - F @ lmodels[j].log_flux)
-            offset_diff[j] = {
-                "mean_offset_diff_um": float(np.linalg.norm(d, axis=1).mean() * 1e3),
-                "max_offset_diff_um": float(np.linalg.norm(d, axis=1).max() * 1e3),
-                "flux_ratio_mean": float(r.mean()),
-                "flux_ratio_std": float(r.std()),
-            }
-    print("pixel vs fine placement at the emitters", offset_diff, flush=True)
-
-    def render(p, models):
-        out = np.zeros((J, *model.basis.shape[2:]))
-        for j, lm in models.items():
-            if lm is not None:
-                out[j] = lm.predict(p)
-        return out
+    offset_diff = placement_difference(lmodels, pmodels, [p for _, _, p in em])
+    renders = {"abm": renderer(model, lmodels), "abm_px": renderer(model, pmodels)}
 
     traced = traced_all(pts)
     u = float(traced[0].sum())
@@ -545,8 +488,8 @@ def main_abmfit(n, out_json, model_path, scan9):
     t0 = time.time()
     for i, (g, r, p) in enumerate(em):
         t = traced[i + 1] / u
-        for name, models in (("abm", lmodels), ("abm_px", pmodels)):
-            a = render(p, models) / s0_scan9
+        for name, render in renders.items():
+            a = render(p) / s0_scan9
             rows[i][f"{name}:render"] = image_errors(place(model.geometry, S, a, p, model.sensor_shape), t)
             rows[i][f"{name}:render_on_basis"] = image_errors(
                 place(model.geometry, S, model.project(a), p, model.sensor_shape), t
@@ -577,5 +520,26 @@ def main_abmfit(n, out_json, model_path, scan9):
         print(g, v["n"], " ".join(f"{k} {v[k]['error']:.3f}" for k in keys if k in v))
 
 
-if __name__ == "__main__" and sys.argv[1] == "abmfit":
-    main_abmfit(int(sys.argv[2]), sys.argv[3], sys.argv[4], sys.argv[5])
+if __name__ == "__main__":
+    step = sys.argv[1]
+    if step == "positions":
+        n, out = int(sys.argv[2]), sys.argv[3]
+        em = positions(n)
+        with open(out, "w") as fh:
+            fh.write("x_mm,y_mm,z_mm\n0,0,0\n")
+            for _, _, p in em:
+                fh.write(f"{p[0]:.6f},{p[1]:.6f},{p[2]:.6f}\n")
+        print(len(em) + 1, "positions")
+    elif step == "truth":
+        main_truth(int(sys.argv[2]), sys.argv[3], sys.argv[4], sys.argv[5:])
+    elif step == "abm":
+        main_abm(
+            int(sys.argv[2]),
+            sys.argv[3],
+            sys.argv[4],
+            sys.argv[5],
+            sys.argv[6],
+            int(sys.argv[7]) if len(sys.argv) > 7 else 4,
+        )
+    elif step == "abmfit":
+        main_abmfit(int(sys.argv[2]), sys.argv[3], sys.argv[4], sys.argv[5])

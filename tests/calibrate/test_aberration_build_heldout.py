@@ -21,6 +21,17 @@ class _Model:
         return np.full((4, 4), 100 * self.lenslet + float(np.sum(np.abs(position))))
 
 
+def _grid_without_optics(monkeypatch, J):
+    """A 9 × 9 × 2 node grid over ±4 mm, lenslet axes and the emission model stubbed out."""
+    monkeypatch.setattr(build, "lenslet_axes", lambda geometry, z: np.zeros((J, 2)))
+    monkeypatch.setattr(psf, "EmissionModel", lambda *a: None)
+    xs = ys = np.linspace(-4, 4, 9)
+    zs = np.array([-0.1, 0.1])
+    gi = np.array([[ix, iy, iz] for iz in range(2) for iy in range(9) for ix in range(9)])
+    positions = np.stack([xs[gi[:, 0]], ys[gi[:, 1]], zs[gi[:, 2]]], -1)
+    return xs, ys, zs, gi, positions
+
+
 def test_held_out_nodes_enter_neither_the_pupils_nor_the_placement(monkeypatch):
     seen = {"traced": None, "placed": {}}
     J = 2
@@ -37,12 +48,7 @@ def test_held_out_nodes_enter_neither_the_pupils_nor_the_placement(monkeypatch):
     monkeypatch.setattr(build, "trace_pupils", trace)
     monkeypatch.setattr(build, "fit_lenslet_model", lambda *a, **k: _Model(next(counter), seen))
     monkeypatch.setattr(build, "fit_placement", placement)
-    monkeypatch.setattr(build, "lenslet_axes", lambda geometry, z: np.zeros((J, 2)))
-    monkeypatch.setattr(psf, "EmissionModel", lambda *a: None)
-    xs = ys = np.linspace(-4, 4, 9)
-    zs = np.array([-0.1, 0.1])
-    gi = np.array([[ix, iy, iz] for iz in range(2) for iy in range(9) for ix in range(9)])
-    positions = np.stack([xs[gi[:, 0]], ys[gi[:, 1]], zs[gi[:, 2]]], -1)
+    xs, ys, zs, gi, positions = _grid_without_optics(monkeypatch, J)
     crops = np.ones((len(gi), J, 4, 4), np.float32)
     held = np.array([30, 40, 121])
     geometry = Geometry.__new__(Geometry)
@@ -89,12 +95,7 @@ def test_whole_pixel_windows_place_the_model_at_each_frames_own_phase(monkeypatc
     monkeypatch.setattr(build, "trace_pupils", lambda e, p, seed=0, progress=None: {j: [0] * len(p) for j in range(J)})
     monkeypatch.setattr(build, "fit_lenslet_model", fit_model)
     monkeypatch.setattr(build, "fit_placement", placement)
-    monkeypatch.setattr(build, "lenslet_axes", lambda geometry, z: np.zeros((J, 2)))
-    monkeypatch.setattr(psf, "EmissionModel", lambda *a: None)
-    xs = ys = np.linspace(-4, 4, 9)
-    zs = np.array([-0.1, 0.1])
-    gi = np.array([[ix, iy, iz] for iz in range(2) for iy in range(9) for ix in range(9)])
-    positions = np.stack([xs[gi[:, 0]], ys[gi[:, 1]], zs[gi[:, 2]]], -1)
+    xs, ys, zs, gi, positions = _grid_without_optics(monkeypatch, J)
     windows = np.ones((len(gi), J, h, h), np.float32)
     phases = np.random.default_rng(1).uniform(0, 1, (len(gi), J, 2))
     geometry = Geometry.__new__(Geometry)
