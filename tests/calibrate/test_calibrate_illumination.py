@@ -279,11 +279,6 @@ def v2_tilted_units(v2):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(
-    strict=True,
-    reason="not met (BENCHMARKS.md): both effects named since the refitted finalists and the tilt's grid "
-    "start (LED 3 at 0.692 ± 0.015), but the tilt comes out 3.63 ± 0.12° about x and 0.91 ± 0.14° about y (2026-11-26)",
-)
 @pytest.mark.timeout(3000)  # ≈ 15 min at load 20 on 2 cores: 8 M truth rays, ≈ 20 traces of 1 M
 def test_cli_names_a_tilted_unit_and_a_dim_led_and_writes_a_valid_corrected_design(v2_tilted_units, tmp_path):
     """cm2-v2 with unit 1 tilted 4° and LED 3 at 70 %, against the nominal design through the
