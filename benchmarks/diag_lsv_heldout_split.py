@@ -40,19 +40,12 @@ def positions(n):
     return bench.emitters(args, (-0.5, 0.5))
 
 
-def place(model_geometry, S, patches, pos, sensor_shape):
-    """Image of fine patches (J, hS, wS) in the model's chief-ray frame, placed at pos's foci (as sparse.point_image)."""
-    from cm2optics.lsv.epsf import place_epsf
-    from cm2optics.lsv.kernels import split_shift
-    from cm2optics.lsv.sparse import _add
+def place(model, patches, pos):
+    """Image of fine patches (J, hS, wS) in the model's chief-ray frame, placed at pos's foci as
+    the model places its own (:func:`cm2optics.lsv.sparse.place_patches`)."""
+    from cm2optics.lsv.sparse import place_patches
 
-    out = np.zeros(sensor_shape)
-    h, w = patches.shape[-2] // S, patches.shape[-1] // S
-    focus = model_geometry.focus(*pos)
-    for j in range(len(patches)):
-        n, eps = split_shift(focus[j] - np.array([h // 2, w // 2]))
-        _add(out, place_epsf(np.asarray(patches[j], np.float64), (eps[0], eps[1]), S), int(n[0]) - 1, int(n[1]) - 1)
-    return out
+    return place_patches(model, patches, *pos)
 
 
 def projector(model):
@@ -62,18 +55,7 @@ def projector(model):
     blocks = [model.lenslet_terms(j) for j in range(J)]
     per_lenslet = sum(len(b) for b in blocks) == len(B) and all(len(b) < len(B) for b in blocks)
     if per_lenslet:
-        mats = []
-        for j, terms in enumerate(blocks):
-            Bj = B[terms, j].reshape(len(terms), -1).astype(np.float64)
-            mats.append((Bj, np.linalg.pinv(Bj @ Bj.T)))
-
-        def project(x):
-            out = np.zeros(x.shape)
-            for j, (Bj, Ginv) in enumerate(mats):
-                out[j] = (Bj.T @ (Ginv @ (Bj @ x[j].reshape(-1)))).reshape(x.shape[1:])
-            return out
-
-        return project, "per lenslet"
+        return model.project, "per lenslet"
     Bf = B.reshape(len(B), -1).astype(np.float64)
     Ginv = np.linalg.pinv(Bf @ Bf.T)
 
@@ -234,10 +216,9 @@ def main_truth(n, truthscan, out_json, specs):
         name, _, path = spec_.partition("=")
         t0 = time.time()
         model = load_model(path)
-        S = model.oversample
         crops = truth_crops(model, pts)
         print(f"truth crops {time.time() - t0:.0f} s", flush=True)
-        s0 = place(model.geometry, S, crops[0], pts[0], model.sensor_shape).sum()
+        s0 = place(model, crops[0], pts[0]).sum()
         project, kind = projector(model)
         info[name] = {
             "path": path,
@@ -251,8 +232,8 @@ def main_truth(n, truthscan, out_json, specs):
         for i, (g, _r, p) in enumerate(em):
             t = traced[i + 1] / u
             truth = crops[i + 1] / s0
-            rows[i][f"{name}:truth"] = image_errors(place(model.geometry, S, truth, p, model.sensor_shape), t)
-            rows[i][f"{name}:proj"] = image_errors(place(model.geometry, S, project(truth), p, model.sensor_shape), t)
+            rows[i][f"{name}:truth"] = image_errors(place(model, truth, p), t)
+            rows[i][f"{name}:proj"] = image_errors(place(model, project(truth), p), t)
             rows[i][f"{name}:model"] = image_errors(model.point_image(*p), t)
             print(
                 name,
@@ -301,7 +282,7 @@ def main_abm(n, truthscan, out_json, model_path, scan9, n_sweep):
 
     t0 = time.time()
     truth = truth_crops(model, pts)
-    s0_truth = place(model.geometry, S, truth[0], pts[0], model.sensor_shape).sum()
+    s0_truth = place(model, truth[0], pts[0]).sum()
     bases = lenslet_bases(crops9, 256)
     print(f"node-crop bases {[len(b) for b in bases]} {time.time() - t0:.0f} s", flush=True)
     for k in (64, 128, 256):
@@ -315,13 +296,9 @@ def main_abm(n, truthscan, out_json, model_path, scan9, n_sweep):
 
         for i, (_g, _r, p) in enumerate(em):
             t = traced[i + 1] / u
-            rows[i][f"crops_basis:truth_proj_K{k}"] = image_errors(
-                place(model.geometry, S, proj_k(truth[i + 1] / s0_truth), p, model.sensor_shape), t
-            )
+            rows[i][f"crops_basis:truth_proj_K{k}"] = image_errors(place(model, proj_k(truth[i + 1] / s0_truth), p), t)
             if k == 64:
-                rows[i]["crops_basis:truth"] = image_errors(
-                    place(model.geometry, S, truth[i + 1] / s0_truth, p, model.sensor_shape), t
-                )
+                rows[i]["crops_basis:truth"] = image_errors(place(model, truth[i + 1] / s0_truth, p), t)
         dump(rows, {"stage": "crops basis"})
         print(k, np.mean([rows[i][f"crops_basis:truth_proj_K{k}"]["error"] for i in range(len(em))]), flush=True)
     del bases, truth
@@ -329,7 +306,7 @@ def main_abm(n, truthscan, out_json, model_path, scan9, n_sweep):
     from dataclasses import replace as dc_replace
 
     node0 = int(np.flatnonzero(np.all(np.abs(positions9) < 1e-9, axis=1))[0])
-    s0_scan9 = place(model.geometry, S, crops9[node0].astype(np.float64), (0.0, 0.0, 0.0), model.sensor_shape).sum()
+    s0_scan9 = place(model, crops9[node0].astype(np.float64), (0.0, 0.0, 0.0)).sum()
     t0 = time.time()
     coeff = np.zeros_like(model.coefficients)
     for j in range(model.n_lenslets):
@@ -362,23 +339,23 @@ def main_abm(n, truthscan, out_json, model_path, scan9, n_sweep):
         design, crops9, index9, positions9, np.arange(len(positions9)), zs, model
     )
     node0 = int(np.flatnonzero(np.all(np.abs(positions9) < 1e-9, axis=1))[0])
-    s0_scan9 = place(model.geometry, S, crops9[node0].astype(np.float64), (0.0, 0.0, 0.0), model.sensor_shape).sum()
+    s0_scan9 = place(model, crops9[node0].astype(np.float64), (0.0, 0.0, 0.0)).sum()
     node_of = {tuple(np.round(q, 6)): k for k, q in enumerate(positions9)}
     J = model.n_lenslets
     offset_diff = placement_difference(lmodels, pmodels, [p for _, _, p in em])
     render, render_px = renderer(model, lmodels), renderer(model, pmodels)
 
-    a0 = place(model.geometry, S, render(pts[0]), pts[0], model.sensor_shape).sum()
+    a0 = place(model, render(pts[0]), pts[0]).sum()
     project, kind = projector(model)
     t0 = time.time()
     for i, (g, _r, p) in enumerate(em):
         t = traced[i + 1] / u
         a = render(p) / s0_scan9
-        rows[i]["abm:render"] = image_errors(place(model.geometry, S, a, p, model.sensor_shape), t)
-        rows[i]["abm:render_proj"] = image_errors(place(model.geometry, S, project(a), p, model.sensor_shape), t)
+        rows[i]["abm:render"] = image_errors(place(model, a, p), t)
+        rows[i]["abm:render_proj"] = image_errors(place(model, project(a), p), t)
         b = render_px(p) / s0_scan9
-        rows[i]["abm_px:render"] = image_errors(place(model.geometry, S, b, p, model.sensor_shape), t)
-        rows[i]["abm_px:render_proj"] = image_errors(place(model.geometry, S, project(b), p, model.sensor_shape), t)
+        rows[i]["abm_px:render"] = image_errors(place(model, b, p), t)
+        rows[i]["abm_px:render_proj"] = image_errors(place(model, project(b), p), t)
         print("render", g, p, " ".join(f"{k} {rows[i][k]['error']:.3f}" for k in rows[i] if "render" in k), flush=True)
     print(f"renders {time.time() - t0:.0f} s", flush=True)
     dump(rows, {"stage": "renders", "pixel_vs_fine_placement": offset_diff, "s0_scan9": float(s0_scan9)})
@@ -405,7 +382,7 @@ def main_abm(n, truthscan, out_json, model_path, scan9, n_sweep):
                             cache[q] = render(q)
                         blend += w * cache[q]
             key = f"abm:blend_H{H:g}_z{Hz:g}"
-            rows[i][key] = image_errors(place(model.geometry, S, blend / s0_scan9, p, model.sensor_shape), t)
+            rows[i][key] = image_errors(place(model, blend / s0_scan9, p), t)
             if H == 1.0 and Hz == 0.1:  # the scan's own grid: its crops blended, plus the model's change
                 crop_blend = np.zeros_like(blend)
                 for cx in (0, 1):
@@ -416,11 +393,9 @@ def main_abm(n, truthscan, out_json, model_path, scan9, n_sweep):
                             if w > 1e-12:
                                 crop_blend += w * crops9[node_of[tuple(np.round(q, 6))]]
                 here = cache.setdefault(tuple(np.round(p, 6)), render(p))
-                rows[i]["abm:crops_blend_H1"] = image_errors(
-                    place(model.geometry, S, crop_blend / s0_scan9, p, model.sensor_shape), t
-                )
+                rows[i]["abm:crops_blend_H1"] = image_errors(place(model, crop_blend / s0_scan9, p), t)
                 rows[i]["abm:crops_blend_plus_model_change_H1"] = image_errors(
-                    place(model.geometry, S, (crop_blend + here - blend) / s0_scan9, p, model.sensor_shape), t
+                    place(model, (crop_blend + here - blend) / s0_scan9, p), t
                 )
         print(
             "sweep",
@@ -474,7 +449,7 @@ def main_abmfit(n, out_json, model_path, scan9):
     t0 = time.time()
     crops9 = np.asarray(epsf_crops(index9, model.geometry, model.patch_shape, S))
     node0 = int(np.flatnonzero(np.all(np.abs(positions9) < 1e-9, axis=1))[0])
-    s0_scan9 = place(model.geometry, S, crops9[node0].astype(np.float64), (0.0, 0.0, 0.0), model.sensor_shape).sum()
+    s0_scan9 = place(model, crops9[node0].astype(np.float64), (0.0, 0.0, 0.0)).sum()
     print(f"crops {time.time() - t0:.0f} s", flush=True)
     cache_pupils()
     lmodels, pmodels, _ = fit_both_placements(design, crops9, index9, positions9, fit_nodes, zs, model)
@@ -490,10 +465,8 @@ def main_abmfit(n, out_json, model_path, scan9):
         t = traced[i + 1] / u
         for name, render in renders.items():
             a = render(p) / s0_scan9
-            rows[i][f"{name}:render"] = image_errors(place(model.geometry, S, a, p, model.sensor_shape), t)
-            rows[i][f"{name}:render_on_basis"] = image_errors(
-                place(model.geometry, S, model.project(a), p, model.sensor_shape), t
-            )
+            rows[i][f"{name}:render"] = image_errors(place(model, a, p), t)
+            rows[i][f"{name}:render_on_basis"] = image_errors(place(model, model.project(a), p), t)
         print("render", g, p, " ".join(f"{k} {rows[i][k]['error']:.3f}" for k in rows[i] if ":" in k), flush=True)
         if i % 8 == 7:
             keys = sorted({k for r in rows for k in r if ":" in k})
